@@ -1,0 +1,162 @@
+"""ADS configuration: module rates, timing-noise magnitudes, topics and the planner to load.
+
+Loaded from YAML (``configs/ads/default.yaml``) and validated with pydantic; any error names the
+file and the field. Everything that shapes timing lives here, so the jitter is configuration,
+not code.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from deft_gym.messages import DEFAULT_TOPICS, ROLES
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIG_DIR = ROOT / "configs"
+DEFAULT_ADS_CONFIG = CONFIG_DIR / "ads" / "default.yaml"
+
+
+class ConfigError(ValueError):
+    """A configuration file is invalid. The message names the file and the field."""
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Duration(Strict):
+    """A processing-time distribution [ms]: lognormal with the given mean and std, clipped to
+    ``min_ms``, and with probability ``spike_prob`` multiplied by ``spike_factor`` (a scheduling
+    hiccup). With jitter disabled the duration is exactly ``mean_ms``."""
+
+    mean_ms: float = Field(ge=0.0)
+    std_ms: float = Field(default=0.0, ge=0.0)
+    min_ms: float = Field(default=0.0, ge=0.0)
+    spike_prob: float = Field(default=0.0, ge=0.0, le=1.0)
+    spike_factor: float = Field(default=1.0, ge=1.0)
+
+
+class JitterConfig(Strict):
+    """Magnitudes of the timing noise. All draws come from the jitter RNG (its own seed)."""
+
+    enabled: bool = True
+    delivery: Duration = Duration(mean_ms=1.0, std_ms=0.6)
+    drop_prob: float = Field(default=0.001, ge=0.0, lt=1.0)
+    timer_ms: float = Field(default=0.5, ge=0.0, description="std of timer wake-up lateness")
+    dispatch: Duration = Duration(mean_ms=0.3, std_ms=0.2)
+    shuffle_simultaneous: bool = True
+
+
+class ModuleConfig(Strict):
+    """A bus node: either periodic (``rate_hz``) or triggered by a topic role (``trigger``)."""
+
+    rate_hz: float | None = Field(default=None, gt=0.0)
+    trigger: str | None = None
+    processing: Duration = Duration(mean_ms=1.0)
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class PlannerSpec(Strict):
+    """Which planner class to load (``module:Class``) and its parameters."""
+
+    cls: str = Field(default="deft_gym.planner.lattice:LatticePlanner", alias="class")
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class PlanningConfig(ModuleConfig):
+    subscribe: list[str] = ["routing", "localization", "traffic_light", "prediction"]
+    trigger: str | None = "prediction"
+    planner: PlannerSpec = PlannerSpec()
+    publish_input_headers: bool = False
+
+    @field_validator("subscribe")
+    @classmethod
+    def _roles(cls, v: list[str]) -> list[str]:
+        bad = [r for r in v if r not in ROLES]
+        if bad:
+            raise ValueError(f"unknown topic role(s) {bad}; expected some of {list(ROLES)}")
+        return v
+
+
+class AdsConfig(Strict):
+    """The whole ADS: world step, module timing, topic names, planner."""
+
+    world_hz: float = Field(default=20.0, gt=0.0)
+    chassis_hz: float = Field(default=20.0, gt=0.0)
+    topics: dict[str, str] = Field(default_factory=lambda: dict(DEFAULT_TOPICS))
+    jitter: JitterConfig = JitterConfig()
+    routing: ModuleConfig = ModuleConfig(processing=Duration(mean_ms=5.0))
+    localization: ModuleConfig = ModuleConfig(rate_hz=20.0)
+    perception: ModuleConfig = ModuleConfig(rate_hz=10.0)
+    traffic_light: ModuleConfig = ModuleConfig(rate_hz=10.0)
+    prediction: ModuleConfig = ModuleConfig(trigger="perception_obstacles")
+    planning: PlanningConfig = PlanningConfig()
+    control: ModuleConfig = ModuleConfig(rate_hz=20.0)
+
+    @field_validator("topics")
+    @classmethod
+    def _all_roles(cls, v: dict[str, str]) -> dict[str, str]:
+        unknown = sorted(set(v) - set(ROLES))
+        if unknown:
+            raise ValueError(f"unknown topic role(s) {unknown}; expected {list(ROLES)}")
+        return {**DEFAULT_TOPICS, **v}
+
+    def topic(self, role: str) -> str:
+        """Bus topic name of a role."""
+        return self.topics[role]
+
+
+def format_validation_error(path: Path | str, err: ValidationError) -> str:
+    """One line per problem: ``file: field.path: message``."""
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "<root>"
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key"
+        lines.append(f"{path}: {loc}: {msg}")
+    return "\n".join(lines)
+
+
+def load_yaml(path: Path | str) -> Any:
+    """Read a YAML file, turning I/O and syntax errors into :class:`ConfigError`."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1})" if mark else ""
+        raise ConfigError(f"{path}: invalid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+
+
+def load_ads_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None) -> AdsConfig:
+    """Load and validate an ADS config; ``overrides`` is deep-merged on top of the file."""
+    path = Path(path) if path else DEFAULT_ADS_CONFIG
+    data = load_yaml(path) or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    if overrides:
+        data = deep_merge(data, overrides)
+    try:
+        return AdsConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(path, err)) from None
+
+
+def deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    """Recursively merge ``extra`` into a copy of ``base``."""
+    out = dict(base)
+    for k, v in extra.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = deep_merge(out[k], v)
+        else:
+            out[k] = v
+    return out

@@ -1,0 +1,94 @@
+"""Control: tracks the latest planned trajectory at a high rate.
+
+Longitudinal: feed-forward acceleration of the time-matched trajectory point plus feedback on
+speed and station error. Lateral: pure pursuit on the planned path, converted to a steering
+angle for highway-env's bicycle model. A trajectory that has run out (no fresh plan) is
+answered with braking.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from deft_gym.bus import Node, header
+from deft_gym.config import ModuleConfig
+from deft_gym.messages import NS_PER_S
+
+WHEELBASE_HALF = 2.4  # [m] highway-env's bicycle: half the vehicle length
+
+
+class ControlNode(Node):
+    """Trajectory tracking (``params``: ``kp_speed``, ``kp_station``, ``lookahead_min`` [m],
+    ``lookahead_gain`` [s], ``max_accel``, ``max_decel`` [m/s^2], ``max_steering`` [rad])."""
+
+    def __init__(self, cfg: ModuleConfig, topics: dict[str, str]) -> None:
+        self.t_plan, self.t_loc = topics["planning"], topics["localization"]
+        super().__init__("control", [self.t_plan, self.t_loc],
+                         period_ns=round(NS_PER_S / cfg.rate_hz), processing=cfg.processing)
+        self.out_topic = topics["control"]
+        p = cfg.params
+        self.kp_v = float(p.get("kp_speed", 0.8))
+        self.kp_s = float(p.get("kp_station", 0.3))
+        self.la_min = float(p.get("lookahead_min", 3.0))
+        self.la_gain = float(p.get("lookahead_gain", 0.5))
+        self.max_acc = float(p.get("max_accel", 3.0))
+        self.max_dec = float(p.get("max_decel", 8.0))
+        self.max_steer = float(p.get("max_steering", math.pi / 3))
+        self._cache_seq = -1
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def _traj(self, msg: Any) -> dict[str, np.ndarray]:
+        if msg.seq != self._cache_seq:
+            tr = msg.payload["trajectory"]
+            arr = {k: np.asarray(tr[k], dtype=float) for k in ("t", "x", "y", "v", "a")}
+            arr["heading"] = np.unwrap(np.asarray(tr["heading"], dtype=float))
+            seg = np.hypot(np.diff(arr["x"]), np.diff(arr["y"]))
+            arr["s"] = np.concatenate([[0.0], np.cumsum(seg)])
+            self._arrays, self._cache_seq = arr, msg.seq
+        return self._arrays
+
+    def compute(self, now_ns: int) -> list[tuple[str, dict[str, Any]]]:
+        t = now_ns / NS_PER_S
+        plan, loc = self.latest.get(self.t_plan), self.latest.get(self.t_loc)
+        steer, acc, seq = 0.0, -2.0, -1
+        if plan is not None and loc is not None and plan.payload["trajectory"]["t"]:
+            tr = self._traj(plan)
+            seq = plan.seq
+            pose = loc.payload
+            x, y, h, v = pose["x"], pose["y"], pose["heading"], pose["v"]
+            if t > tr["t"][-1]:
+                acc = -3.0
+            else:
+                # longitudinal
+                v_ref = float(np.interp(t, tr["t"], tr["v"]))
+                a_ref = float(np.interp(t, tr["t"], tr["a"]))
+                s_ref = float(np.interp(t, tr["t"], tr["s"]))
+                i = int(np.argmin((tr["x"] - x) ** 2 + (tr["y"] - y) ** 2))
+                hi = tr["heading"][i]
+                s_match = tr["s"][i] + (x - tr["x"][i]) * math.cos(hi) + (y - tr["y"][i]) * math.sin(hi)
+                acc = a_ref + self.kp_v * (v_ref - v) + self.kp_s * (s_ref - s_match)
+                if v_ref < 0.05 and v < 0.3:
+                    acc = min(acc, -1.0)
+                acc = max(-self.max_dec, min(self.max_acc, acc))
+                # lateral: pure pursuit
+                la = self.la_min + self.la_gain * v
+                s_t = s_match + la
+                if s_t <= tr["s"][-1]:
+                    tx = float(np.interp(s_t, tr["s"], tr["x"]))
+                    ty = float(np.interp(s_t, tr["s"], tr["y"]))
+                else:
+                    extra = s_t - tr["s"][-1]
+                    tx = tr["x"][-1] + extra * math.cos(tr["heading"][-1])
+                    ty = tr["y"][-1] + extra * math.sin(tr["heading"][-1])
+                alpha = math.atan2(ty - y, tx - x) - h
+                alpha = (alpha + math.pi) % (2 * math.pi) - math.pi
+                kappa = 2.0 * math.sin(alpha) / max(math.hypot(tx - x, ty - y), 1e-3)
+                beta = math.asin(max(-1.0, min(1.0, kappa * WHEELBASE_HALF)))
+                steer = math.atan(2.0 * math.tan(beta))
+                steer = max(-self.max_steer, min(self.max_steer, steer))
+        payload = {"header": header(t, self.name), "steering": steer, "acceleration": acc,
+                   "trajectory_seq": seq}
+        return [(self.out_topic, payload)]

@@ -1,0 +1,74 @@
+"""Prediction: a deliberately simple predictor, triggered by every perception message.
+
+Static obstacles stay where they are. A moving obstacle keeps its speed and its lateral offset
+along its lane, and at the end of the lane continues on the successor with the least turning -
+so it misses lane changes, turns and stops at red lights, like the constant-velocity
+predictors real stacks fall back to.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from deft_gym.bus import Node, header
+from deft_gym.config import ModuleConfig
+from deft_gym.geometry import wrap_angle
+from deft_gym.messages import NS_PER_S
+from deft_gym.roadmap import RoadMap
+
+STATIC_TYPES = ("CONE", "STATIC_VEHICLE")
+
+
+class PredictionNode(Node):
+    """Predicted trajectories over ``params.horizon`` [s] at ``params.dt`` [s]."""
+
+    def __init__(self, roadmap: RoadMap, cfg: ModuleConfig, in_topic: str, out_topic: str) -> None:
+        super().__init__("prediction", [in_topic], trigger=in_topic, processing=cfg.processing)
+        self.roadmap, self.in_topic, self.out_topic = roadmap, in_topic, out_topic
+        self.horizon = float(cfg.params.get("horizon", 6.0))
+        self.dt = float(cfg.params.get("dt", 0.2))
+        self.static_speed = float(cfg.params.get("static_speed", 0.3))
+        self.t = np.arange(round(self.horizon / self.dt) + 1) * self.dt
+        self._chains: dict[Any, Any] = {}
+
+    def compute(self, now_ns: int) -> list[tuple[str, dict[str, Any]]]:
+        msg = self.latest[self.in_topic]
+        stamp = msg.payload["header"]["stamp"]
+        out = []
+        for ob in msg.payload["obstacles"]:
+            out.append(self._predict(ob, stamp))
+        payload = {"header": header(now_ns / NS_PER_S, self.name), "perception_stamp": stamp,
+                   "obstacles": out}
+        return [(self.out_topic, payload)]
+
+    def _predict(self, ob: dict[str, Any], t0: float) -> dict[str, Any]:
+        base = {"id": ob["id"], "type": ob["type"], "length": ob["length"], "width": ob["width"],
+                "t0": t0, "dt": self.dt, "v": ob["v"]}
+        v = float(ob["v"])
+        if ob["type"] in STATIC_TYPES or v < self.static_speed:
+            return {**base, "is_static": True, "x": [ob["x"]], "y": [ob["y"]], "heading": [ob["heading"]]}
+        xy = np.array([ob["x"], ob["y"]])
+        loc = self.roadmap.locate(xy, ob["heading"], radius=3.0)
+        dist = self.t * v
+        if loc is None:
+            h = ob["heading"]
+            xs = ob["x"] + dist * np.cos(h)
+            ys = ob["y"] + dist * np.sin(h)
+            hs = np.full(self.t.shape, h)
+        else:
+            lane, s, d = loc
+            ref = self._chain(lane, s + dist[-1] + 5.0)
+            ss = s + dist
+            pts = ref.xy(ss, d)
+            xs, ys, hs = pts[:, 0], pts[:, 1], ref.heading(ss)
+        return {**base, "is_static": False, "x": xs.tolist(), "y": ys.tolist(), "heading": wrap_angle(hs).tolist()}
+
+    def _chain(self, lane: Any, length: float) -> Any:
+        key = (lane, int(length // 25))
+        ref = self._chains.get(key)
+        if ref is None:
+            ref = self.roadmap.reference_line(self.roadmap.default_chain(lane, length))
+            self._chains[key] = ref
+        return ref

@@ -1,0 +1,33 @@
+"""Routing: answers the scenario's routing request once, at start-up."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from deft_gym.bus import Node, header
+from deft_gym.config import ModuleConfig
+from deft_gym.messages import NS_PER_S
+from deft_gym.roadmap import LaneId, RoadMap
+
+
+class RoutingNode(Node):
+    """Publishes the lane-level route from the ego's start lane to its destination."""
+
+    def __init__(self, roadmap: RoadMap, start: LaneId, dest: LaneId, dest_s: float,
+                 cruise_speed: float | None, cfg: ModuleConfig, topic: str) -> None:
+        super().__init__("routing", [], processing=cfg.processing)
+        self.roadmap, self.start_lane, self.dest, self.dest_s = roadmap, start, dest, dest_s
+        self.cruise, self.topic = cruise_speed, topic
+
+    def start(self) -> None:
+        self.bus.schedule(0, self._begin)
+
+    def compute(self, now_ns: int) -> list[tuple[str, dict[str, Any]]]:
+        segments = self.roadmap.route_segments(self.start_lane, self.dest) or []
+        payload: dict[str, Any] = {
+            "header": header(now_ns / NS_PER_S, self.name),
+            "segments": segments,
+            "destination": {"lane": list(self.dest), "s": float(self.dest_s)},
+            "cruise_speed": float(self.cruise or self.roadmap.spec.speed_limit),
+        }
+        return [(self.topic, payload)]

@@ -1,0 +1,278 @@
+"""Traffic participants on highway-env's road: static obstacles, scripted NPCs, reactive NPCs.
+
+- :class:`StaticObstacle` - a cone or a parked vehicle (highway-env ``Obstacle``).
+- :class:`ScriptedVehicle` - follows timed waypoints exactly, ignoring everybody (this is how an
+  adversary adds vehicles); present only from its first waypoint time.
+- :class:`ReactiveVehicle` - highway-env's IDM/MOBIL vehicle, which also stops for red lights.
+  Its hot paths are rewritten without numpy scalar calls and with a local lane search; the
+  behaviour (IDM, MOBIL, lane following) is highway-env's own.
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import bisect_right
+from typing import TYPE_CHECKING
+
+import numpy as np
+from highway_env.road.road import Road
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.kinematics import Vehicle
+from highway_env.vehicle.objects import Obstacle
+
+if TYPE_CHECKING:
+    from deft_gym.roadmap import RoadMap
+    from deft_gym.traffic_lights import TrafficLights
+
+SIZES = {"CONE": (0.6, 0.6), "STATIC_VEHICLE": (4.8, 2.0), "VEHICLE": (4.8, 2.0)}
+
+
+class StaticObstacle(Obstacle):
+    """A cone or a parked vehicle. ``LENGTH``/``WIDTH`` [m] are per instance."""
+
+    def __init__(self, road: Road, position: np.ndarray, heading: float, obstacle_type: str,
+                 length: float | None = None, width: float | None = None) -> None:
+        self.LENGTH, self.WIDTH = (length, width) if length else SIZES[obstacle_type]
+        super().__init__(road, position, heading, 0.0)
+        self.obstacle_type = obstacle_type
+        self.check_collisions = False
+
+
+class ScriptedVehicle(Vehicle):
+    """A vehicle that replays timed waypoints ``(t [s], x [m], y [m])`` exactly.
+
+    Between waypoints it moves in a straight line at constant speed; its heading is the
+    direction of motion (kept when it stands still). Before the first waypoint time it is absent;
+    after the last one it stays parked at the last waypoint."""
+
+    obstacle_type = "VEHICLE"
+
+    def __init__(self, road: Road, waypoints: np.ndarray, heading0: float,
+                 length: float = 4.8, width: float = 2.0) -> None:
+        self.LENGTH, self.WIDTH = length, width
+        wp = np.asarray(waypoints, dtype=float)
+        if wp.ndim != 2 or wp.shape[1] != 3 or len(wp) < 1:
+            raise ValueError("waypoints must be an (n, 3) array of (t, x, y)")
+        if np.any(np.diff(wp[:, 0]) <= 0):
+            raise ValueError("waypoint times must increase strictly")
+        self.wp_t = wp[:, 0].tolist()
+        self.wp_xy = wp[:, 1:]
+        seg = np.diff(self.wp_xy, axis=0)
+        dt = np.diff(wp[:, 0])
+        self.seg_v = (seg / dt[:, None]) if len(wp) > 1 else np.zeros((0, 2))
+        heads = [heading0]
+        for d in seg:
+            heads.append(math.atan2(d[1], d[0]) if np.hypot(*d) > 1e-6 else heads[-1])
+        self.seg_heading = heads[1:]
+        super().__init__(road, self.wp_xy[0].copy(), heading0, 0.0)
+        self.check_collisions = False
+        self.spawn_time = self.wp_t[0]
+
+    def place(self, t: float) -> None:
+        """Set the state at time ``t`` [s] (kinematic replay)."""
+        i = bisect_right(self.wp_t, t) - 1
+        if i < 0:
+            i = 0
+            t = self.wp_t[0]
+        if i >= len(self.wp_t) - 1:
+            self.position = self.wp_xy[-1].copy()
+            self.speed = 0.0
+            return
+        v = self.seg_v[i]
+        self.position = self.wp_xy[i] + v * (t - self.wp_t[i])
+        self.speed = math.hypot(v[0], v[1])
+        self.heading = self.seg_heading[i]
+
+    def act(self, action=None) -> None:
+        pass
+
+    def step(self, dt: float) -> None:
+        pass
+
+
+def _not_zero(x: float, eps: float = 1e-2) -> float:
+    if abs(x) > eps:
+        return x
+    return eps if x >= 0 else -eps
+
+
+def _wrap(x: float) -> float:
+    return ((x + math.pi) % (2 * math.pi)) - math.pi
+
+
+def bicycle_step(v: Vehicle, dt: float) -> None:
+    """highway-env's ``Vehicle.step`` (kinematic bicycle) in scalar math; identical equations,
+    without the per-call numpy overhead. ``v.clip_actions()`` runs first, as in highway-env."""
+    v.clip_actions()
+    delta_f = v.action["steering"]
+    beta = math.atan(0.5 * math.tan(delta_f))
+    speed, heading = v.speed, v.heading
+    x, y = v.position
+    x += speed * math.cos(heading + beta) * dt
+    y += speed * math.sin(heading + beta) * dt
+    v.position = np.array([x, y]) if v.impact is None else np.array([x, y]) + v.impact
+    if v.impact is not None:
+        v.crashed = True
+        v.impact = None
+    v.heading = heading + speed * math.sin(beta) / (v.LENGTH / 2) * dt
+    v.speed = speed + v.action["acceleration"] * dt
+    v.on_state_update()
+
+
+class ReactiveVehicle(IDMVehicle):
+    """highway-env's IDM/MOBIL vehicle that also respects traffic lights.
+
+    It stops before a stop line whose light is red, or yellow when it can still stop at
+    ``COMFORT_ACC_MIN``, by adding a virtual standing leader at the line to IDM.
+
+    ``act``, ``acceleration``, ``steering_control`` and ``step`` are highway-env's formulas
+    written with scalar math, and neighbours come from :class:`deft_gym.road.FastRoad`; the test
+    suite checks the trajectories against stock highway-env. MOBIL (``change_lane_policy``,
+    ``mobil``) is highway-env's own code.
+    """
+
+    obstacle_type = "VEHICLE"
+    STOP_GAP = 2.0  # [m] standstill distance before the stop line
+
+    def __init__(self, road: Road, roadmap: RoadMap, lights: TrafficLights | None,
+                 clock: list[float], *args, **kwargs) -> None:
+        self.roadmap = roadmap
+        self.lights = lights
+        self.clock = clock  # shared one-element list holding the world time
+        super().__init__(road, *args, **kwargs)
+
+    # -- traffic lights ---------------------------------------------------------------------
+    def _light_acceleration(self) -> float | None:
+        if self.lights is None:
+            return None
+        sl = self.roadmap.stop_line_of.get(self.lane_index)
+        if sl is None:
+            return None
+        color = self.lights.color(sl.light_id, self.clock[0])
+        if color == "GREEN":
+            return None
+        s, _ = self.lane.local_coordinates(self.position)
+        gap = sl.s - s - self.LENGTH / 2 - self.STOP_GAP
+        if gap < -self.STOP_GAP:
+            return None  # already past the line
+        if color == "YELLOW" and gap < self.speed**2 / (2 * -self.COMFORT_ACC_MIN):
+            return None  # too close to stop comfortably: go
+        gap = max(gap, 0.1)
+        v0 = max(self.target_speed, 0.1)
+        d_star = 0.5 + self.speed * self.TIME_WANTED + self.speed**2 / (
+            2 * math.sqrt(-self.COMFORT_ACC_MAX * self.COMFORT_ACC_MIN))
+        return self.COMFORT_ACC_MAX * (1 - (max(self.speed, 0.0) / v0) ** self.DELTA - (d_star / gap) ** 2)
+
+    def act(self, action=None) -> None:
+        """IDM/MOBIL (highway-env's ``IDMVehicle.act``), then the red-light constraint."""
+        if self.crashed:
+            return
+        self.follow_road()
+        if self.enable_lane_change:
+            self.change_lane_policy()
+        steering = self.steering_control(self.target_lane_index)
+        front, rear = self.road.neighbour_vehicles(self, self.lane_index)
+        acc = self.acceleration(self, front, rear)
+        if self.lane_index != self.target_lane_index:
+            front, rear = self.road.neighbour_vehicles(self, self.target_lane_index)
+            acc = min(acc, self.acceleration(self, front, rear))
+        acc = max(-self.ACC_MAX, min(self.ACC_MAX, acc))
+        acc_light = self._light_acceleration()
+        if acc_light is not None and acc_light < acc:
+            acc = max(acc_light, -self.ACC_MAX)
+        self.action = {"steering": max(-self.MAX_STEERING_ANGLE, min(self.MAX_STEERING_ANGLE, steering)),
+                       "acceleration": acc}
+
+    def acceleration(self, ego_vehicle: Vehicle, front_vehicle: Vehicle = None,
+                     rear_vehicle: Vehicle = None) -> float:
+        """highway-env's IDM acceleration [m/s^2]."""
+        if not ego_vehicle or not isinstance(ego_vehicle, Vehicle):
+            return 0
+        target = getattr(ego_vehicle, "target_speed", 0)
+        lane = ego_vehicle.lane
+        if lane and lane.speed_limit is not None:
+            target = max(0.0, min(lane.speed_limit, target))
+        acc = self.COMFORT_ACC_MAX * (1 - (max(ego_vehicle.speed, 0) / abs(_not_zero(target))) ** self.DELTA)
+        if front_vehicle:
+            d = ego_vehicle.lane_distance_to(front_vehicle)
+            acc -= self.COMFORT_ACC_MAX * (self.desired_gap(ego_vehicle, front_vehicle) / _not_zero(d)) ** 2
+        return acc
+
+    def desired_gap(self, ego_vehicle: Vehicle, front_vehicle: Vehicle = None, projected: bool = True) -> float:
+        """highway-env's IDM desired gap [m]."""
+        ab = -self.COMFORT_ACC_MAX * self.COMFORT_ACC_MIN
+        if projected:
+            h = ego_vehicle.heading
+            c, s = math.cos(h), math.sin(h)
+            fh = front_vehicle.heading
+            dv = (ego_vehicle.speed * c - front_vehicle.speed * math.cos(fh)) * c + (
+                ego_vehicle.speed * s - front_vehicle.speed * math.sin(fh)) * s
+        else:
+            dv = ego_vehicle.speed - front_vehicle.speed
+        v = ego_vehicle.speed
+        return self.DISTANCE_WANTED + v * self.TIME_WANTED + v * dv / (2 * math.sqrt(ab))
+
+    def steering_control(self, target_lane_index) -> float:
+        """highway-env's lane-following steering (lateral P + heading P) [rad]."""
+        geom = self.roadmap.geoms[target_lane_index]
+        s, lat = geom.frenet_point(*self.position)
+        future_heading = geom.heading_point(s + self.speed * self.TAU_PURSUIT)
+        lat_speed_cmd = -self.KP_LATERAL * lat
+        heading_cmd = math.asin(max(-1.0, min(1.0, lat_speed_cmd / _not_zero(self.speed))))
+        heading_ref = future_heading + max(-math.pi / 4, min(math.pi / 4, heading_cmd))
+        rate_cmd = self.KP_HEADING * _wrap(heading_ref - self.heading)
+        slip = math.asin(max(-1.0, min(1.0, self.LENGTH / 2 / _not_zero(self.speed) * rate_cmd)))
+        steer = math.atan(2 * math.tan(slip))
+        return max(-self.MAX_STEERING_ANGLE, min(self.MAX_STEERING_ANGLE, steer))
+
+    def step(self, dt: float) -> None:
+        self.timer += dt
+        bicycle_step(self, dt)
+
+    def clip_actions(self) -> None:
+        a = self.action
+        if self.crashed:
+            a["steering"] = 0
+            a["acceleration"] = -1.0 * self.speed
+        a["steering"] = float(a["steering"])
+        a["acceleration"] = float(a["acceleration"])
+        if self.speed > self.MAX_SPEED:
+            a["acceleration"] = min(a["acceleration"], 1.0 * (self.MAX_SPEED - self.speed))
+        elif self.speed < self.MIN_SPEED:
+            a["acceleration"] = max(a["acceleration"], 1.0 * (self.MIN_SPEED - self.speed))
+
+    def lane_distance_to(self, other, lane=None) -> float:
+        if not other:
+            return math.nan
+        lane_index = self.lane_index if lane is None else None
+        if lane_index is not None and hasattr(self.road, "lane_coordinates"):
+            s_all, _ = self.road.lane_coordinates(lane_index)
+            i, j = self.road.index_of(other), self.road.index_of(self)
+            if i >= 0 and j >= 0:
+                return float(s_all[i] - s_all[j])
+        return super().lane_distance_to(other, lane)
+
+    # -- faster versions of highway-env hot paths (same results) ---------------------------
+    def on_state_update(self) -> None:
+        """Track the current lane among the previous lane, its neighbours and successors
+        (highway-env searches every lane of the map at every step)."""
+        if self.lane_index is None:
+            return super().on_state_update()
+        x, y = self.position
+        g = self.roadmap.geoms[self.lane_index]
+        s, r = g.frenet_point(x, y)
+        if self.lane_index == self.target_lane_index and abs(r) < g.width / 2 - 0.3 and 0.0 <= s <= g.length - 0.5:
+            return  # well inside the current lane: it stays the closest one
+        cand = [self.lane_index, *self.roadmap.successors.get(self.lane_index, ())]
+        cand += self.road.network.side_lanes(self.lane_index)
+        if self.target_lane_index not in cand:
+            cand.append(self.target_lane_index)
+        best, best_d = self.lane_index, math.inf
+        for idx in cand:  # highway-env's distance_with_heading, scalar
+            g = self.roadmap.geoms[idx]
+            s, r = g.frenet_point(x, y)
+            d = abs(r) + max(s - g.length, 0) + max(0 - s, 0) + abs(_wrap(self.heading - g.heading_point(s)))
+            if d < best_d:
+                best, best_d = idx, d
+        self.lane_index = best
+        self.lane = self.road.network.get_lane(best)

@@ -1,0 +1,204 @@
+"""The simulated world: highway-env road, the ego vehicle, participants, lights, collisions.
+
+The ego is a highway-env kinematic bicycle driven *only* by control commands (steering [rad],
+acceleration [m/s^2]) that arrive over the bus. The world is the ground truth the sensor
+modules sample and the collision oracle checks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import shapely
+from highway_env.vehicle.kinematics import Vehicle
+
+from deft_gym.participants import ReactiveVehicle, ScriptedVehicle, StaticObstacle, bicycle_step
+from deft_gym.road import FastRoad
+from deft_gym.roadmap import RoadMap
+from deft_gym.traffic_lights import TrafficLights
+
+
+class EgoVehicle(Vehicle):
+    """highway-env's bicycle model without reverse gear and without per-step lane search."""
+
+    LENGTH = 4.8
+    WIDTH = 2.0
+    MAX_STEERING = math.radians(35.0)
+
+    def __init__(self, road: FastRoad, position: np.ndarray, heading: float, speed: float) -> None:
+        super().__init__(road, position, heading, speed)
+        self.check_collisions = False
+        self.accel = 0.0
+        self.yaw_rate = 0.0
+
+    def clip_actions(self) -> None:
+        a = self.action
+        a["steering"] = max(-self.MAX_STEERING, min(self.MAX_STEERING, float(a["steering"])))
+        acc = float(a["acceleration"])
+        if self.speed <= 0.0:
+            acc = max(acc, 0.0)
+        a["acceleration"] = acc
+
+    def step(self, dt: float) -> None:
+        heading0, speed0 = self.heading, self.speed
+        bicycle_step(self, dt)
+        if self.speed < 0.0:
+            self.speed = 0.0
+        if self.speed > self.MAX_SPEED:
+            self.speed = self.MAX_SPEED
+        self.accel = (self.speed - speed0) / dt
+        self.yaw_rate = (self.heading - heading0) / dt
+
+    def on_state_update(self) -> None:
+        pass
+
+
+@dataclass
+class Participant:
+    """A participant of the scenario and the road object that embodies it."""
+
+    id: str
+    num: int  # integer id used in perception messages
+    kind: str  # static | scripted | reactive
+    obj: Any
+
+    @property
+    def obstacle_type(self) -> str:
+        return self.obj.obstacle_type
+
+    def present(self, t: float) -> bool:
+        return self.kind != "scripted" or t >= self.obj.spawn_time
+
+
+@dataclass
+class Collision:
+    """What the collision oracle saw."""
+
+    participant: str
+    kind: str
+    obstacle_type: str
+    time: float
+    ego_speed: float
+    ego_moving: bool
+    x: float
+    y: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+class World:
+    """Ground truth: road, ego, participants, lights, time [s]."""
+
+    def __init__(self, roadmap: RoadMap, lights: TrafficLights | None, seed: int = 0) -> None:
+        self.roadmap = roadmap
+        self.lights = lights
+        self.road = FastRoad(network=roadmap.network, np_random=np.random.RandomState(seed),
+                             record_history=False, geoms=roadmap.geoms)
+        self.clock = [0.0]
+        self.ego: EgoVehicle | None = None
+        self.participants: list[Participant] = []
+        self.collision: Collision | None = None
+        self.min_distance = math.inf
+
+    @property
+    def time(self) -> float:
+        return self.clock[0]
+
+    # -- building ---------------------------------------------------------------------------
+    def add_ego(self, position: np.ndarray, heading: float, speed: float) -> EgoVehicle:
+        self.ego = EgoVehicle(self.road, position, heading, speed)
+        self.road.vehicles.insert(0, self.ego)
+        return self.ego
+
+    def add_participant(self, pid: str, kind: str, obj: Any) -> Participant:
+        p = Participant(pid, len(self.participants) + 1, kind, obj)
+        self.participants.append(p)
+        if kind == "static":
+            self.road.objects.append(obj)
+        elif kind == "reactive" or (kind == "scripted" and obj.spawn_time <= self.time):
+            self.road.vehicles.append(obj)
+        return p
+
+    # -- stepping ---------------------------------------------------------------------------
+    def step(self, dt: float, steering: float, acceleration: float) -> None:
+        """Advance by ``dt`` [s]: NPC decisions, kinematics, then the collision check."""
+        road = self.road
+        reactive = [p.obj for p in self.participants if p.kind == "reactive"]
+        for obj in reactive:  # decisions on the current state, then all move (as highway-env)
+            obj.act()
+        for obj in reactive:
+            obj.step(dt)
+        t = self.clock[0] + dt
+        self.clock[0] = t
+        for p in self.participants:
+            if p.kind == "scripted":
+                obj = p.obj
+                if obj not in road.vehicles and t >= obj.spawn_time:
+                    road.vehicles.append(obj)
+                obj.place(t)
+        ego = self.ego
+        ego.act({"steering": steering, "acceleration": acceleration})
+        ego.step(dt)
+        road.advance()
+        self._check_collisions(t)
+
+    def present_participants(self) -> list[Participant]:
+        t = self.clock[0]
+        return [p for p in self.participants if p.present(t)]
+
+    def _check_collisions(self, t: float) -> None:
+        ego = self.ego
+        present = self.present_participants()
+        if not present:
+            return
+        pos = np.array([p.obj.position for p in present])
+        radius = np.array([p.obj.diagonal for p in present]) / 2
+        centre_gap = np.hypot(*(pos - ego.position).T) - radius - ego.diagonal / 2
+        # exact polygon distances only where they can lower the minimum (or be a collision):
+        # the bounding-circle gap is a lower bound of the polygon distance
+        order = np.argsort(centre_gap)
+        ego_poly = None
+        for i in order:
+            if centre_gap[i] >= self.min_distance:
+                break
+            if ego_poly is None:
+                ego_poly = shapely.Polygon(ego.polygon())
+            other = shapely.Polygon(present[i].obj.polygon())
+            dist = ego_poly.distance(other)
+            self.min_distance = min(self.min_distance, dist)
+            if dist <= 0.0 and self.collision is None:
+                p = present[i]
+                self.collision = Collision(p.id, p.kind, p.obstacle_type, t, float(ego.speed),
+                                           bool(ego.speed > 0.1), float(ego.position[0]),
+                                           float(ego.position[1]))
+
+    # -- ground truth for sensors -----------------------------------------------------------
+    def ego_state(self) -> dict[str, float]:
+        e = self.ego
+        return {"x": float(e.position[0]), "y": float(e.position[1]), "heading": float(e.heading),
+                "v": float(e.speed), "a": float(e.accel), "yaw_rate": float(e.yaw_rate),
+                "steering": float(e.action["steering"])}
+
+    def obstacles(self) -> list[dict[str, Any]]:
+        """Ground-truth state of every present participant."""
+        out = []
+        for p in self.present_participants():
+            o = p.obj
+            out.append({"id": p.num, "type": p.obstacle_type, "x": float(o.position[0]),
+                        "y": float(o.position[1]), "heading": float(o.heading),
+                        "v": float(o.speed), "length": float(o.LENGTH), "width": float(o.WIDTH)})
+        return out
+
+    def light_colors(self) -> list[dict[str, str]]:
+        if self.lights is None:
+            return []
+        t = self.clock[0]
+        return [{"id": lid, "color": self.lights.color(lid, t)} for lid in self.lights.ids]
+
+
+__all__ = ["Collision", "EgoVehicle", "Participant", "ReactiveVehicle", "ScriptedVehicle",
+           "StaticObstacle", "World"]
