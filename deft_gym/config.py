@@ -58,10 +58,14 @@ class ModuleConfig(Strict):
     trigger: str | None = None
     processing: Duration = Duration(mean_ms=1.0)
     params: dict[str, Any] = Field(default_factory=dict)
+    node: str | None = Field(default=None, description="'module:Class' replacing the built-in node "
+                             "class (same constructor arguments), e.g. a fault-injecting or hardened variant")
 
 
 class PlannerSpec(Strict):
     """Which planner class to load (``module:Class``) and its parameters."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
     cls: str = Field(default="deft_gym.planner.lattice:LatticePlanner", alias="class")
     params: dict[str, Any] = Field(default_factory=dict)

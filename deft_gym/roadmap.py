@@ -335,3 +335,16 @@ class RoadMap:
             right = g.xy(s, g.width / 2)
             polys.append(shapely.Polygon(np.concatenate([left, right[::-1]])))
         return shapely.union_all(polys)
+
+
+_SHARED: dict[str, RoadMap] = {}
+
+
+def shared_roadmap(spec: MapSpec | dict[str, Any]) -> RoadMap:
+    """A :class:`RoadMap` per map spec, built once per process (maps are immutable)."""
+    spec = spec if isinstance(spec, MapSpec) else MapSpec.model_validate(spec)
+    key = spec.model_dump_json()
+    rm = _SHARED.get(key)
+    if rm is None:
+        rm = _SHARED[key] = RoadMap(spec)
+    return rm

@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
 from deft_gym.config import CONFIG_DIR, ConfigError, format_validation_error, load_yaml
 from deft_gym.participants import SIZES, ReactiveVehicle, ScriptedVehicle, StaticObstacle
-from deft_gym.roadmap import MapSpec, RoadMap
+from deft_gym.roadmap import MapSpec, RoadMap, shared_roadmap
 from deft_gym.traffic_lights import LightPlan, TrafficLights
 from deft_gym.world import World
 
@@ -146,7 +146,7 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>") -> Scen
     except ValidationError as err:
         raise ConfigError(format_validation_error(source, err)) from None
     sc.source = source
-    errors = check_against_map(sc, RoadMap(sc.map))
+    errors = check_against_map(sc, shared_roadmap(sc.map))
     if errors:
         raise ConfigError("\n".join(f"{source}: {e}" for e in errors))
     return sc
@@ -170,19 +170,37 @@ def _lane_problem(roadmap: RoadMap, lane: tuple[str, str, int] | None, s: float 
     return None
 
 
+class _LaneChecker:
+    """Collects ``field: problem`` lines for lane references."""
+
+    def __init__(self, roadmap: RoadMap) -> None:
+        self.roadmap = roadmap
+        self.errs: list[str] = []
+
+    def __call__(self, field: str, lane: Any, s: Any) -> None:
+        p = _lane_problem(self.roadmap, lane, s)
+        if p:
+            self.errs.append(f"{field}: {p}")
+
+
 def check_against_map(sc: Scenario, roadmap: RoadMap) -> list[str]:
     """Every lane reference exists, positions lie on their lanes, destinations are reachable."""
-    errs: list[str] = []
-
-    def chk(field: str, lane: Any, s: Any) -> None:
-        p = _lane_problem(roadmap, lane, s)
-        if p:
-            errs.append(f"{field}: {p}")
-
+    chk = _LaneChecker(roadmap)
+    errs = chk.errs
     chk("ego.lane", sc.ego.lane, sc.ego.s)
     chk("ego.destination.lane", sc.ego.destination.lane, sc.ego.destination.s)
     if not errs and sc.ego.lane is not None and roadmap.lane_route(sc.ego.lane, sc.ego.destination.lane) is None:
         errs.append(f"ego.destination.lane: {list(sc.ego.destination.lane)} is not reachable from {list(sc.ego.lane)}")
+    errs += _participant_errors(sc, roadmap)
+    if sc.lights is not None and not roadmap.stop_lines:
+        errs.append(f"lights: map '{roadmap.spec.type}' has no traffic lights")
+    return errs
+
+
+def _participant_errors(sc: Scenario, roadmap: RoadMap) -> list[str]:
+    chk = _LaneChecker(roadmap)
+    errs = chk.errs
+
     for i, p in enumerate(sc.participants):
         base = f"participants.{i}"
         if isinstance(p, ScriptedSpec):
@@ -198,8 +216,6 @@ def check_against_map(sc: Scenario, roadmap: RoadMap) -> list[str]:
                 if roadmap.has_lane(p.lane) and roadmap.has_lane(p.destination.lane) and \
                         roadmap.lane_route(p.lane, p.destination.lane) is None:
                     errs.append(f"{base}.destination.lane: not reachable from {list(p.lane)}")
-    if sc.lights is not None and not roadmap.stop_lines:
-        errs.append(f"lights: map '{roadmap.spec.type}' has no traffic lights")
     return errs
 
 
@@ -248,38 +264,64 @@ def scripted_waypoints(roadmap: RoadMap, spec: ScriptedSpec, step: float = 0.5) 
 
 def build_world(sc: Scenario, roadmap: RoadMap | None = None) -> World:
     """The world at t = 0: ego, participants and lights of the scenario."""
-    roadmap = roadmap or RoadMap(sc.map)
+    roadmap = roadmap or shared_roadmap(sc.map)
     lights = TrafficLights(roadmap.light_groups, sc.lights) if roadmap.light_groups else None
     world = World(roadmap, lights, seed=sc.seed)
     xy, h = pose_xyh(roadmap, sc.ego)
     world.add_ego(xy, h, sc.ego.speed)
     for p in sc.participants:
-        if isinstance(p, StaticSpec):
-            xy, h = pose_xyh(roadmap, p)
-            length, width = (p.length, p.width or SIZES[p.obstacle][1]) if p.length else SIZES[p.obstacle]
-            obj = StaticObstacle(world.road, xy, h, p.obstacle, length, width)
-        elif isinstance(p, ScriptedSpec):
-            wp, h = scripted_waypoints(roadmap, p)
-            obj = ScriptedVehicle(world.road, wp, h, p.length, p.width)
-        else:
-            xy, h = pose_xyh(roadmap, p)
-            route = None
-            if p.destination is not None:
-                lanes = roadmap.lane_route(p.lane, p.destination.lane) or [p.lane]
-                route = []
-                for lid in lanes:  # collapse lane changes: one entry per road, last lane wins
-                    if route and route[-1][:2] == lid[:2]:
-                        route[-1] = lid
-                    else:
-                        route.append(lid)
-            v0 = p.target_speed or roadmap.geom(p.lane).lane.speed_limit
-            obj = ReactiveVehicle(world.road, roadmap, lights, world.clock, xy, h, p.speed,
-                                  target_lane_index=tuple(p.lane), target_speed=v0, route=route,
-                                  enable_lane_change=p.lane_change)
-            obj.lane_index = tuple(p.lane)
-            obj.lane = roadmap.lanes[tuple(p.lane)]
-        world.add_participant(p.id, p.type, obj)
+        add_participant(world, p)
     return world
+
+
+_PARTICIPANT = TypeAdapter(ParticipantSpec)
+
+
+def parse_participant(spec: dict[str, Any] | StaticSpec | ScriptedSpec | ReactiveSpec, roadmap: RoadMap,
+                      source: str = "participant") -> StaticSpec | ScriptedSpec | ReactiveSpec:
+    """Validate one participant description (the scenario's schema) against the map."""
+    if not isinstance(spec, dict):
+        return spec
+    try:
+        p = _PARTICIPANT.validate_python(spec)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(source, err)) from None
+    probe = Scenario.model_construct(participants=[p], lights=None)
+    errs = [e for e in _participant_errors(probe, roadmap)]
+    if errs:
+        raise ConfigError("\n".join(f"{source}: {e}" for e in errs))
+    return p
+
+
+def add_participant(world: World, p: StaticSpec | ScriptedSpec | ReactiveSpec) -> Any:
+    """Create the road object of a participant and put it in the world (also mid-episode: a
+    scripted vehicle appears at its first waypoint time, others at once)."""
+    roadmap, lights = world.roadmap, world.lights
+    if isinstance(p, StaticSpec):
+        xy, h = pose_xyh(roadmap, p)
+        length, width = (p.length, p.width or SIZES[p.obstacle][1]) if p.length else SIZES[p.obstacle]
+        obj = StaticObstacle(world.road, xy, h, p.obstacle, length, width)
+    elif isinstance(p, ScriptedSpec):
+        wp, h = scripted_waypoints(roadmap, p)
+        obj = ScriptedVehicle(world.road, wp, h, p.length, p.width)
+    else:
+        xy, h = pose_xyh(roadmap, p)
+        route = None
+        if p.destination is not None:
+            lanes = roadmap.lane_route(p.lane, p.destination.lane) or [p.lane]
+            route = []
+            for lid in lanes:  # collapse lane changes: one entry per road, last lane wins
+                if route and route[-1][:2] == lid[:2]:
+                    route[-1] = lid
+                else:
+                    route.append(lid)
+        v0 = p.target_speed or roadmap.geom(p.lane).lane.speed_limit
+        obj = ReactiveVehicle(world.road, roadmap, lights, world.clock, xy, h, p.speed,
+                              target_lane_index=tuple(p.lane), target_speed=v0, route=route,
+                              enable_lane_change=p.lane_change)
+        obj.lane_index = tuple(p.lane)
+        obj.lane = roadmap.lanes[tuple(p.lane)]
+    return world.add_participant(p.id, p.type, obj)
 
 
 def list_scenarios() -> list[Path]:

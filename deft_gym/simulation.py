@@ -28,9 +28,9 @@ from deft_gym.modules.prediction import PredictionNode
 from deft_gym.modules.routing import RoutingNode
 from deft_gym.modules.sensors import LocalizationNode, PerceptionNode, TrafficLightNode
 from deft_gym.oracles import EpisodeOracle, Outcome
-from deft_gym.planner.base import load_planner
-from deft_gym.planner.lattice import shared_roadmap
+from deft_gym.planner.base import import_object, load_planner
 from deft_gym.recorder import McapRecorder, write_atomic, write_truth
+from deft_gym.roadmap import shared_roadmap
 from deft_gym.scenario import Scenario, build_world, destination_xy, load_scenario, scenario_to_dict
 from deft_gym.world import World
 
@@ -124,19 +124,21 @@ class Simulation:
         start_lane = tuple(sc.ego.lane) if sc.ego.lane else self.roadmap.locate(
             self.world.ego.position, self.world.ego.heading)[0]
         self.simulator = SimulatorNode(self)
-        self.planning = PlanningNode(self.planner, ads.planning, topics)
+        self.planning = _node(PlanningNode, ads.planning, self.planner, ads.planning, topics)
         nodes: list[Node] = [
             self.simulator,
-            RoutingNode(self.roadmap, start_lane, tuple(sc.ego.destination.lane), dest_s,
-                        sc.ego.cruise_speed, ads.routing, topics["routing"]),
-            LocalizationNode(self.world, ads.localization, topics["localization"], sc.seed),
-            PerceptionNode(self.world, ads.perception, topics["perception_obstacles"]),
-            PredictionNode(self.roadmap, ads.prediction, topics["perception_obstacles"], topics["prediction"]),
+            _node(RoutingNode, ads.routing, self.roadmap, start_lane, tuple(sc.ego.destination.lane), dest_s,
+                  sc.ego.cruise_speed, ads.routing, topics["routing"]),
+            _node(LocalizationNode, ads.localization, self.world, ads.localization, topics["localization"], sc.seed),
+            _node(PerceptionNode, ads.perception, self.world, ads.perception, topics["perception_obstacles"]),
+            _node(PredictionNode, ads.prediction, self.roadmap, ads.prediction, topics["perception_obstacles"],
+                  topics["prediction"]),
             self.planning,
-            ControlNode(ads.control, topics),
+            _node(ControlNode, ads.control, ads.control, topics),
         ]
         if self.world.lights is not None:
-            nodes.insert(4, TrafficLightNode(self.world, ads.traffic_light, topics["traffic_light"]))
+            nodes.insert(4, _node(TrafficLightNode, ads.traffic_light, self.world, ads.traffic_light,
+                                  topics["traffic_light"]))
         for n in nodes:
             self.bus.add(n)
         self.out_dir = Path(out_dir) if out_dir else None
@@ -144,6 +146,10 @@ class Simulation:
         if self.out_dir is not None:
             self.recorder = McapRecorder(self.out_dir / "episode.mcap", topics, self.metadata(), compress=compress)
             self.bus.taps.append(self.recorder)
+        self.added: list[dict[str, Any]] = []
+        self._wall = 0.0
+        self._started = False
+        self._result: EpisodeResult | None = None
         self.planning_outputs: list[dict[str, Any]] = []
         if keep_planning:
             t_plan = topics["planning"]
@@ -168,30 +174,75 @@ class Simulation:
             "ads_config": ads.model_dump(mode="json", by_alias=True),
         }
 
+    # -- running ----------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the modules (idempotent)."""
+        if not self._started:
+            self._started = True
+            self.bus.start()
+
+    @property
+    def done(self) -> bool:
+        """An oracle ended the episode, or its duration is over."""
+        return self.bus.stopped or self.bus.now_ns >= to_ns(self.scenario.duration)
+
+    def advance(self, until: float) -> bool:
+        """Run to sim time ``until`` [s] (capped at the duration); True when the episode is over."""
+        self.start()
+        wall0 = time.perf_counter()
+        try:
+            self.bus.run(min(to_ns(until), to_ns(self.scenario.duration) + 1))
+        finally:
+            self._wall += time.perf_counter() - wall0
+        return self.done
+
+    def add_participant(self, spec: dict[str, Any]) -> Any:
+        """Add a participant now (same schema as a scenario's ``participants`` entries). A scripted
+        vehicle appears at its first waypoint time; it is recorded in the log's outcome record."""
+        from deft_gym.scenario import add_participant, parse_participant
+
+        p = parse_participant(spec, self.roadmap, source=f"participant {spec.get('id', '?')!r}")
+        if any(q.id == p.id for q in self.world.participants):
+            raise ValueError(f"participant id {p.id!r} already exists")
+        part = add_participant(self.world, p)
+        self.added.append({"time": self.world.time, **p.model_dump(mode="json", exclude_none=True)})
+        return part
+
+    def finish(self) -> EpisodeResult:
+        """Close the log and return the result (idempotent)."""
+        if self._result is not None:
+            return self._result
+        outcome = self.oracle.outcome()
+        bus = self.bus
+        result = EpisodeResult(self.scenario.name, outcome, self._wall, self.jitter.seed,
+                               self.planning_outputs, messages=bus.published, drops=self.jitter.drops)
+        if self.recorder is not None:
+            result.log_path = str(self.recorder.close({**outcome.as_dict(), "wall_time": self._wall,
+                                                       "jitter_seed": self.jitter.seed,
+                                                       "participants_added": self.added}))
+            result.truth_path = str(write_truth(self.out_dir / "truth.jsonl", self.planning.truth, self.ads.topics))
+        self._result = result
+        return result
+
     def run(self) -> EpisodeResult:
         """Run until an oracle ends the episode or the duration is over."""
-        wall0 = time.perf_counter()
-        bus = self.bus
-        bus.start()
         try:
-            bus.run(to_ns(self.scenario.duration) + 1)
+            self.advance(self.scenario.duration)
         finally:
-            outcome = self.oracle.outcome()
-            wall = time.perf_counter() - wall0
-            result = EpisodeResult(self.scenario.name, outcome, wall, self.jitter.seed,
-                                   self.planning_outputs, messages=bus.published, drops=self.jitter.drops)
-            if self.recorder is not None:
-                result.log_path = str(self.recorder.close({**outcome.as_dict(), "wall_time": wall,
-                                                           "jitter_seed": self.jitter.seed}))
-                result.truth_path = str(write_truth(self.out_dir / "truth.jsonl", self.planning.truth,
-                                                    self.ads.topics))
+            result = self.finish()
         return result
 
 
+def _node(default: type, cfg: Any, *args: Any) -> Node:
+    """The module's bus node: the built-in class or the one named in its config (``node``)."""
+    cls = import_object(cfg.node) if getattr(cfg, "node", None) else default
+    return cls(*args)
+
+
 def run_episode(scenario: Scenario | str | Path, ads: AdsConfig | None = None, jitter_seed: int | None = None,
-                out_dir: Path | str | None = None, keep_planning: bool = True) -> EpisodeResult:
+                out_dir: Path | str | None = None, keep_planning: bool = True, compress: bool = False) -> EpisodeResult:
     """Build and run one episode (see :class:`Simulation`)."""
-    return Simulation(scenario, ads, jitter_seed, out_dir, keep_planning).run()
+    return Simulation(scenario, ads, jitter_seed, out_dir, keep_planning, compress).run()
 
 
 __all__ = ["EpisodeResult", "Simulation", "run_episode", "write_atomic"]

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from deft_gym.roadmap import RoadMap
+from deft_gym.roadmap import shared_roadmap
 from deft_gym.scenario import Scenario, scenario_from_dict, scenario_to_dict
 
 
@@ -19,7 +19,7 @@ def perturb(sc: Scenario, seed: int, strength: float = 1.0) -> Scenario:
     """A variant of ``sc``: positions [m], speeds and timing shifted by amounts that scale with
     ``strength`` (1.0: up to ~10 m, ~20 % speed, 2 s of light offset)."""
     rng = np.random.default_rng(seed)
-    roadmap = RoadMap(sc.map)
+    roadmap = shared_roadmap(sc.map)
     data = copy.deepcopy(scenario_to_dict(sc))
     data["name"] = f"{sc.name}~v{seed}"
 

@@ -78,6 +78,7 @@ class Collision:
     """What the collision oracle saw."""
 
     participant: str
+    participant_num: int  # the id perception reports for it
     kind: str
     obstacle_type: str
     time: float
@@ -99,6 +100,7 @@ class World:
         self.road = FastRoad(network=roadmap.network, np_random=np.random.RandomState(seed),
                              record_history=False, geoms=roadmap.geoms)
         self.clock = [0.0]
+        self.ticks = 0
         self.ego: EgoVehicle | None = None
         self.participants: list[Participant] = []
         self.collision: Collision | None = None
@@ -132,7 +134,8 @@ class World:
             obj.act()
         for obj in reactive:
             obj.step(dt)
-        t = self.clock[0] + dt
+        self.ticks += 1
+        t = self.ticks * dt  # exact multiples, no accumulated rounding
         self.clock[0] = t
         for p in self.participants:
             if p.kind == "scripted":
@@ -172,7 +175,7 @@ class World:
             self.min_distance = min(self.min_distance, dist)
             if dist <= 0.0 and self.collision is None:
                 p = present[i]
-                self.collision = Collision(p.id, p.kind, p.obstacle_type, t, float(ego.speed),
+                self.collision = Collision(p.id, p.num, p.kind, p.obstacle_type, t, float(ego.speed),
                                            bool(ego.speed > 0.1), float(ego.position[0]),
                                            float(ego.position[1]))
 

@@ -32,17 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.geometry import ReferenceLine, wrap_angle
 from deft_gym.planner.base import Frame, Planner
-from deft_gym.roadmap import LaneId, RoadMap
-
-_MAPS: dict[str, RoadMap] = {}
-
-
-def shared_roadmap(map_spec: dict[str, Any]) -> RoadMap:
-    """Road maps are immutable; planners built for the same spec share one."""
-    key = repr(sorted(map_spec.items()))
-    if key not in _MAPS:
-        _MAPS[key] = RoadMap(map_spec)
-    return _MAPS[key]
+from deft_gym.roadmap import LaneId, shared_roadmap
 
 
 class LatticeParams(BaseModel):

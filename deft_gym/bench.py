@@ -1,0 +1,121 @@
+"""Speed benchmark: the full stack against bare highway-env, recording on and off.
+
+    python -m deft_gym.bench [--scenario configs/scenarios/bench_highway.yaml] [--repeats 3]
+
+Measures simulated seconds per wall second (one process) of
+
+1. the full DeFT-Gym stack (world + all ADS modules on the jittered bus) with MCAP recording;
+2. the same without recording;
+3. highway-env's own ``highway-v0`` stepped with the same vehicle count and simulation
+   frequency (its default observation and action types), as the reference;
+
+and prints both, their ratio, the recording overhead and where the stack's time goes.
+Each figure is the median over ``--repeats`` runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+from deft_gym.bus import TimingSupervisor
+from deft_gym.config import load_ads_config
+from deft_gym.recorder import write_atomic
+from deft_gym.scenario import SCENARIO_DIR, load_scenario
+from deft_gym.simulation import Simulation
+
+
+def stack_speed(scenario: Any, record: bool, seed: int, breakdown: bool = False) -> dict[str, Any]:
+    """One full-stack run: sim seconds, wall seconds and (optionally) per-node wall time."""
+    ads = load_ads_config()
+    with tempfile.TemporaryDirectory() as tmp:
+        sim = Simulation(scenario, ads, jitter_seed=seed, out_dir=tmp if record else None, keep_planning=False)
+        sup = None
+        if breakdown:
+            sup = TimingSupervisor()
+            sim.bus.supervisor = sup
+        r = sim.run()
+    out = {"sim": r.sim_time, "wall": r.wall_time, "speed": r.sim_time / r.wall_time, "messages": r.messages}
+    if sup is not None:
+        out["nodes"] = {k: v for k, v in sup.seconds.items()}
+    return out
+
+
+def highway_speed(vehicles: int, frequency: float, sim_seconds: float, seed: int) -> dict[str, Any]:
+    """highway-v0 stepped for ``sim_seconds`` with ``vehicles`` other vehicles at ``frequency`` Hz."""
+    import gymnasium as gym
+    import highway_env  # noqa: F401 - registers the envs
+
+    env = gym.make("highway-v0", config={"vehicles_count": vehicles, "simulation_frequency": int(frequency),
+                                         "duration": 10_000})
+    env.reset(seed=seed)
+    policy_hz = env.unwrapped.config["policy_frequency"]
+    steps = int(sim_seconds * policy_hz)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        _, _, term, trunc, _ = env.step(1)  # IDLE
+        if term or trunc:
+            env.reset()
+    wall = time.perf_counter() - t0
+    env.close()
+    return {"sim": steps / policy_hz, "wall": wall, "speed": steps / policy_hz / wall}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m deft_gym.bench", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenario", default=str(SCENARIO_DIR / "bench_highway.yaml"),
+                    help="scenario with the participants to benchmark (default: 5 reactive vehicles)")
+    ap.add_argument("--repeats", type=int, default=3, help="runs per measurement; the median is shown")
+    ap.add_argument("--out", default=None, help="also write the figures to this JSON file")
+    args = ap.parse_args(argv)
+    console = Console(width=None if sys.stdout.isatty() else 110)
+    sc = load_scenario(args.scenario)
+    ads = load_ads_config()
+    n_part = len(sc.participants)
+    console.print(f"scenario {sc.name}: {n_part} participants, world {ads.world_hz:g} Hz, "
+                  f"{sc.duration:g} s simulated per run, {args.repeats} runs each")
+    rec = [stack_speed(sc, True, seed=i, breakdown=(i == 0)) for i in range(args.repeats)]
+    norec = [stack_speed(sc, False, seed=i) for i in range(args.repeats)]
+    hw = [highway_speed(n_part, ads.world_hz, sc.duration, seed=i) for i in range(args.repeats)]
+    med = {name: statistics.median(r["speed"] for r in rs) for name, rs in
+           (("stack_recording", rec), ("stack_no_recording", norec), ("highway_v0", hw))}
+    overhead = med["stack_no_recording"] / med["stack_recording"] - 1.0
+    ratio = med["stack_recording"] / med["highway_v0"]
+    t = Table(title="simulated seconds per wall second (median)", title_justify="left")
+    t.add_column("what")
+    t.add_column("x real time", justify="right")
+    t.add_row("DeFT-Gym full stack, recording on", f"{med['stack_recording']:.1f}")
+    t.add_row("DeFT-Gym full stack, recording off", f"{med['stack_no_recording']:.1f}")
+    t.add_row(f"highway-v0, {n_part} vehicles, {ads.world_hz:g} Hz", f"{med['highway_v0']:.1f}")
+    console.print(t)
+    console.print(f"full stack / highway-v0 = {ratio:.2f}x   recording overhead = {100 * overhead:.1f} %   "
+                  f"targets: >= 100x real time, >= 1.0x highway-v0, <= 10 % overhead")
+    nodes = rec[0].get("nodes", {})
+    wall0, sim0 = rec[0]["wall"], rec[0]["sim"]
+    bt = Table(title="where the time goes (first recorded run)", title_justify="left")
+    for c in ("module", "ms per sim s", "share"):
+        bt.add_column(c, justify="right" if c != "module" else "left")
+    for name, sec in sorted(nodes.items(), key=lambda kv: -kv[1]):
+        bt.add_row(name, f"{1e3 * sec / sim0:.2f}", f"{100 * sec / wall0:.0f} %")
+    rest = wall0 - sum(nodes.values())
+    bt.add_row("bus, jitter, recording", f"{1e3 * rest / sim0:.2f}", f"{100 * rest / wall0:.0f} %")
+    console.print(bt)
+    if args.out:
+        write_atomic(Path(args.out), json.dumps({"median_speed": med, "ratio_vs_highway": ratio,
+                                                 "recording_overhead": overhead, "runs": {
+                                                     "recording": rec, "no_recording": norec, "highway_v0": hw}},
+                                                indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
