@@ -18,7 +18,8 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m agents.demo --out runs/demo
+	$(PY) -m deft_gym.demo --out runs/demo/seeds
+	@if [ -f agents/demo.py ]; then $(PY) -m agents.demo --out runs/demo; fi
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 --dist loadfile

@@ -32,6 +32,7 @@ class PredictionNode(Node):
         self.static_speed = float(cfg.params.get("static_speed", 0.3))
         self.t = np.arange(round(self.horizon / self.dt) + 1) * self.dt
         self._chains: dict[Any, Any] = {}
+        self._lane_of: dict[int, Any] = {}  # obstacle id -> its lane last cycle (tracking)
 
     def compute(self, now_ns: int) -> list[tuple[str, dict[str, Any]]]:
         msg = self.latest[self.in_topic]
@@ -49,8 +50,7 @@ class PredictionNode(Node):
         v = float(ob["v"])
         if ob["type"] in STATIC_TYPES or v < self.static_speed:
             return {**base, "is_static": True, "x": [ob["x"]], "y": [ob["y"]], "heading": [ob["heading"]]}
-        xy = np.array([ob["x"], ob["y"]])
-        loc = self.roadmap.locate(xy, ob["heading"], radius=3.0)
+        loc = self._locate(ob)
         dist = self.t * v
         if loc is None:
             h = ob["heading"]
@@ -64,6 +64,25 @@ class PredictionNode(Node):
             pts = ref.xy(ss, d)
             xs, ys, hs = pts[:, 0], pts[:, 1], ref.heading(ss)
         return {**base, "is_static": False, "x": xs.tolist(), "y": ys.tolist(), "heading": wrap_angle(hs).tolist()}
+
+    def _locate(self, ob: dict[str, Any]) -> tuple[Any, float, float] | None:
+        """The obstacle's lane: the one it was on, or a successor/neighbour of it, while it fits;
+        else a search of the whole map (like a tracker keeping obstacle history)."""
+        rm = self.roadmap
+        x, y, h = ob["x"], ob["y"], ob["heading"]
+        prev = self._lane_of.get(ob["id"])
+        if prev is not None:
+            for lane in (prev, *rm.successors[prev], *rm.changeable_neighbours(prev)):
+                g = rm.geoms[lane]
+                s, d = g.frenet_point(x, y)
+                if (0.0 <= s <= g.length and abs(d) <= g.width / 2
+                        and abs((h - g.heading_point(s) + np.pi) % (2 * np.pi) - np.pi) < 0.5):
+                    self._lane_of[ob["id"]] = lane
+                    return lane, s, d
+        loc = rm.locate(np.array([x, y]), h, radius=3.0)
+        if loc is not None:
+            self._lane_of[ob["id"]] = loc[0]
+        return loc
 
     def _chain(self, lane: Any, length: float) -> Any:
         key = (lane, int(length // 25))

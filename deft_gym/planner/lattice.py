@@ -147,6 +147,7 @@ class _Lateral:
     band: tuple[float, float]
     basis: list[np.ndarray] = field(default_factory=list)  # (3, n, K) for d0, d0', d0'', targets
     needed: np.ndarray = field(default_factory=lambda: np.zeros(0))  # lane changes still needed
+    centres: np.ndarray = field(default_factory=lambda: np.zeros(0))  # distinct target lane centres
 
 
 class LatticePlanner(Planner):
@@ -161,6 +162,10 @@ class LatticePlanner(Planner):
         self._route_cache: dict[Any, _Route] = {}
         self._ref_cache: dict[Any, _Ref] = {}
         self._lat_cache: dict[Any, _Lateral] = {}
+        reach = max(self.p.horizon * self.p.horizon, 30.0) + 20.0  # [m] obstacles farther never matter
+        self._reach2 = reach * reach
+        self._half_lane = self.map.spec.lane_width / 2
+        self._inv_k = 1.0 / self.K
         # Profiles with a fixed duration are linear in their start/end values, so their shapes
         # are computed once: cruise rows (speed factor x duration) and lateral durations.
         t = self.tk[None, :]
@@ -169,6 +174,15 @@ class LatticePlanner(Planner):
         _one, zero = np.ones_like(qT), np.zeros_like(qT)
         self._cruise_basis = [np.stack(_quartic(0.0, *u, qT, t)) for u in
                               ((1.0, 0.0, zero), (0.0, 1.0, zero), (0.0, 0.0, qf))]
+        # reach quintics (to s1, v1 at T, then constant speed): T on a 0.1 s grid; for one T the
+        # profile is linear in (s0, v0, a0, s1, v1), so each grid T has a (5, 3, K) basis
+        self._reach_T = np.round(np.arange(1.0, self.p.horizon + 4.0 + 1e-9, 0.1), 6)
+        TT = self._reach_T[:, None]
+        one, zero = np.ones_like(TT), np.zeros_like(TT)
+        self._reach_basis = np.stack([np.stack(_quintic(*u, zero, TT, t)) for u in
+                                      ((0.0, 1.0, 0.0, zero, zero), (0.0, 0.0, 1.0, zero, zero),
+                                       (0.0, 0.0, 0.0, one, zero), (0.0, 0.0, 0.0, zero, one))],
+                                     axis=1).transpose(2, 1, 0, 3)  # (T, coefficient, s/v/a, K)
         self._lat_basis: dict[float, list[np.ndarray]] = {}
         for T in {self.p.nudge_time, self.p.lane_change_time}:
             TT = np.array([[T]])
@@ -344,46 +358,58 @@ class LatticePlanner(Planner):
         if not pred or not pred.get("obstacles"):
             return None
         K, tq = self.K, t0 + self.tk
-        xs_, ys_, hs_, dims = [], [], [], []
+        statics = []
         groups: dict[tuple[float, float, int], list[dict[str, Any]]] = {}
         for ob in pred["obstacles"]:
             if len(ob["x"]) == 1:  # static: one point, constant over the horizon
-                xs_.append(np.full(K, float(ob["x"][0])))
-                ys_.append(np.full(K, float(ob["y"][0])))
-                hs_.append(np.full(K, float(ob["heading"][0])))
-                dims.append((0.5 * ob["length"], 0.5 * ob["width"], 0.0))
+                statics.append((ob["x"][0], ob["y"][0], ob["heading"][0], 0.5 * ob["length"], 0.5 * ob["width"], 0.0))
             else:  # moving: grouped by time base, resampled together
                 groups.setdefault((float(ob["t0"]), float(ob["dt"]), len(ob["x"])), []).append(ob)
+        blocks_x, blocks_y, blocks_h, dims = [], [], [], []
+        if statics:
+            st = np.array(statics)
+            blocks_x.append(np.repeat(st[:, :1], K, axis=1))
+            blocks_y.append(np.repeat(st[:, 1:2], K, axis=1))
+            blocks_h.append(np.repeat(st[:, 2:3], K, axis=1))
+            dims.append(st[:, 3:])
         for (ot0, odt, n), obs_g in groups.items():
-            f = np.clip((tq - ot0) / odt, 0.0, n - 1.0)
+            f = np.clip((tq - ot0) * (1.0 / odt), 0.0, n - 1.0)
             i = np.minimum(f.astype(np.int64), n - 2)
             w = f - i
             X = np.array([ob["x"] for ob in obs_g])
             Y = np.array([ob["y"] for ob in obs_g])
-            xs_.extend(X[:, i] * (1.0 - w) + X[:, i + 1] * w)
-            ys_.extend(Y[:, i] * (1.0 - w) + Y[:, i + 1] * w)
-            hs_.extend(np.array([ob["heading"] for ob in obs_g])[:, np.rint(f).astype(np.int64)])
-            dims.extend((0.5 * ob["length"], 0.5 * ob["width"], ob.get("v", 0.0)) for ob in obs_g)
-        ox, oy, oh = np.array(xs_), np.array(ys_), np.array(hs_)
-        dims_a = np.array(dims)
-        hl, hw = dims_a[:, :1], dims_a[:, 1:2]
+            x0, y0 = X[:, i], Y[:, i]
+            blocks_x.append(x0 + (X[:, i + 1] - x0) * w)
+            blocks_y.append(y0 + (Y[:, i + 1] - y0) * w)
+            blocks_h.append(np.array([ob["heading"] for ob in obs_g])[:, np.rint(f).astype(np.int64)])
+            dims.append(np.array([(0.5 * ob["length"], 0.5 * ob["width"], ob.get("v", 0.0)) for ob in obs_g]))
+        if len(blocks_x) == 1:
+            ox, oy, oh, dims_a = blocks_x[0], blocks_y[0], blocks_h[0], dims[0]
+        else:
+            ox, oy, oh = np.concatenate(blocks_x), np.concatenate(blocks_y), np.concatenate(blocks_h)
+            dims_a = np.concatenate(dims)
+        # relevance: within reach of the ego over the horizon
+        ex, ey = float(np.interp(s0, ref.s, ref.x)), float(np.interp(s0, ref.s, ref.y))
+        gx, gy = ox - ex, oy - ey
+        near = (gx * gx + gy * gy).min(axis=1) < self._reach2
         # Frenet now and at the horizon (leaders, gaps, followers)
-        sf, df = ref.line.frenet(np.stack([ox[:, [0, -1]], oy[:, [0, -1]]], axis=-1))
-        phi = oh[:, [0, -1]] - np.interp(sf, ref.s, ref.h)
+        ends = np.stack([ox[:, ::K - 1], oy[:, ::K - 1]], axis=-1)
+        sf, df = ref.line.frenet(ends)
+        phi = oh[:, ::K - 1] - np.interp(sf, ref.s, ref.h)
         c, sn = np.abs(np.cos(phi)), np.abs(np.sin(phi))
-        fes, fed = hl * c + hw * sn, hl * sn + hw * c
-        ex, ey = np.interp(s0, ref.s, ref.x), np.interp(s0, ref.s, ref.y)
-        reach = max(self.p.horizon * max(float(np.max(self.tk)), 1.0), 30.0) + 20.0
-        near = np.hypot(ox - ex, oy - ey).min(axis=1) < reach
+        hl, hw = dims_a[:, :1], dims_a[:, 1:2]
+        fes = hl * c + hw * sn
         # a follower in the ego's own lane is responsible for keeping its distance
-        half_lane = self.map.spec.lane_width / 2
-        follower = (sf[:, 0] + fes[:, 0] < s0 - self.p.ego_length / 2) & (np.abs(df[:, 0] - d0) < half_lane)
+        follower = (sf[:, 0] + fes[:, 0] < s0 - self.p.ego_length / 2) & (np.abs(df[:, 0] - d0) < self._half_lane)
         keep = near & ~follower
         if not keep.any():
             return None
-        return {"x": ox[keep], "y": oy[keep], "c": np.cos(oh[keep]), "s": np.sin(oh[keep]),
-                "hl": hl[keep], "hw": hw[keep], "v": dims_a[keep, 2], "fs": sf[keep], "fd": df[keep],
-                "fes": fes[keep], "fed": fed[keep]}
+        if not keep.all():
+            ox, oy, oh, dims_a, sf, df, fes = (a[keep] for a in (ox, oy, oh, dims_a, sf, df, fes))
+            c, sn, hl, hw = c[keep], sn[keep], hl[keep], hw[keep]
+        return {"x": ox, "y": oy, "c": np.cos(oh), "s": np.sin(oh), "hl": hl, "hw": hw,
+                "r": np.hypot(hl, hw), "v": dims_a[:, 2], "fs": sf, "fd": df, "fes": fes,
+                "fed": hl * sn + hw * c}
 
     # -- lateral options ----------------------------------------------------------------------
     def _continues(self, lid: LaneId, route: _Route) -> bool:
@@ -417,6 +443,7 @@ class LatticePlanner(Planner):
         lat = _Lateral([t[0] for t in targets], np.array([t[1] for t in targets]), offset,
                        np.array([t[3] for t in targets]), compat, change, static_cost, band)
         lat.needed = needed
+        lat.centres = np.unique(lat.centre)
         rows = [[self._lat_basis[t[3]][c] for t in targets] for c in range(4)]
         lat.basis = [np.stack(r, axis=1) for r in rows[:3]]
         lat.basis.append(np.stack(rows[3], axis=1) * (lat.centre + lat.offset)[None, :, None])
@@ -487,15 +514,15 @@ class LatticePlanner(Planner):
         s_c, v_c = self._curve_target(ref, s0, v0)
         if s_c is not None:
             targets.append((s_c, v_c, "CRUISE"))
-        if obs is not None:
+        if obs is not None:  # leaders: nearest obstacle ahead in each lateral target's band
             half = p.ego_length / 2
-            s_first, e_first, d_first = obs["fs"][:, 0], obs["fes"][:, 0], obs["fd"][:, 0]
-            for c in sorted(set(lat.centre.tolist())):
-                band = np.abs(d_first - c) < obs["fed"][:, 0] + p.ego_width / 2 + 0.3
-                ahead = band & (s_first - e_first > s0 + half - 0.5)
-                if not ahead.any():
-                    continue
-                m = int(np.argmin(np.where(ahead, s_first, np.inf)))
+            centres = lat.centres
+            s_first, e_first = obs["fs"][:, 0], obs["fes"][:, 0]
+            band = np.abs(obs["fd"][None, :, 0] - centres[:, None]) < obs["fed"][None, :, 0] + (p.ego_width / 2 + 0.3)
+            ahead = band & (s_first - e_first > s0 + half - 0.5)[None, :]
+            lead = np.where(ahead, s_first[None, :], np.inf).argmin(axis=1)
+            for ci in np.flatnonzero(ahead.any(axis=1)).tolist():
+                m = int(lead[ci])
                 vl = float(obs["v"][m])
                 if vl < 0.5:
                     targets.append((float(s_first[m] - e_first[m]) - half - p.static_gap, 0.0, "BLOCKED"))
@@ -510,22 +537,23 @@ class LatticePlanner(Planner):
             for f in p.stop_time_factors:
                 rs.append(s_e)
                 rv.append(v_e)
-                rT.append(min(max(f * 2.0 * dist / max(v0 + v_e, 0.5), 1.0), p.horizon + 4.0))
+                rT.append(f * 2.0 * dist / max(v0 + v_e, 0.5))
                 labels.append(label)
-        t = tk[None, :]
-        parts = [cruise]
-        if rs:
-            parts.append(_quintic(s0, v0, a0, np.array(rs)[:, None], np.array(rv)[:, None], 0.0,
-                                  np.array(rT)[:, None], t))
-        brake = _brake(s0, v0, p.emergency_decel, tk)
-        parts.append(tuple(x[None] for x in brake))
+        brake = np.stack(_brake(s0, v0, p.emergency_decel, tk))[:, None, :]
         labels.append("BRAKE")
-        s = np.concatenate([q[0] for q in parts])
-        v = np.concatenate([q[1] for q in parts])
-        a = np.concatenate([q[2] for q in parts])
+        if rs:
+            ti = np.clip(np.rint((np.array(rT) - 1.0) * 10.0).astype(np.int64), 0, len(self._reach_T) - 1)
+            B = self._reach_basis[ti]  # (R, 4, 3, K): v0, a0, s1, v1 shapes
+            # positions are shift-invariant: plan from 0 to (s1 - s0), then add s0
+            reach = (v0 * B[:, 0] + a0 * B[:, 1] + (np.array(rs) - s0)[:, None, None] * B[:, 2]
+                     + np.array(rv)[:, None, None] * B[:, 3])  # (R, 3, K)
+            reach[:, 0] += s0
+            sva = np.concatenate([cruise, reach.transpose(1, 0, 2), brake], axis=1)
+        else:
+            sva = np.concatenate([cruise, brake], axis=1)
         penalty = np.array([{"BRAKE": p.w_brake, "BLOCKED": p.w_blocked}.get(x, 0.0) for x in labels])
         labels = [{"BRAKE": "STOP", "BLOCKED": "STOP"}.get(x, x) for x in labels]
-        return {"s": s, "v": v, "a": a, "label": labels, "n": len(labels), "penalty": penalty}
+        return {"s": sva[0], "v": sva[1], "a": sva[2], "label": labels, "n": len(labels), "penalty": penalty}
 
     def _curve_target(self, ref: _Ref, s0: float, v0: float) -> tuple[float | None, float]:
         """Where a curve ahead needs a lower speed than ``v0``, and that speed."""
@@ -538,7 +566,7 @@ class LatticePlanner(Planner):
         return float(ref.s[0]) + i0 + i - self.p.ego_length / 2, float(ahead[i:].min())
 
     # -- evaluation ---------------------------------------------------------------------------
-    BATCH = 24
+    BATCH = 8
 
     def _evaluate(self, ref: _Ref, lat: _Lateral, d: np.ndarray, dd: np.ndarray, ddd: np.ndarray,
                   lon: dict[str, Any], obs: dict[str, np.ndarray] | None, walls: np.ndarray,
@@ -556,25 +584,27 @@ class LatticePlanner(Planner):
         # longitudinal-only
         kr = np.interp(ls, ref.s, ref.k)
         vref = max(v_des, 1.0)
-        jerk = np.diff(la, axis=-1)
-        c_lon = ((p.w_speed / vref**2) * ((lv - v_des) ** 2).mean(axis=-1)
-                 + p.w_accel * (la**2).mean(axis=-1) + (p.w_jerk / p.dt**2) * (jerk**2).mean(axis=-1)
-                 + lon["penalty"])
+        inv_k = self._inv_k
+        dv = lv - v_des
+        jerk = la[:, 1:] - la[:, :-1]
+        c_lon = ((p.w_speed * inv_k / vref**2) * (dv * dv).sum(axis=-1) + (p.w_accel * inv_k) * (la * la).sum(axis=-1)
+                 + (p.w_jerk / p.dt**2 / (self.K - 1)) * (jerk * jerk).sum(axis=-1) + lon["penalty"])
         ok_lon = lv.min(axis=-1) > -0.1
         # lateral-only: stay inside the drivable band (the current road's lanes while on it, the
         # lane itself beyond); a start outside the band is allowed but must not get worse
         left, right = lat.band
         half_w = p.ego_width / 2
-        out = np.maximum(left - p.edge_margin - (d - half_w), 0.0) + np.maximum(d + half_w - right - p.edge_margin, 0.0)
+        out = np.maximum(left - p.edge_margin + half_w - d, 0.0) + np.maximum(d + half_w - right - p.edge_margin, 0.0)
         ok_lat = (out <= out[:, :1] + 0.05).all(axis=-1)
-        c_lat = (p.w_lat * (((d - (lat.centre + lat.offset)[:, None]) / w) ** 2).mean(axis=-1)
-                 + lat.static_cost + c_route)
+        dl = d - (lat.centre + lat.offset)[:, None]
+        c_lat = (p.w_lat * inv_k / (w * w)) * (dl * dl).sum(axis=-1) + lat.static_cost + c_route
         if st.target_lane is not None:
             same = np.fromiter((t == st.target_lane for t in lat.target), bool, len(lat.target))
             c_lat = c_lat + p.w_hysteresis * (~same + np.abs(lat.offset - st.offset))
         # pairs: walls and lateral acceleration (Frenet: kappa v^2 + d'')
         cent = kr * lv * lv
-        a_lat = np.abs(cent[None] + ddd[:, None]).max(axis=-1)
+        pair = cent[None] + ddd[:, None]
+        a_lat = np.maximum(pair.max(axis=-1), -pair.min(axis=-1))
         feasible = ((ls.max(axis=-1)[None, :] <= walls[:, None] + 0.05) & (a_lat <= p.hard_lat_accel)
                     & ok_lon[None, :] & ok_lat[:, None])
         base = c_lat[:, None] + c_lon[None, :] + p.w_lat_accel * a_lat
@@ -607,35 +637,43 @@ class LatticePlanner(Planner):
         Exact oriented-box separation (separating-axis test on the 4 box axes) between the ego at
         each planned pose and each predicted obstacle box, in world coordinates. ``sep`` [m] is
         the largest gap along an axis: negative = overlap. Hard: the ego box grown by the hard
-        buffers (longitudinal, lateral) overlaps; soft: ``sep`` below the soft buffer."""
+        buffers (longitudinal, lateral) overlaps; soft: ``sep`` below the soft buffer. Only
+        (candidate, obstacle, time) triples whose bounding circles come within the soft buffer
+        are tested; all others cannot contribute."""
         p = self.p
+        n = len(s)
         hr = np.interp(s, ref.s, ref.h)
         sh, ch = np.sin(hr), np.cos(hr)
-        phi = np.arctan2(dd, np.maximum(v * (1.0 - kr * d), 1e-3))
-        eh = hr + phi
-        ec, es = np.cos(eh)[:, None, :], np.sin(eh)[:, None, :]
-        dx = obs["x"] - (np.interp(s, ref.s, ref.x) - d * sh)[:, None, :]
-        dy = obs["y"] - (np.interp(s, ref.s, ref.y) + d * ch)[:, None, :]
-        oc, os_ = obs["c"], obs["s"]
+        ex = np.interp(s, ref.s, ref.x) - d * sh
+        ey = np.interp(s, ref.s, ref.y) + d * ch
+        dx = obs["x"] - ex[:, None, :]
+        dy = obs["y"] - ey[:, None, :]
+        la, wa = p.ego_length / 2, p.ego_width / 2
+        reach = math.hypot(la + p.lon_buffer_hard, wa + p.lat_buffer_hard) + p.lat_buffer_soft + obs["r"]
+        close = dx * dx + dy * dy < reach * reach
+        if not close.any():
+            return np.zeros(n)
+        ci, oi, ki = np.nonzero(close)
+        dx, dy = dx[ci, oi, ki], dy[ci, oi, ki]
+        eh = hr[ci, ki] + np.arctan2(dd[ci, ki], np.maximum(v[ci, ki] * (1.0 - kr[ci, ki] * d[ci, ki]), 1e-3))
+        ec, es = np.cos(eh), np.sin(eh)
+        oc, os_ = obs["c"][oi, ki], obs["s"][oi, ki]
         crel = np.abs(oc * ec + os_ * es)
         srel = np.abs(os_ * ec - oc * es)
-        la, wa = p.ego_length / 2, p.ego_width / 2
-        lb, wb = obs["hl"], obs["hw"]
-        r_b_u = lb * crel + wb * srel  # obstacle radius along the ego's axes
-        r_b_v = lb * srel + wb * crel
-        r_a_u = la * crel + wa * srel  # ego radius along the obstacle's axes
-        r_a_v = la * srel + wa * crel
-        p1 = np.abs(dx * ec + dy * es) - r_b_u
-        p2 = np.abs(dy * ec - dx * es) - r_b_v
-        p3 = np.abs(dx * oc + dy * os_) - lb
+        lb, wb = obs["hl"][oi, 0], obs["hw"][oi, 0]
+        p1 = np.abs(dx * ec + dy * es) - (lb * crel + wb * srel)  # along the ego's axes
+        p2 = np.abs(dy * ec - dx * es) - (lb * srel + wb * crel)
+        p3 = np.abs(dx * oc + dy * os_) - lb  # along the obstacle's axes
         p4 = np.abs(dy * oc - dx * os_) - wb
+        r_a_u = la * crel + wa * srel
+        r_a_v = la * srel + wa * crel
         sep = np.maximum(np.maximum(p1 - la, p2 - wa), np.maximum(p3 - r_a_u, p4 - r_a_v))
         lh, wh = p.lon_buffer_hard, p.lat_buffer_hard
         sep_h = np.maximum(np.maximum(p1 - la - lh, p2 - wa - wh),
                            np.maximum(p3 - r_a_u - (lh * crel + wh * srel), p4 - r_a_v - (lh * srel + wh * crel)))
-        hard = (sep_h < 0.0).any(axis=(1, 2))
-        pen = np.maximum(p.lat_buffer_soft - np.maximum(sep, 0.0), 0.0).sum(axis=(1, 2))
-        cost = (p.w_obstacle * p.dt / p.lat_buffer_soft) * pen
+        pen = np.maximum(p.lat_buffer_soft - np.maximum(sep, 0.0), 0.0)
+        cost = (p.w_obstacle * p.dt / p.lat_buffer_soft) * np.bincount(ci, weights=pen, minlength=n)
+        hard = np.bincount(ci, weights=(sep_h < 0.0), minlength=n) > 0
         return np.where(hard, np.inf, cost)
 
     # -- outputs ------------------------------------------------------------------------------

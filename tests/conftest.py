@@ -1,0 +1,23 @@
+"""Shared fixtures: small episodes recorded once per test session."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENARIOS = ROOT / "configs" / "scenarios"
+
+
+@pytest.fixture(scope="session")
+def lane_follow_log(tmp_path_factory: pytest.TempPathFactory):
+    """One recorded episode of the lane-following seed (jitter seed 7)."""
+    from deft_gym.simulation import run_episode
+
+    out = tmp_path_factory.mktemp("lane_follow")
+    return run_episode(SCENARIOS / "lane_follow_static.yaml", jitter_seed=7, out_dir=out)
