@@ -42,7 +42,7 @@ class JitterModel:
             params = (math.log(max(dist.mean_ms, 1e-9)) - var / 2, math.sqrt(var))
             self._lognormal_params[dist] = params
         rng = self._rng
-        ms = rng.lognormvariate(*params)
+        ms = math.exp(rng.gauss(*params))  # lognormal (gauss caches its second Box-Muller draw)
         if dist.spike_prob and rng.random() < dist.spike_prob:
             ms *= dist.spike_factor
         return round(max(ms, dist.min_ms) * _NS_PER_MS)

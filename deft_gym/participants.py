@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from bisect import bisect_right
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from highway_env.road.road import Road
@@ -141,6 +141,25 @@ class ReactiveVehicle(IDMVehicle):
         self.clock = clock  # shared one-element list holding the world time
         super().__init__(road, *args, **kwargs)
 
+    # -- lane coordinates of the current position, computed once per position ---------------
+    _fc_key: tuple[Any, float, float] | None = None
+    _fc_val: tuple[float, float] = (0.0, 0.0)
+
+    def _frenet(self, lane_index: Any) -> tuple[float, float]:
+        """``(s, lateral)`` of the vehicle on ``lane_index`` (cached for the current position)."""
+        x, y = self.position
+        key = (lane_index, x, y)
+        if key != self._fc_key:
+            self._fc_key, self._fc_val = key, self.roadmap.geoms[lane_index].frenet_point(x, y)
+        return self._fc_val
+
+    def follow_road(self) -> None:
+        """highway-env's ``follow_road``: at the end of the target lane, switch to the next one."""
+        lane = self.road.network.get_lane(self.target_lane_index)
+        if self._frenet(self.target_lane_index)[0] > lane.length - lane.VEHICLE_LENGTH / 2:
+            self.target_lane_index = self.road.network.next_lane(
+                self.target_lane_index, route=self.route, position=self.position, np_random=self.road.np_random)
+
     # -- traffic lights ---------------------------------------------------------------------
     def _light_acceleration(self) -> float | None:
         if self.lights is None:
@@ -151,7 +170,7 @@ class ReactiveVehicle(IDMVehicle):
         color = self.lights.color(sl.light_id, self.clock[0])
         if color == "GREEN":
             return None
-        s, _ = self.lane.local_coordinates(self.position)
+        s, _ = self._frenet(self.lane_index)
         gap = sl.s - s - self.LENGTH / 2 - self.STOP_GAP
         if gap < -self.STOP_GAP:
             return None  # already past the line
@@ -186,44 +205,54 @@ class ReactiveVehicle(IDMVehicle):
     def acceleration(self, ego_vehicle: Vehicle, front_vehicle: Vehicle = None,
                      rear_vehicle: Vehicle = None) -> float:
         """highway-env's IDM acceleration [m/s^2]."""
-        if not ego_vehicle or not isinstance(ego_vehicle, Vehicle):
+        if ego_vehicle is None or not hasattr(ego_vehicle, "speed") or not hasattr(ego_vehicle, "action"):
             return 0
         target = getattr(ego_vehicle, "target_speed", 0)
         lane = ego_vehicle.lane
         if lane and lane.speed_limit is not None:
-            target = max(0.0, min(lane.speed_limit, target))
-        acc = self.COMFORT_ACC_MAX * (1 - (max(ego_vehicle.speed, 0) / abs(_not_zero(target))) ** self.DELTA)
+            target = 0.0 if target < 0.0 else (lane.speed_limit if target > lane.speed_limit else target)
+        speed = ego_vehicle.speed
+        if -1e-2 <= target <= 1e-2:
+            target = 1e-2 if target >= 0 else -1e-2
+        acc = self.COMFORT_ACC_MAX * (1 - ((speed if speed > 0 else 0) / abs(target)) ** self.DELTA)
         if front_vehicle:
             d = ego_vehicle.lane_distance_to(front_vehicle)
-            acc -= self.COMFORT_ACC_MAX * (self.desired_gap(ego_vehicle, front_vehicle) / _not_zero(d)) ** 2
+            if -1e-2 <= d <= 1e-2:
+                d = 1e-2 if d >= 0 else -1e-2
+            acc -= self.COMFORT_ACC_MAX * (self.desired_gap(ego_vehicle, front_vehicle) / d) ** 2
         return acc
 
     def desired_gap(self, ego_vehicle: Vehicle, front_vehicle: Vehicle = None, projected: bool = True) -> float:
         """highway-env's IDM desired gap [m]."""
-        ab = -self.COMFORT_ACC_MAX * self.COMFORT_ACC_MIN
+        v = ego_vehicle.speed
         if projected:
             h = ego_vehicle.heading
+            fh, fv = front_vehicle.heading, front_vehicle.speed
             c, s = math.cos(h), math.sin(h)
-            fh = front_vehicle.heading
-            dv = (ego_vehicle.speed * c - front_vehicle.speed * math.cos(fh)) * c + (
-                ego_vehicle.speed * s - front_vehicle.speed * math.sin(fh)) * s
+            dv = (v * c - fv * math.cos(fh)) * c + (v * s - fv * math.sin(fh)) * s
         else:
-            dv = ego_vehicle.speed - front_vehicle.speed
-        v = ego_vehicle.speed
-        return self.DISTANCE_WANTED + v * self.TIME_WANTED + v * dv / (2 * math.sqrt(ab))
+            dv = v - front_vehicle.speed
+        return self.DISTANCE_WANTED + v * self.TIME_WANTED + v * dv / self._two_sqrt_ab
+
+    _two_sqrt_ab = 2 * math.sqrt(-IDMVehicle.COMFORT_ACC_MAX * IDMVehicle.COMFORT_ACC_MIN)
 
     def steering_control(self, target_lane_index) -> float:
         """highway-env's lane-following steering (lateral P + heading P) [rad]."""
         geom = self.roadmap.geoms[target_lane_index]
-        s, lat = geom.frenet_point(*self.position)
-        future_heading = geom.heading_point(s + self.speed * self.TAU_PURSUIT)
-        lat_speed_cmd = -self.KP_LATERAL * lat
-        heading_cmd = math.asin(max(-1.0, min(1.0, lat_speed_cmd / _not_zero(self.speed))))
-        heading_ref = future_heading + max(-math.pi / 4, min(math.pi / 4, heading_cmd))
-        rate_cmd = self.KP_HEADING * _wrap(heading_ref - self.heading)
-        slip = math.asin(max(-1.0, min(1.0, self.LENGTH / 2 / _not_zero(self.speed) * rate_cmd)))
+        s, lat = self._frenet(target_lane_index)
+        speed = self.speed
+        nz = speed if (speed > 1e-2 or speed < -1e-2) else (1e-2 if speed >= 0 else -1e-2)
+        future_heading = geom.heading_point(s + speed * self.TAU_PURSUIT)
+        r = -self.KP_LATERAL * lat / nz
+        heading_cmd = math.asin(-1.0 if r < -1.0 else (1.0 if r > 1.0 else r))
+        q = math.pi / 4
+        heading_ref = future_heading + (-q if heading_cmd < -q else (q if heading_cmd > q else heading_cmd))
+        rate_cmd = self.KP_HEADING * (((heading_ref - self.heading) + math.pi) % (2 * math.pi) - math.pi)
+        r = self.LENGTH / 2 / nz * rate_cmd
+        slip = math.asin(-1.0 if r < -1.0 else (1.0 if r > 1.0 else r))
         steer = math.atan(2 * math.tan(slip))
-        return max(-self.MAX_STEERING_ANGLE, min(self.MAX_STEERING_ANGLE, steer))
+        m = self.MAX_STEERING_ANGLE
+        return -m if steer < -m else (m if steer > m else steer)
 
     def step(self, dt: float) -> None:
         self.timer += dt
@@ -260,7 +289,7 @@ class ReactiveVehicle(IDMVehicle):
             return super().on_state_update()
         x, y = self.position
         g = self.roadmap.geoms[self.lane_index]
-        s, r = g.frenet_point(x, y)
+        s, r = self._frenet(self.lane_index)
         if self.lane_index == self.target_lane_index and abs(r) < g.width / 2 - 0.3 and 0.0 <= s <= g.length - 0.5:
             return  # well inside the current lane: it stays the closest one
         cand = [self.lane_index, *self.roadmap.successors.get(self.lane_index, ())]

@@ -47,7 +47,8 @@ class FastRoad(Road):
 
     def lane_coordinates(self, lane_index: LaneIndex) -> tuple[list[float], list[bool]]:
         """``(s, on_lane)`` of every road member on ``lane_index`` (cached per step)."""
-        self._refresh()
+        if self._cache_tick != self.tick:
+            self._refresh()
         out = self._lane_cache.get(lane_index)
         if out is None:
             geom = self.geoms[lane_index]
@@ -63,7 +64,8 @@ class FastRoad(Road):
 
     def index_of(self, vehicle: Any) -> int:
         """Position of ``vehicle`` among the cached road members (-1 if absent)."""
-        self._refresh()
+        if self._cache_tick != self.tick:
+            self._refresh()
         return self._index.get(id(vehicle), -1)
 
     def neighbour_vehicles(self, vehicle: Any, lane_index: LaneIndex = None) -> tuple[Any, Any]:

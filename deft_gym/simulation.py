@@ -136,9 +136,10 @@ class Simulation:
             self.planning,
             _node(ControlNode, ads.control, ads.control, topics),
         ]
-        if self.world.lights is not None:
-            nodes.insert(4, _node(TrafficLightNode, ads.traffic_light, self.world, ads.traffic_light,
-                                  topics["traffic_light"]))
+        # traffic-light perception runs on every map (an empty detection where there are no
+        # lights, as Apollo's does), so every log holds every topic
+        nodes.insert(4, _node(TrafficLightNode, ads.traffic_light, self.world, ads.traffic_light,
+                              topics["traffic_light"]))
         for n in nodes:
             self.bus.add(n)
         self.out_dir = Path(out_dir) if out_dir else None
