@@ -27,10 +27,10 @@ from deft_gym.simulation import run_episode
 from deft_gym.variants import inject_cut_in, perturb, reference_path
 
 
-def _job(args: tuple[dict[str, Any], int]) -> dict[str, Any]:
-    data, seed = args
+def _job(args: tuple[dict[str, Any], int, str | None]) -> dict[str, Any]:
+    data, seed, ads_path = args
     sc = scenario_from_dict(data, source=data["name"])
-    r = run_episode(sc, load_ads_config(), jitter_seed=seed, keep_planning=False)
+    r = run_episode(sc, load_ads_config(ads_path), jitter_seed=seed, keep_planning=False)
     s = r.summary()
     return {"name": sc.name, "seed": seed, "outcome": s["outcome"], "collision": s["collision"],
             "with": s["collision_detail"]["participant"] if s["collision"] else None,
@@ -46,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cut-ins", type=int, default=10, help="cut-in variants per seed (default 10)")
     ap.add_argument("--jitter-seed", type=int, default=1000, help="rerun i uses jitter seed S+i (default 1000)")
     ap.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
+    ap.add_argument("--ads-config", default=None, help="ADS config YAML (default configs/ads/default.yaml)")
     ap.add_argument("--out", default="runs/calibration", help="output folder")
     args = ap.parse_args(argv)
     console = Console(width=None if sys.stdout.isatty() else 120)
@@ -60,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
             variants += [inject_cut_in(seed_sc, path, seed=c) for c in range(args.cut_ins)]
         for var in variants:
             data = scenario_to_dict(var)
-            jobs += [(data, args.jitter_seed + r) for r in range(args.reruns)]
+            jobs += [(data, args.jitter_seed + r, args.ads_config) for r in range(args.reruns)]
     results: list[dict[str, Any]] = []
     cols = [TextColumn("[bold]calibration"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
     with Progress(*cols, console=console, transient=True) as progress, \
@@ -85,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     doc = {"scenarios": scenarios, "collision_scenarios": len(coll), "flaky_collision_scenarios": len(flaky),
            "flaky_share": share, "outcome_flaky_scenarios": len(outcome_flaky), "total_scenarios": len(scenarios),
            "reruns": args.reruns, "variants": args.variants, "strength": args.strength,
+           "ads_config": args.ads_config or "configs/ads/default.yaml",
            "sim_seconds": sum(r["sim_time"] for r in results), "wall_seconds": sum(r["wall_time"] for r in results)}
     out = Path(args.out)
     write_atomic(out / "calibration.json", json.dumps(doc, indent=2))

@@ -1,0 +1,241 @@
+"""Extracting one episode: log -> frames -> validated frames -> oracle -> frames file, tests, summary.
+
+:func:`extract_episode` is the library entry point (the CLI, the batch mode and the adversary
+training call it); it writes ``frames.jsonl``, ``test_<scenario>.py`` and ``summary.json`` into
+the output folder and returns an :class:`ExtractionResult`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from deft_gym.planner.base import load_planner
+from extract.emit import slug, test_module, write_atomic, write_frames
+from extract.io_filter import PlanningIOFilter
+from extract.logs import EpisodeLog, LogError, read_log
+from extract.mapping import MappingError, TopicMapping, load_mapping
+from extract.minimize import Minimised, frame_getter, shortest_replay
+from extract.oracle import Faulty, ego_size, find_faulty, participant_track
+from extract.runtime import FORMAT, finite_or_none, source_digest
+from extract.search import FrameChoice, InputSearch, SearchConfig
+from extract.truth import truth_agreement
+from extract.validator import SUMMARY_THETAS, reproduced_counts, theta_key
+
+SUMMARY_FORMAT = "deft_gym.extraction/1"
+
+
+@dataclass
+class ExtractionResult:
+    """What one extraction produced (``summary`` is also written as ``summary.json``)."""
+
+    summary: dict[str, Any]
+    frames_path: Path | None
+    test_path: Path | None
+    faulty: dict[str, Any] | None
+    choices: list[FrameChoice] = field(default_factory=list, repr=False)
+
+    @property
+    def ok(self) -> bool:
+        return "error" not in self.summary
+
+    @property
+    def distances(self) -> list[float]:
+        return [c.distance for c in self.choices]
+
+
+def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuristic", theta: float = 0.0,
+                    mapping: TopicMapping | Mapping[str, Any] | str | Path | None = None, measure: str = "lsed",
+                    emit_tests: bool = True, test_suffix: str | None = None, truth: Path | str | bool | None = True,
+                    search: SearchConfig | None = None, minimize_failure: bool = True,
+                    on_frame: Callable[[int, int], None] | None = None) -> ExtractionResult:
+    """Extract planning-module tests from one MCAP log.
+
+    ``mapping``: None (deft_gym default), a YAML path, a dict or a :class:`TopicMapping`.
+    ``test_suffix`` makes the test module name unique in a batch. ``truth``: True looks for
+    ``truth.jsonl`` beside the log (used only to report ``truth_agreement``), a path names it,
+    False/None skips it. ``minimize_failure``: let the failure test replay the shortest suffix
+    of frames that still reproduces P_faulty exactly (:mod:`extract.minimize`).
+    ``on_frame(done, total)`` reports progress. Raises :class:`LogError` /
+    :class:`MappingError` (one-line messages) when the log or the mapping cannot be used."""
+    t_start = time.perf_counter()
+    log_path, out = Path(log), Path(out_dir)
+    if theta < 0 or not math.isfinite(theta):
+        raise ValueError(f"theta must be a finite distance >= 0 m, got {theta}")
+    cfg = search or SearchConfig(mode=mode, measure=measure)
+    if search is not None and (search.mode != mode or search.measure != measure):
+        cfg = SearchConfig(**{**search.__dict__, "mode": mode, "measure": measure})
+    mp = load_mapping(mapping)
+    elog = read_log(log_path, sorted(set(mp.topics.values())), mp.seq_field)
+    pif = PlanningIOFilter(elog, mp)
+    planner_spec = _planner_spec(elog, mp)
+    t_setup = time.perf_counter()
+    try:
+        planner = load_planner(planner_spec["class"], planner_spec["map"], planner_spec["params"])
+    except (ValueError, TypeError) as exc:  # unknown class, bad parameters (pydantic errors are ValueErrors)
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise MappingError(f"{log_path}: cannot build planner {planner_spec['class']!r}: {first}") from None
+    setup_s = time.perf_counter() - t_setup
+    planner_spec["source_sha256"] = source_digest(type(planner))
+    n = len(pif.outputs)
+    engine = InputSearch(pif, planner, cfg)
+    done = [0]
+
+    def tick(_: FrameChoice) -> None:
+        done[0] += 1
+        if on_frame is not None:
+            on_frame(done[0], n)
+
+    choices = engine.run(tick)
+    for role, tm in pif.inputs.items():
+        if tm.bad:
+            elog.warnings.append(f"{len(tm.bad)} {role} message(s) with undecodable payloads were never used "
+                                 f"(seq {', '.join(str(int(tm.seq[i])) for i in sorted(tm.bad)[:10])})")
+    distances = [c.distance for c in choices]
+    meta = elog.episode_meta()
+    outcome = elog.metadata.get(mp.outcome_metadata or "", {})
+    scenario = str(meta.get("scenario_name") or log_path.parent.name or log_path.stem)
+    ego = ego_size((mp.ego.length, mp.ego.width), planner_spec["params"])
+    mini: list[Minimised] = []
+
+    def minimize(index: int) -> int:
+        frame = frame_getter([c.time for c in choices], lambda j: {
+            r: (pif.inputs[r].fresh(k) if k is not None else None) for r, k in choices[j].choice.items()})
+        mini.append(shortest_replay(lambda: load_planner(planner_spec["class"], planner_spec["map"],
+                                                         planner_spec["params"]),
+                                    frame, index, lambda j: choices[j].output.payload, cfg.measure))
+        return mini[-1].replay_from
+
+    faulty, oracle, oracle_note = _oracle(elog, mp, outcome, choices, distances, ego, theta,
+                                          minimize if minimize_failure else None)
+
+    header = {
+        "format": FORMAT, "planner": planner_spec, "roles": list(pif.roles), "scenario": scenario,
+        "log": str(log_path.resolve()), "jitter_seed": meta.get("jitter_seed"), "mapping": mp.as_dict(),
+        "mode": cfg.mode, "theta": theta, "measure": cfg.measure, "outcome": outcome.get("outcome"),
+        "frames_index": [{"index": c.output.index, "time": c.time, "distance": finite_or_none(c.distance)}
+                         for c in choices],
+        "oracle": oracle, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    frames_path = write_frames(out / "frames.jsonl", header, choices, pif)
+    agreement = truth_agreement(_truth_path(log_path, truth), choices, pif) if truth else None
+    summary = _summary(elog, log_path, scenario, meta, outcome, cfg, theta, choices, distances, engine,
+                       faulty, oracle_note, agreement, mp)
+    test_path = None
+    if emit_tests:
+        name = (f"test_{slug(scenario)}" + (f"_{slug(test_suffix)}" if test_suffix else "")
+                + (f"_{cfg.mode}" if cfg.mode != "heuristic" else ""))
+        test_path = write_atomic(out / f"{name}.py", test_module(header, summary, frames_path.name,
+                                                                  name.removeprefix("test_")))
+    total_s = time.perf_counter() - t_start
+    summary.update(_timing(total_s, setup_s, engine, n, mini[0] if mini else None))
+    summary["frames_path"] = str(frames_path)
+    summary["test_path"] = str(test_path) if test_path else None
+    write_atomic(out / "summary.json", json.dumps(summary, indent=2))
+    return ExtractionResult(summary, frames_path, test_path, summary["faulty_trajectory"], choices)
+
+
+def _planner_spec(elog: EpisodeLog, mp: TopicMapping) -> dict[str, Any]:
+    if mp.planner is not None:
+        return {"class": mp.planner.cls, "params": dict(mp.planner.params), "map": dict(mp.planner.map)}
+    meta = elog.episode_meta()
+    spec, map_spec = meta.get("planner"), meta.get("map")
+    if not isinstance(spec, dict) or "class" not in spec or not isinstance(map_spec, dict):
+        raise MappingError(f"{elog.path}: the log names no planner (no deft_gym.episode metadata);"
+                           f" set planner: {{class, params, map}} in the mapping {mp.source}")
+    return {"class": spec["class"], "params": dict(spec.get("params") or {}), "map": map_spec}
+
+
+def _truth_path(log_path: Path, truth: Path | str | bool | None) -> Path | None:
+    if truth is True:
+        p = log_path.with_name("truth.jsonl")
+        return p if p.exists() else None
+    return Path(truth) if truth else None
+
+
+def _oracle(elog: EpisodeLog, mp: TopicMapping, outcome: dict[str, Any], choices: list[FrameChoice],
+            distances: list[float], ego: tuple[float, float], theta: float,
+            minimize: Callable[[int], int] | None = None) -> tuple[Faulty | None, dict[str, Any], str | None]:
+    """P_faulty and the oracle data the failure test needs (empty without a collision)."""
+    coll = outcome.get("collision")
+    if not isinstance(coll, dict):
+        return None, {}, None if outcome else "no outcome record in the log"
+    topic = mp.topic("perception_obstacles")
+    if topic is None or topic not in elog.topics:
+        return None, {}, "collision, but the mapping names no perception_obstacles topic"
+    tm = elog.topics[topic]
+    track = participant_track((tm.payload(i) for i in range(len(tm))), int(coll["participant_num"]),
+                              str(coll.get("participant", coll["participant_num"])))
+    if track is None:
+        return None, {}, f"collision, but participant {coll.get('participant')} never appears in {topic}"
+    outputs = [(c.output.index, c.time, c.output.publish_time, c.output.seq, c.output.payload) for c in choices]
+    faulty = find_faulty(outputs, distances, track, ego, float(coll["time"]), theta)
+    if faulty is None:
+        return None, {}, ("collision, but no planning output before it plans the ego into the participant: "
+                          "the vehicle left its plan, so by DeFT's criterion the planner is not the culprit")
+    if minimize is not None and faulty.distance == 0.0:
+        faulty.replay_from = minimize(faulty.index)
+    oracle = {"collision": coll, "ego": {"length": ego[0], "width": ego[1]}, "track": track.as_dict(),
+              "faulty": faulty.as_dict()}
+    note = None if faulty.distance <= theta else "P_faulty itself was not reproduced within theta"
+    return faulty, oracle, note
+
+
+def _summary(elog: EpisodeLog, log_path: Path, scenario: str, meta: dict[str, Any], outcome: dict[str, Any],
+             cfg: SearchConfig, theta: float, choices: list[FrameChoice], distances: list[float],
+             engine: InputSearch, faulty: Faulty | None, oracle_note: str | None,
+             agreement: dict[str, Any] | None, mp: TopicMapping) -> dict[str, Any]:
+    n = len(choices)
+    counts = reproduced_counts(distances)
+    finite = [d for d in distances if math.isfinite(d)]
+    tries = np.array([c.tries for c in choices]) if choices else np.zeros(1)
+    return {
+        "format": SUMMARY_FORMAT, "log": str(log_path), "log_status": elog.status, "scenario": scenario,
+        "jitter_seed": meta.get("jitter_seed"), "outcome": outcome.get("outcome"),
+        "collision": outcome.get("collision"), "mode": cfg.mode, "theta": theta, "measure": cfg.measure,
+        "mapping": mp.name, "frames": n, "reproduced": counts,
+        "reproduced_share": {k: (v / n if n else None) for k, v in counts.items()},
+        "reproduced_at_theta": sum(1 for d in distances if d <= theta),
+        "not_reproduced": [{"index": c.output.index, "time": c.time, "distance": finite_or_none(c.distance)}
+                           for c in choices if c.distance > max(theta, SUMMARY_THETAS[0])][:50],
+        "distance": {"max": max(finite) if finite else None, "mean": float(np.mean(finite)) if finite else None,
+                     "no_output": n - len(finite)},
+        "search": {"plan_calls": engine.plan_calls, "tries_mean": float(tries.mean()), "tries_max": int(tries.max()),
+                   "stages": dict(Counter(c.stage for c in choices)), "planner_errors": engine.errors[:5]},
+        "faulty_trajectory": faulty.as_dict() if faulty else None,
+        "oracle_note": oracle_note,
+        "truth_agreement": agreement["share"] if agreement else None,
+        "truth": agreement,
+        "warnings": list(elog.warnings),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+
+
+def _timing(total_s: float, setup_s: float, engine: InputSearch, n: int, mini: Minimised | None) -> dict[str, Any]:
+    """Per-frame wall time of the extraction (without the one-time planner import and
+    construction, ``planner_setup_ms``), split into the planner's own ``plan()`` time and the
+    rest (reading, search, validation, oracle, writing). Minimising the failure test (replays
+    through fresh planners) is reported apart, as ``failure_minimisation``."""
+    per = 1000.0 / max(n, 1)
+    mini_s = mini.seconds if mini else 0.0
+    work = total_s - setup_s - mini_s
+    out: dict[str, Any] = {
+        "extraction_s": total_s, "ms_per_frame": work * per, "planner_ms_per_frame": engine.planner_s * per,
+        "overhead_ms_per_frame": (work - engine.planner_s) * per, "planner_setup_ms": setup_s * 1000.0,
+        "failure_minimisation": None}
+    if mini is not None:
+        out["failure_minimisation"] = {"seconds": mini_s, "candidates": mini.candidates,
+                                       "plan_calls": mini.plan_calls, "replay_from": mini.replay_from}
+    return out
+
+
+__all__ = ["ExtractionResult", "LogError", "MappingError", "extract_episode", "theta_key"]

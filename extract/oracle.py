@@ -1,0 +1,187 @@
+"""Oracle transformation (DeFT section 4.5): from a system-level collision to a faulty plan.
+
+A collision seen by the simulator becomes a planning-module oracle: a planned trajectory is
+*faulty* when one of its points puts the ego box, at the planned time, onto the box of the
+participant it collided with, at that participant's recorded position at the same time
+(interpolated between perception messages, extrapolated briefly past the last one). Of all
+faulty outputs published before the collision, P_faulty is the last one whose start (its first
+point) is still collision-free: the last plan with which the planner could still have avoided
+the collision and chose not to, so reproducing it is reproducing the failing decision.
+
+Everything here is numpy over all points of all outputs at once; the same functions check the
+reproduced output in the generated failure tests (:mod:`extract.runtime`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+#: how far past the last observation a participant's position is extrapolated [s]
+MAX_EXTRAPOLATION = 0.3
+DEFAULT_EGO = (4.8, 2.0)
+
+
+@dataclass
+class Track:
+    """A participant's recorded states: time [s], centre, heading, speed and size."""
+
+    participant: str
+    num: int
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    heading: np.ndarray
+    v: np.ndarray
+    length: float
+    width: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"participant": self.participant, "num": self.num, "t": self.t.tolist(), "x": self.x.tolist(),
+                "y": self.y.tolist(), "heading": self.heading.tolist(), "v": self.v.tolist(),
+                "length": self.length, "width": self.width}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Track:
+        return cls(d["participant"], int(d["num"]), *(np.asarray(d[k], dtype=float) for k in
+                                                       ("t", "x", "y", "heading", "v")),
+                   float(d["length"]), float(d["width"]))
+
+    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Centre x, y, heading at times ``t`` and whether the participant is known there."""
+        t = np.asarray(t, dtype=float)
+        h = np.unwrap(self.heading)
+        x, y, hh = np.interp(t, self.t, self.x), np.interp(t, self.t, self.y), np.interp(t, self.t, h)
+        after = np.maximum(t - self.t[-1], 0.0)
+        x = x + after * self.v[-1] * np.cos(h[-1])
+        y = y + after * self.v[-1] * np.sin(h[-1])
+        known = (t >= self.t[0]) & (t <= self.t[-1] + MAX_EXTRAPOLATION)
+        return x, y, hh, known
+
+
+def participant_track(messages: Iterable[Mapping[str, Any] | None], num: int, participant: str = "") -> Track | None:
+    """The states of obstacle ``num`` in perception-obstacle payloads (``header.stamp``,
+    ``obstacles[].{id, x, y, heading, v, length, width}``), or None when it never appears."""
+    rows: dict[float, tuple[float, float, float, float, float, float]] = {}
+    for m in messages:
+        if not m:
+            continue
+        stamp = (m.get("header") or {}).get("stamp")
+        for ob in m.get("obstacles") or ():
+            if ob.get("id") == num and stamp is not None:
+                rows[float(stamp)] = (ob["x"], ob["y"], ob.get("heading", 0.0), ob.get("v", 0.0),
+                                      ob.get("length", 0.0), ob.get("width", 0.0))
+                break
+    if not rows:
+        return None
+    ts = sorted(rows)
+    a = np.array([rows[t] for t in ts], dtype=float)
+    return Track(participant, num, np.array(ts), a[:, 0], a[:, 1], a[:, 2], a[:, 3],
+                 float(a[-1, 4]), float(a[-1, 5]))
+
+
+def boxes_overlap(ax: np.ndarray, ay: np.ndarray, ah: np.ndarray, a_len: float, a_wid: float,
+                  bx: np.ndarray, by: np.ndarray, bh: np.ndarray, b_len: float, b_wid: float) -> np.ndarray:
+    """Whether oriented boxes A and B overlap (touching counts), element-wise; separating-axis
+    test on the four box axes."""
+    la, wa, lb, wb = a_len / 2, a_wid / 2, b_len / 2, b_wid / 2
+    ca, sa, cb, sb = np.cos(ah), np.sin(ah), np.cos(bh), np.sin(bh)
+    dx, dy = bx - ax, by - ay
+    crel = np.abs(ca * cb + sa * sb)
+    srel = np.abs(sa * cb - ca * sb)
+    return ((np.abs(dx * ca + dy * sa) <= la + lb * crel + wb * srel)
+            & (np.abs(dy * ca - dx * sa) <= wa + lb * srel + wb * crel)
+            & (np.abs(dx * cb + dy * sb) <= lb + la * crel + wa * srel)
+            & (np.abs(dy * cb - dx * sb) <= wb + la * srel + wa * crel))
+
+
+def overlapping_points(trajectory: Mapping[str, Sequence[float]], track: Track, ego: tuple[float, float]) -> np.ndarray:
+    """Indices of the planned points whose ego box overlaps the participant at the planned time."""
+    t = np.asarray(trajectory["t"], dtype=float)
+    if t.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    px, py, ph, known = track.at(t)
+    hit = boxes_overlap(np.asarray(trajectory["x"], dtype=float), np.asarray(trajectory["y"], dtype=float),
+                        np.asarray(trajectory["heading"], dtype=float), ego[0], ego[1],
+                        px, py, ph, track.length, track.width)
+    return np.flatnonzero(hit & known)
+
+
+def first_overlaps(trajectories: Sequence[Mapping[str, Sequence[float]]], track: Track,
+                   ego: tuple[float, float]) -> np.ndarray:
+    """For each trajectory, the index of its first point overlapping the participant, or -1;
+    all points of all trajectories in one vectorised pass (rows padded to the longest)."""
+    if not trajectories:
+        return np.zeros(0, dtype=np.int64)
+    width = max(len(tr["t"]) for tr in trajectories)
+    arr = np.full((4, len(trajectories), width), np.nan)
+    for i, tr in enumerate(trajectories):
+        m = len(tr["t"])
+        for c, key in enumerate(("t", "x", "y", "heading")):
+            arr[c, i, :m] = tr[key]
+    t, x, y, h = arr
+    px, py, ph, known = track.at(np.nan_to_num(t, nan=-np.inf))
+    hit = boxes_overlap(x, y, h, ego[0], ego[1], px, py, ph, track.length, track.width) & known & ~np.isnan(t)
+    return np.where(hit.any(axis=1), hit.argmax(axis=1), -1)
+
+
+@dataclass
+class Faulty:
+    """P_faulty: the frame whose recorded output plans the ego into the collision."""
+
+    index: int
+    time: float
+    publish_time: float
+    planning_seq: int
+    point: int
+    point_time: float
+    x: float
+    y: float
+    participant: str
+    participant_num: int
+    collision_time: float
+    faulty_outputs: int  #: outputs before the collision that plan into it
+    distance: float  #: extraction's distance of the reproduced output from P_faulty
+    perceived: bool = True  #: the participant had been perceived by the frame time
+    replay_from: int = 0  #: the failure test replays frames replay_from..index (see extract.minimize)
+
+    def as_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def find_faulty(outputs: Sequence[tuple[int, float, float, int, Mapping[str, Any]]], distances: Sequence[float],
+                track: Track, ego: tuple[float, float], collision_time: float, theta: float) -> Faulty | None:
+    """P_faulty: the last output published before ``collision_time`` that plans into the
+    participant from a collision-free start.
+
+    ``outputs``: ``(index, frame time, publish time, seq, payload)`` per frame. Outputs planned
+    before the participant was first perceived are used only when no other is faulty (the
+    planner could not have known it). An output whose first planned point already overlaps was made when the collision could no longer be avoided
+    (the ego is in it at the frame time), so it counts only when no other output is faulty.
+    Outputs whose reproduction was not within ``theta`` are used only when no reproduced one is
+    faulty, since the failure test must reproduce P_faulty to fail."""
+    n = sum(1 for o in outputs if o[2] <= collision_time + 1e-9)
+    first = first_overlaps([o[4]["trajectory"] for o in outputs[:n]], track, ego)
+    faulty = [(k, int(p), bool(p > 0), bool(track.t[0] <= outputs[k][1]))
+              for k, p in enumerate(first.tolist()) if p >= 0]
+    if not faulty:
+        return None
+
+    def rank(f: tuple[int, int, bool, bool]) -> tuple[bool, bool, bool, int]:
+        return (f[3], distances[f[0]] <= theta, f[2], f[0])
+
+    k, p, _, seen = max(faulty, key=rank)
+    index, t_f, pub, seq, payload = outputs[k]
+    tr = payload["trajectory"]
+    return Faulty(index, t_f, pub, seq, p, float(tr["t"][p]), float(tr["x"][p]), float(tr["y"][p]),
+                  track.participant, track.num, collision_time, len(faulty), float(distances[k]), seen)
+
+
+def ego_size(override: tuple[float | None, float | None], planner_params: Mapping[str, Any]) -> tuple[float, float]:
+    """Ego box [m]: the mapping's values, else the planner's ``ego_length``/``ego_width``, else 4.8 x 2.0."""
+    length = override[0] or planner_params.get("ego_length") or DEFAULT_EGO[0]
+    width = override[1] or planner_params.get("ego_width") or DEFAULT_EGO[1]
+    return float(length), float(width)

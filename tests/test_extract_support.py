@@ -1,0 +1,86 @@
+"""Helpers shared by the extractor tests (no tests here): small real episodes and pytest runs.
+
+Episodes are real deft_gym runs with a fixed jitter seed, shortened where the scenario allows,
+so each costs about a second.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+from deft_gym.planner.lattice import LatticePlanner
+from deft_gym.scenario import load_scenario, scenario_from_dict, scenario_to_dict
+from deft_gym.variants import inject_cut_in, reference_path
+from extract.record import record_episode
+
+TESTS = Path(__file__).resolve().parent
+
+#: cut-in variants that collided with the reference planner, tried in order
+COLLISION_CANDIDATES = [("cross_intersection", 3, 1000), ("take_exit", 1, 1000), ("u_turn", 4, 1000),
+                        ("u_turn", 0, 1000), ("blocked_red_light", 1, 1000)]
+
+
+def short_scenario(name: str, duration: float) -> Any:
+    """A seed scenario cut to ``duration`` seconds."""
+    data = scenario_to_dict(load_scenario(name))
+    data["duration"] = duration
+    data["name"] = f"{data['name']}_short"
+    return scenario_from_dict(data, source=f"{name} (short)")
+
+
+def record(out: Path, scenario: Any, seed: int = 7, **kwargs: Any) -> Path:
+    """Record one episode into ``out``; returns the log path."""
+    res = record_episode(scenario, out, jitter_seed=seed, **kwargs)
+    assert res.log_path is not None
+    return Path(res.log_path)
+
+
+def colliding_episode(out: Path) -> tuple[Path, str] | None:
+    """The first candidate cut-in scenario whose run collides: ``(log, scenario name)``."""
+    refs: dict[str, Any] = {}
+    for k, (name, cut, seed) in enumerate(COLLISION_CANDIDATES):
+        sc = load_scenario(name)
+        if name not in refs:
+            refs[name] = reference_path(sc, jitter_seed=0)
+        variant = inject_cut_in(sc, refs[name], seed=cut)
+        res = record_episode(variant, out / f"cand{k}", jitter_seed=seed)
+        if res.outcome.collision is not None:
+            return Path(res.log_path), variant.name
+    return None
+
+
+def run_pytest(path: Path, *args: str, env: dict[str, str] | None = None) -> tuple[int, dict[str, str], str]:
+    """Run pytest on generated tests in a subprocess: ``(returncode, {test name: outcome}, output)``."""
+    xml = path / f"junit-{os.getpid()}-{len(list(path.glob('junit-*.xml')))}.xml"
+    full_env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
+                **(env or {})}
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
+                           f"--junitxml={xml}", str(path), *args], capture_output=True, text=True, env=full_env)
+    outcomes: dict[str, str] = {}
+    if xml.exists():
+        for tc in ET.parse(xml).getroot().iter("testcase"):
+            if tc.find("failure") is not None or tc.find("error") is not None:
+                status = "failed"
+            elif tc.find("skipped") is not None:
+                status = "skipped"
+            else:
+                status = "passed"
+            outcomes[tc.get("name", "")] = status
+        xml.unlink()
+    return proc.returncode, outcomes, proc.stdout + proc.stderr
+
+
+class ElsewherePlanner(LatticePlanner):
+    """A deliberately changed planner: plans like the reference one, 100 m to the side (so it
+    never plans into anything the reference planner hit)."""
+
+    def plan(self, frame: Any) -> dict[str, Any] | None:
+        out = super().plan(frame)
+        if out is not None:
+            out["trajectory"]["y"] = [y + 100.0 for y in out["trajectory"]["y"]]
+        return out

@@ -1,0 +1,156 @@
+"""Unit tests of the extractor's parts that need no simulation: mapping, geometry, ranking."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from extract.emit import slug
+from extract.mapping import DEFAULT_MAPPING, MappingError, get_field, load_mapping
+from extract.oracle import Track, boxes_overlap, find_faulty, first_overlaps, overlapping_points
+from extract.search import InputSearch, SearchConfig
+from extract.validator import distance, identical, reproduced_counts
+
+
+def test_default_mapping_loads_and_names_roles() -> None:
+    mp = load_mapping(None)
+    assert mp.source == str(DEFAULT_MAPPING)
+    assert mp.inputs == ["routing", "localization", "traffic_light", "prediction"]
+    assert mp.trigger == "prediction" and mp.frame_time_field == "header.stamp"
+
+
+@pytest.mark.parametrize(("patch", "needle"), [
+    ({"colour": 1}, "colour: unknown key"),
+    ({"trigger": "chassis"}, "trigger"),
+    ({"inputs": ["routing", "odometry"]}, "odometry"),
+    ({"topics": {"routing": "/r"}}, "planning"),
+])
+def test_bad_mapping_names_file_and_field(tmp_path, patch, needle) -> None:
+    import yaml
+
+    data = {**yaml.safe_load(DEFAULT_MAPPING.read_text()), **patch}
+    path = tmp_path / "m.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(MappingError) as err:
+        load_mapping(path)
+    assert str(path) in str(err.value) and needle in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_mapping_file_errors(tmp_path) -> None:
+    with pytest.raises(MappingError, match="cannot read"):
+        load_mapping(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("topics: [unclosed\n")
+    with pytest.raises(MappingError, match="invalid YAML"):
+        load_mapping(bad)
+
+
+def test_get_field_paths() -> None:
+    payload = {"header": {"stamp": 1.5}, "trajectory": {"t": [2.0, 2.2]}, "debug": None}
+    assert get_field(payload, "header.stamp") == 1.5
+    assert get_field(payload, "trajectory.t.0") == 2.0
+    assert get_field(payload, "trajectory.t.-1") == 2.2
+    assert get_field(payload, "trajectory.t.5") is None
+    assert get_field(payload, "debug.input_seqs") is None
+
+
+def test_boxes_overlap_cases() -> None:
+    z = np.zeros(1)
+    # same place, touching end to end (4.8 m apart along x), 5 m apart, crossing at right angles
+    assert boxes_overlap(z, z, z, 4.8, 2.0, z, z, z, 4.8, 2.0).all()
+    assert boxes_overlap(z, z, z, 4.8, 2.0, z + 4.8, z, z, 4.8, 2.0).all()
+    assert not boxes_overlap(z, z, z, 4.8, 2.0, z + 5.0, z, z, 4.8, 2.0).any()
+    assert boxes_overlap(z, z, z, 4.8, 2.0, z + 3.3, z, z + math.pi / 2, 4.8, 2.0).all()
+    assert not boxes_overlap(z, z, z, 4.8, 2.0, z + 3.5, z, z + math.pi / 2, 4.8, 2.0).any()
+    # diagonal: corners clear although the bounding circles overlap
+    assert not boxes_overlap(z, z, z, 4.8, 2.0, z + 2.5, z + 2.1, z, 4.8, 2.0).any()
+
+
+def _track(t0: float = 0.0) -> Track:
+    t = np.arange(t0, t0 + 2.01, 0.1)
+    return Track("npc", 1, t, 10.0 + 5.0 * (t - t0), np.zeros_like(t), np.zeros_like(t), np.full_like(t, 5.0), 4.8, 2.0)
+
+
+def test_track_interpolates_and_extrapolates_briefly() -> None:
+    tr = _track()
+    x, _, _, known = tr.at(np.array([0.05, 2.0, 2.2, 2.5, -0.1]))
+    assert x[0] == pytest.approx(10.25) and x[1] == pytest.approx(20.0) and x[2] == pytest.approx(21.0)
+    assert known.tolist() == [True, True, True, False, False]
+
+
+def _traj(t0: float, x0: float, v: float, n: int = 11) -> dict[str, list[float]]:
+    t = [t0 + 0.2 * k for k in range(n)]
+    return {"t": t, "x": [x0 + v * (tt - t0) for tt in t], "y": [0.0] * n, "heading": [0.0] * n}
+
+
+def test_overlapping_points_and_first_overlaps() -> None:
+    tr = _track()
+    chase = _traj(0.0, 0.0, 10.0)  # the 10 m gap to the participant (5 m/s) closes to 4.8 m at t=1.04 s
+    slow = _traj(0.0, 0.0, 2.0)
+    assert overlapping_points(chase, tr, (4.8, 2.0)).tolist()[:1] == [6]
+    assert overlapping_points(slow, tr, (4.8, 2.0)).size == 0
+    assert first_overlaps([chase, slow, chase], tr, (4.8, 2.0)).tolist() == [6, -1, 6]
+
+
+def test_find_faulty_prefers_last_reproduced_and_avoidable() -> None:
+    tr = _track()
+    outs = [(0, 0.0, 0.03, 0, {"trajectory": _traj(0.0, 0.0, 10.0)}),  # overlaps at point 7
+            (1, 0.1, 0.13, 1, {"trajectory": _traj(0.1, 1.0, 10.0)}),  # overlaps too, later in the run
+            (2, 0.2, 0.23, 2, {"trajectory": _traj(0.2, 0.0, 1.0)}),   # never overlaps
+            (3, 0.3, 5.00, 3, {"trajectory": _traj(0.3, 0.0, 10.0)})]  # published after the collision
+    f = find_faulty(outs, [0.0, 0.0, 0.0, 0.0], tr, (4.8, 2.0), collision_time=2.0, theta=0.0)
+    assert f is not None and f.index == 1 and f.faulty_outputs == 2 and f.point > 0
+    g = find_faulty(outs, [0.0, 0.5, 0.0, 0.0], tr, (4.8, 2.0), collision_time=2.0, theta=0.0)
+    assert g is not None and g.index == 0  # output 1 was not reproduced: the test could not fail on it
+    assert find_faulty(outs[2:3], [0.0], tr, (4.8, 2.0), 2.0, 0.0) is None
+
+
+def test_validator_identity_and_lsed() -> None:
+    a = {"trajectory": {"t": [0.0, 0.2, 0.4], "x": [0.0, 1.0, 2.0], "y": [0.0, 0.0, 0.0]}}
+    b = {"trajectory": {"t": [0.0, 0.2, 0.4], "x": [0.0, 1.0, 2.0], "y": [0.3, 0.3, 0.3]}}
+    assert identical(a, a) and distance(a, a) == 0.0
+    assert distance(a, b) == pytest.approx(0.3 * math.sqrt(3))
+    assert distance(a, None) == math.inf
+    assert distance(a, b, "hausdorff") == pytest.approx(0.3)
+    assert reproduced_counts([0.0, 0.05, 0.5, 3.0, math.inf]) == {"0": 1, "0.1": 2, "1": 3, "7": 4}
+
+
+def _search_over(pub: dict[str, list[int]], trigger: str = "prediction") -> InputSearch:
+    mp = load_mapping(None)
+    inputs = {r: SimpleNamespace(publish_ns=np.array(p, dtype=np.int64)) for r, p in pub.items()}
+    pif = SimpleNamespace(mapping=mp.model_copy(update={"trigger": trigger}), roles=list(pub), inputs=inputs,
+                          frame_bound=lambda r, t: int(np.searchsorted(inputs[r].publish_ns, t, side="right")))
+    return InputSearch(pif, planner=None, cfg=SearchConfig())  # type: ignore[arg-type]
+
+
+def test_ranking_is_best_first_and_follows_the_heuristics() -> None:
+    ms = 1_000_000
+    s = _search_over({"routing": [0], "localization": [50 * ms, 99 * ms, 100 * ms - 200_000],
+                      "traffic_light": [], "prediction": [10 * ms, 99 * ms]})
+    t_f = 100 * ms
+    combos = list(s._ranked(t_f, None, relaxed=False))
+    assert combos[0] == {"routing": 0, "localization": 1, "traffic_light": None, "prediction": 1}
+    # H2: nothing published after t_F; every joint combination (None: nothing received yet)
+    # appears once
+    assert len(combos) == len({tuple(c.values()) for c in combos}) == 2 * 4 * 1 * 3
+    logp = []
+    for c in combos:
+        p = 1.0
+        for r, j in c.items():
+            p *= dict((jj, pp) for pp, jj in s._role_candidates(r, t_f, None, False))[j]
+        logp.append(p)
+    assert all(a >= b - 1e-15 for a, b in itertools.pairwise(logp))
+    # H3: with a previous choice, nothing older is proposed (unless relaxed)
+    prev = {"routing": 0, "localization": 1, "traffic_light": None, "prediction": 1}
+    assert {c["localization"] for c in s._ranked(t_f, prev, relaxed=False)} == {1, 2}
+    assert 0 in {c["localization"] for c in s._ranked(t_f, prev, relaxed=True)}
+
+
+def test_slug_makes_identifiers() -> None:
+    assert slug("left_turn~cut3") == "left_turn_cut3"
+    assert slug("3 lanes / merge") == "s_3_lanes_merge"
