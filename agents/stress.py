@@ -1,0 +1,285 @@
+"""ASTAA-style robustness testing of the ADS on DeFT-Gym's bus.
+
+    python -m agents.stress --scenario left_turn --budget 200 --out runs/stress/left_turn
+    python -m agents.stress replay runs/stress/left_turn/minimised/<finding>.json
+    python -m agents.stress check runs/stress/left_turn/minimised/<finding>/episode.mcap
+    python -m agents.stress spec
+    python -m agents.stress compare runs/stress/off runs/stress/on
+    python -m agents.stress subsystem FRAMES.jsonl --out runs/stress/subsystem
+
+The campaign (default command) generates interception policies from the message schemas and
+the exceptional-values dictionary, runs them live on the jittered bus, classifies every run
+(crash, hang, invariant violation by name), attributes findings to planted faults, minimises
+each distinct finding by delta debugging and writes OUT/summary.json. See
+deft_gym/robustness/__init__.py for the parts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from rich import box
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, load_yaml
+
+SUBCOMMANDS = ("replay", "check", "spec", "compare", "subsystem")
+console = Console(stderr=True, width=None if sys.stderr.isatty() else 160)
+
+
+def _scenario_path(name: str) -> str:
+    p = Path(name)
+    if p.suffix in (".yaml", ".yml"):
+        return name
+    cand = CONFIG_DIR / "scenarios" / f"{name}.yaml"
+    if not cand.exists():
+        raise ConfigError(f"--scenario: no scenario {name!r} (looked for {cand})")
+    return str(cand.relative_to(CONFIG_DIR.parent))
+
+
+def campaign_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="python -m agents.stress",
+        description="ASTAA robustness campaign: intercept live bus messages with exceptional values, "
+                    "monitor crashes, hangs and safety invariants, minimise findings.",
+        epilog="other commands: replay CASE.json|DIR, check LOG.mcap, spec, compare DIR DIR, "
+               "subsystem FRAMES.jsonl (each with --help)")
+    ap.add_argument("--scenario", nargs="+", default=None,
+                    help="scenario YAML(s) or names in configs/scenarios (default: the campaign config's list)")
+    ap.add_argument("--budget", type=int, default=100, help="number of tests (default 100)")
+    ap.add_argument("--out", required=True, help="campaign folder (resumed if it exists)")
+    ap.add_argument("--config", default=None, help="campaign config YAML (default configs/stress/default.yaml)")
+    ap.add_argument("--seed", type=int, default=0, help="campaign seed: tests and jitter seeds (default 0)")
+    ap.add_argument("--ads-config", default=None, help="ADS config YAML (default configs/ads/default.yaml)")
+    ap.add_argument("--ads-overlay", action="append", default=[],
+                    help="YAML merged over the ADS config, e.g. configs/ads/faults/nan_speed.yaml (repeatable)")
+    ap.add_argument("--hardening", choices=("off", "on"), default="off",
+                    help="wrap prediction/planning/control in sanitisation + consistency checks")
+    ap.add_argument("--brittle", action="store_true", help="also inject into brittle fields (stamps, seq numbers)")
+    ap.add_argument("--invariants", default=None, help="invariants YAML (default configs/invariants/default.yaml)")
+    ap.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
+    ap.add_argument("--minimise", choices=("all", "planted", "none"), default="all",
+                    help="minimise every distinct finding (default), only planted-fault findings, or none")
+    ap.add_argument("--until-found", action="store_true",
+                    help="with planted faults: stop the tests once every planted fault was found")
+    ap.add_argument("--max-replays", type=int, default=None, help="replays per minimisation")
+    ap.add_argument("--max-signatures", type=int, default=None, help="distinct findings to minimise")
+    return ap
+
+
+def run_campaign_cli(argv: list[str]) -> int:
+    from deft_gym.robustness.campaign import Campaign, load_campaign_config, run_campaign
+
+    args = campaign_parser().parse_args(argv)
+    if args.budget < 1:
+        console.print("[red]--budget must be at least 1")
+        return 2
+    overrides: dict[str, Any] = {}
+    if args.scenario:
+        overrides["scenarios"] = [_scenario_path(s) for s in args.scenario]
+    if args.brittle:
+        overrides["generation"] = {"brittle": True}
+    if args.invariants:
+        overrides["invariants"] = args.invariants
+    if args.max_replays or args.max_signatures is not None:
+        overrides["minimise"] = {k: v for k, v in (("max_replays", args.max_replays),
+                                                   ("max_signatures", args.max_signatures)) if v is not None}
+    cfg = load_campaign_config(args.config, overrides)
+    ads_overrides: dict[str, Any] = {}
+    for path in args.ads_overlay:
+        data = load_yaml(path) or {}
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a mapping at the top level")
+        ads_overrides = deep_merge(ads_overrides, data)
+    campaign = Campaign(cfg, args.seed, args.ads_config, ads_overrides, args.hardening == "on")
+    # validate the ADS configuration once, up front (a bad file is one clear line, not N failed runs)
+    from deft_gym.robustness.runner import build_ads
+
+    build_ads(campaign.base_case(cfg.scenarios[0], 0, "check"))
+    out = Path(args.out)
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TextColumn("{task.fields[info]}"), console=console) as prog:
+        tasks: dict[str, Any] = {}
+
+        def report(stage: str, done: int, total: int, counts: dict[str, Any]) -> None:
+            if stage not in tasks:
+                tasks[stage] = prog.add_task(stage, total=total or None, info="")
+            info = ""
+            if counts:
+                info = (f"crashes {counts['crashes']}  hangs {counts['hangs']}  "
+                        f"violations {counts['violations']}  harness errors {counts['harness_errors']}")
+            prog.update(tasks[stage], completed=done, total=total or None, info=info)
+
+        summary = run_campaign(campaign, out, args.budget, args.workers, args.minimise, report, args.until_found)
+    print_summary(summary, out)
+    return 0
+
+
+def print_summary(s: dict[str, Any], out: Path) -> None:
+    """A readable table of a campaign summary."""
+    t = Table(title=f"ASTAA campaign {out} (hardening {'on' if s['hardening'] else 'off'})", box=box.SIMPLE)
+    t.add_column("measure")
+    t.add_column("value", justify="right")
+    for key in ("runs", "crashes", "hangs", "runs_with_violations", "runs_with_findings", "harness_errors"):
+        t.add_row(key.replace("_", " "), str(s[key]))
+    for name, n in s["violations"].items():
+        t.add_row(f"  violation {name}", str(n))
+    t.add_row("wall time [s]", f"{s['wall_time_s']:.0f}")
+    console.print(t)
+    if s["findings"]:
+        f = Table(title="distinct findings", box=box.SIMPLE)
+        for col in ("signature", "runs", "first run"):
+            f.add_column(col)
+        for sig, info in s["findings"].items():
+            f.add_row(sig, str(info["runs"]), str(info["first_run"]))
+        console.print(f)
+    if s["minimised"]:
+        m = Table(title="minimised", box=box.SIMPLE)
+        for col in ("signature", "interfaces", "instances", "fields", "replays", "deterministic"):
+            m.add_column(col)
+        for info in s["minimised"]:
+            d = info.get("dimensionality") or {}
+            m.add_row(info["signature"], str(d.get("interfaces", "-")), str(d.get("instances", "-")),
+                      ", ".join(d.get("fields", [])) or "-", str(info.get("replays", "-")),
+                      str(info.get("deterministic", "-")))
+        console.print(m)
+    for fault, info in s["planted"].items():
+        if info.get("found"):
+            d = (info.get("minimised") or {}).get("dimensionality") or {}
+            console.print(f"planted fault [bold]{fault}[/]: found at test {info['runs_to_find']} "
+                          f"({info['signature']}); minimal: {d.get('interfaces')}/{d.get('instances')} "
+                          f"{', '.join(d.get('fields', []))}")
+        else:
+            console.print(f"planted fault [bold]{fault}[/]: [red]not found")
+    console.print(f"summary: {out / 'summary.json'}")
+
+
+def replay_cli(argv: list[str]) -> int:
+    from deft_gym.robustness.campaign import replay
+
+    ap = argparse.ArgumentParser(prog="python -m agents.stress replay",
+                                 description="Replay test case files and check they reproduce their finding.")
+    ap.add_argument("cases", nargs="+", help="case JSON files, or campaign folders (all cases/ and minimised/)")
+    ap.add_argument("--log", default=None, help="write the test log (MCAP) of a single case to this folder")
+    args = ap.parse_args(argv)
+    files: list[Path] = []
+    for c in args.cases:
+        p = Path(c)
+        if p.is_dir():
+            files += sorted((p / "cases").glob("*.json")) + sorted(q for q in (p / "minimised").glob("*.json")
+                                                                    if not q.name.endswith(".info.json"))
+        else:
+            files.append(p)
+    ok = 0
+    t = Table(box=box.SIMPLE)
+    for col in ("case", "expected", "reproduced", "identical run", "same foundation"):
+        t.add_column(col)
+    changed = changed_ok = 0
+    for f in files:
+        r = replay(f, args.log if len(files) == 1 else None)
+        ok += r["reproduced"] and r["identical"]
+        changed += not r["same_foundation"]
+        changed_ok += not r["same_foundation"] and r["reproduced"] and r["identical"]
+        t.add_row(str(f), str(r["expected"]), str(r["reproduced"]), str(r["identical"]), str(r["same_foundation"]))
+    console.print(t)
+    console.print(f"{ok}/{len(files)} cases reproduced their finding with an identical run")
+    if changed:
+        console.print(f"[yellow]{changed} case(s) were recorded on another version of the simulation source "
+                      f"(deft_gym): identical runs are not guaranteed for them ({changed_ok} still identical)")
+    return 0 if ok == len(files) else 1
+
+
+def check_cli(argv: list[str]) -> int:
+    from deft_gym.robustness.offline import check_log
+
+    ap = argparse.ArgumentParser(prog="python -m agents.stress check",
+                                 description="Evaluate the safety invariants offline on an episode log (MCAP).")
+    ap.add_argument("log", help="episode.mcap")
+    ap.add_argument("--invariants", default=None, help="invariants YAML (default configs/invariants/default.yaml)")
+    ap.add_argument("--json", action="store_true", help="print the violations as JSON")
+    args = ap.parse_args(argv)
+    violations = check_log(args.log, args.invariants)
+    if args.json:
+        print(json.dumps([v.as_dict() for v in violations], indent=1, allow_nan=True))
+    else:
+        t = Table(title=f"invariant violations in {args.log}", box=box.SIMPLE)
+        for col in ("invariant", "kind", "first [s]", "count", "detail"):
+            t.add_column(col)
+        for v in violations:
+            t.add_row(v.name, v.kind, f"{v.time:.2f}", str(v.count), v.detail[:80])
+        console.print(t if violations else "no invariant violated")
+    return 1 if violations else 0
+
+
+def spec_cli(argv: list[str]) -> int:
+    from deft_gym.robustness.dictionary import candidates
+    from deft_gym.robustness.spec import TestSpecification
+
+    ap = argparse.ArgumentParser(prog="python -m agents.stress spec",
+                                 description="Print the test specification derived from the message schemas.")
+    ap.add_argument("--json", action="store_true", help="as JSON")
+    args = ap.parse_args(argv)
+    spec = TestSpecification.from_schemas()
+    if args.json:
+        print(json.dumps({"topics": spec.topics, "message_types": spec.message_types,
+                          "fields": [dict(f.as_dict(), values=candidates(f)) for f in spec.fields]}, indent=1))
+        return 0
+    t = Table(box=box.SIMPLE)
+    for col in ("role", "message type", "field", "type", "unit", "brittle", "values"):
+        t.add_column(col)
+    for f in spec.fields:
+        t.add_row(f.role, spec.message_types[f.role], f.path, f.type + (f"<{f.item_type}>" if f.item_type else ""),
+                  f.unit, "yes" if f.brittle else "", str(len(candidates(f))))
+    console.print(t)
+    return 0
+
+
+def compare_cli(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(prog="python -m agents.stress compare",
+                                 description="Compare campaign summaries (e.g. hardening off vs on).")
+    ap.add_argument("dirs", nargs="+", help="campaign folders")
+    args = ap.parse_args(argv)
+    sums = [json.loads((Path(d) / "summary.json").read_text()) for d in args.dirs]
+    t = Table(box=box.SIMPLE)
+    t.add_column("measure")
+    for d, s in zip(args.dirs, sums):
+        t.add_column(f"{d} (hardening {'on' if s['hardening'] else 'off'})", justify="right")
+    for key in ("runs", "crashes", "hangs", "runs_with_violations", "harness_errors"):
+        t.add_row(key.replace("_", " "), *[str(s[key]) for s in sums])
+    names = sorted({n for s in sums for n in s["violations"]})
+    for n in names:
+        t.add_row(f"  {n}", *[str(s["violations"].get(n, 0)) for s in sums])
+    console.print(t)
+    return 0
+
+
+def subsystem_cli(argv: list[str]) -> int:
+    from deft_gym.robustness import subsystem
+
+    return subsystem.main(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv and argv[0] in SUBCOMMANDS:
+            cmd = {"replay": replay_cli, "check": check_cli, "spec": spec_cli, "compare": compare_cli,
+                   "subsystem": subsystem_cli}[argv[0]]
+            return cmd(argv[1:])
+        return run_campaign_cli(argv)
+    except ConfigError as exc:
+        console.print(f"[red]error:[/] {exc}")
+        return 2
+    except KeyboardInterrupt:
+        console.print("interrupted: run the same command again to resume")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

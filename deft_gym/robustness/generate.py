@@ -1,0 +1,100 @@
+"""Random test cases from the specification and the dictionary (ASTAA section 3.2).
+
+Test ``i`` of a campaign is drawn from its own RNG seeded with ``"<seed>:<i>"``, so it does not
+depend on any earlier result: a campaign can be resumed, run in parallel, or rerun with
+hardening on and get exactly the same tests. Each test has 1-3 policies; a policy picks a topic
+role, one or more fields of it (mixing exceptional and likely-valid values), a window
+``[t_i, t_j]`` (log-uniform length, or a single message), and intercepts or, sometimes,
+interleaves modified copies (or stale duplicates) of the messages.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from deft_gym.robustness.dictionary import candidates
+from deft_gym.robustness.spec import CONSUMED_ROLES, FieldSpec, TestSpecification
+from deft_gym.robustness.testcase import Assignment, Policy
+
+ONE_SHOT_ROLES = ("routing",)  # published once at start-up: windows start at 0
+
+
+class Range(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    min: float = Field(ge=0.0)
+    max: float = Field(ge=0.0)
+
+
+class GenerationConfig(BaseModel):
+    """How tests are drawn."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    roles: list[str] = Field(default_factory=lambda: list(CONSUMED_ROLES))
+    brittle: bool = Field(default=False, description="also target brittle fields (stamps, sequence numbers)")
+    policies: Range = Range(min=1, max=3)
+    fields_per_policy: Range = Range(min=1, max=2)
+    exceptional_share: float = Field(default=0.8, ge=0.0, le=1.0)
+    inject_share: float = Field(default=0.15, ge=0.0, le=1.0)
+    duplicate_share: float = Field(default=0.5, ge=0.0, le=1.0, description="inject: share of stale duplicates")
+    single_share: float = Field(default=0.4, ge=0.0, le=1.0, description="share of one-message policies")
+    window_s: Range = Range(min=0.1, max=5.0)
+    start_s: Range = Range(min=1.0, max=15.0)
+    inject_delay_ms: Range = Range(min=0.0, max=150.0)
+
+
+def generate_policies(spec: TestSpecification, cfg: GenerationConfig, rng: random.Random) -> list[Policy]:
+    """One test's policies."""
+    fields = spec.select(cfg.roles, brittle=cfg.brittle)
+    by_role: dict[str, list[FieldSpec]] = {}
+    for f in fields:
+        by_role.setdefault(f.role, []).append(f)
+    roles = sorted(by_role)
+    out = []
+    for _ in range(rng.randint(int(cfg.policies.min), int(cfg.policies.max))):
+        role = rng.choice(roles)
+        mode = "inject" if rng.random() < cfg.inject_share else "intercept"
+        k = rng.randint(int(cfg.fields_per_policy.min), int(cfg.fields_per_policy.max))
+        chosen = rng.sample(by_role[role], min(k, len(by_role[role])))
+        sets = [] if mode == "inject" and rng.random() < cfg.duplicate_share else \
+            [Assignment(path=f.path, value=_value(f, cfg, rng)) for f in chosen]
+        if role in ONE_SHOT_ROLES:
+            start, end = 0.0, 1.0
+        else:
+            start = rng.uniform(cfg.start_s.min, cfg.start_s.max)
+            lo, hi = math.log(cfg.window_s.min), math.log(cfg.window_s.max)
+            end = start + math.exp(rng.uniform(lo, hi))
+        single = rng.random() < cfg.single_share
+        out.append(Policy(topic=role, mode=mode, start=round(start, 3), end=round(end, 3),
+                          max_count=1 if single else None, set=sets,
+                          delay_ms=round(rng.uniform(cfg.inject_delay_ms.min, cfg.inject_delay_ms.max), 1)))
+    return out
+
+
+def _value(f: FieldSpec, cfg: GenerationConfig, rng: random.Random) -> str:
+    exceptional = rng.random() < cfg.exceptional_share
+    names = candidates(f, exceptional) or candidates(f)
+    return rng.choice(names)
+
+
+def case_rng(seed: int, index: int) -> random.Random:
+    """The RNG of test ``index`` of a campaign with ``seed`` (independent of every other test)."""
+    return random.Random(f"{seed}:{index}")
+
+
+def describe(policies: list[Policy]) -> str:
+    """A one-line summary of a test's policies."""
+    parts: list[str] = []
+    for p in policies:
+        what = ",".join(f"{a.path}={a.value}" for a in p.set) or "duplicate"
+        n = "x1" if p.max_count == 1 else f"{p.start:.1f}-{p.end:.1f}s"
+        parts.append(f"{p.mode[:3]} {p.topic}[{n}] {what}")
+    return "; ".join(parts)
+
+
+__all__: list[Any] = ["GenerationConfig", "Range", "case_rng", "describe", "generate_policies"]

@@ -1,0 +1,83 @@
+"""Offline invariant checking on a recorded episode log (MCAP).
+
+The same YAML invariants as online, on the same stream: the log holds what subscribers saw, so
+the original of every intercepted message (channel ``/astaa/original<topic>``) replaces it and
+injected messages (listed on ``/astaa/events``) are skipped - exactly the original messages the
+online monitor observed, in publish order. The map comes from the log's episode record and the
+``outcome`` from its outcome record.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from mcap.reader import make_reader
+
+from deft_gym.codec import decode
+from deft_gym.messages import NS_PER_S
+from deft_gym.recorder import EPISODE_METADATA, OUTCOME_METADATA
+from deft_gym.robustness.interception import EVENTS_TOPIC, ORIGINAL_PREFIX
+from deft_gym.robustness.invariants import (
+    InvariantMonitor,
+    InvariantSet,
+    Violation,
+    load_invariants,
+)
+
+
+def _metadata(reader: Any) -> dict[str, dict[str, Any]]:
+    out: dict[str, dict[str, Any]] = {}
+    for rec in reader.iter_metadata():
+        vals = {}
+        for k, v in rec.metadata.items():
+            try:
+                vals[k] = json.loads(v)
+            except json.JSONDecodeError:
+                vals[k] = v
+        out[rec.name] = vals
+    return out
+
+
+def check_log(path: Path | str, invariants: InvariantSet | Path | str | None = None) -> list[Violation]:
+    """Evaluate ``invariants`` (a set or a YAML path; default the project's) on a log."""
+    inv = invariants if isinstance(invariants, InvariantSet) else load_invariants(invariants)
+    path = Path(path)
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        meta = _metadata(reader)
+    episode = meta.get(EPISODE_METADATA, {})
+    if "map" not in episode:
+        raise ValueError(f"{path}: no {EPISODE_METADATA} record with the map")
+    originals: dict[tuple[str, int], dict[str, Any]] = {}
+    injected: set[tuple[str, int]] = set()
+    roles: dict[str, str] = {}
+    last_ns = 0
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            topic = channel.topic
+            if topic.startswith(ORIGINAL_PREFIX):
+                originals[(topic[len(ORIGINAL_PREFIX):], message.sequence)] = decode(message.data)
+            elif topic == EVENTS_TOPIC:
+                ev = decode(message.data)
+                if ev.get("mode") == "inject":
+                    injected.add((ev["bus_topic"], ev["bus_seq"]))
+            elif "role" in channel.metadata:
+                roles[topic] = channel.metadata["role"]
+    monitor = InvariantMonitor(inv, episode["map"])
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            role = roles.get(channel.topic)
+            if role is None:
+                continue
+            key = (channel.topic, message.sequence)
+            if key in injected:
+                continue
+            payload = originals.get(key)
+            if payload is None:
+                payload = decode(message.data)
+            last_ns = max(last_ns, message.log_time)
+            monitor.observe(role, payload, message.log_time / NS_PER_S)
+    outcome = meta.get(OUTCOME_METADATA)
+    return monitor.finish(outcome, float((outcome or {}).get("sim_time", last_ns / NS_PER_S)))
