@@ -212,13 +212,19 @@ class Node:
     def _finish(self, outputs: list[tuple[str, dict[str, Any]]] | None) -> None:
         bus = self.bus
         if outputs and self.alive:
-            for topic, payload in outputs:
-                self.on_published(bus.publish(topic, payload))
-            self.last_publish_ns = bus.now_ns
+            bus.supervisor.run(self, self._publish, outputs)
         self.busy = False
         if self.pending:
             self.pending = False
             self._begin()
+
+    def _publish(self, outputs: list[tuple[str, dict[str, Any]]]) -> None:
+        """Put the outputs on the bus (run by the supervisor: a tap or interceptor that fails on
+        them is reported against this node)."""
+        bus = self.bus
+        for topic, payload in outputs:
+            self.on_published(bus.publish(topic, payload))
+        self.last_publish_ns = bus.now_ns
 
     # -- to implement -----------------------------------------------------------------------
     def on_published(self, msg: Message) -> None:

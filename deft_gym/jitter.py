@@ -23,7 +23,12 @@ def os_seed() -> int:
 
 
 class JitterModel:
-    """Draws every timing quantity of a run from its own seeded RNG."""
+    """Draws every timing quantity of a run from its own seeded RNG.
+
+    ``VERSION`` names the sequence of draws; a log records it, since the same seed replays a run
+    only with the same version."""
+
+    VERSION = "deft_gym.jitter/2"  # 2: lognormal via random.gauss
 
     def __init__(self, config: JitterConfig, seed: int | None = None) -> None:
         self.config = config

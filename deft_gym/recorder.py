@@ -56,6 +56,10 @@ class McapRecorder:
         self.count = 0
         self.closed = False
 
+    def add_metadata(self, name: str, values: dict[str, Any]) -> None:
+        """Add a metadata record (values that are not strings are JSON-encoded)."""
+        self.writer.add_metadata(name, _meta(values))
+
     def channel(self, topic: str) -> int:
         """Channel id of a topic; topics outside the schema set get a schemaless channel."""
         cid = self._channels.get(topic)

@@ -28,7 +28,7 @@ from deft_gym.modules.prediction import PredictionNode
 from deft_gym.modules.routing import RoutingNode
 from deft_gym.modules.sensors import LocalizationNode, PerceptionNode, TrafficLightNode
 from deft_gym.oracles import EpisodeOracle, Outcome
-from deft_gym.planner.base import import_object, load_planner
+from deft_gym.planner.base import import_object, load_planner, planner_fingerprint
 from deft_gym.recorder import McapRecorder, write_atomic, write_truth
 from deft_gym.roadmap import shared_roadmap
 from deft_gym.scenario import Scenario, build_world, destination_xy, load_scenario, scenario_to_dict
@@ -52,7 +52,7 @@ class SimulatorNode(Node):
 
     def _tick(self, nominal_ns: int) -> None:
         self.bus.schedule(nominal_ns + self.period_ns, self._tick, nominal_ns + self.period_ns)
-        if self.ticks > 0:
+        if self.ticks > 0 and self.alive:
             self.bus.supervisor.run(self, self.step)
         self.ticks += 1
 
@@ -167,10 +167,12 @@ class Simulation:
             "scenario_source": self.scenario.source or "",
             "scenario": scenario_to_dict(self.scenario),
             "jitter_seed": self.jitter.seed,
+            "jitter_model": JitterModel.VERSION,
             "scenario_seed": self.scenario.seed,
             "map": self.scenario.map.model_dump(),
             "planner": {"class": ads.planning.planner.cls, "params": dict(ads.planning.planner.params),
-                        "subscribe": list(ads.planning.subscribe), "trigger": ads.planning.trigger},
+                        "subscribe": list(ads.planning.subscribe), "trigger": ads.planning.trigger,
+                        "source_sha256": planner_fingerprint(ads.planning.planner.cls)},
             "topics": dict(ads.topics),
             "ads_config": ads.model_dump(mode="json", by_alias=True),
         }

@@ -74,6 +74,16 @@ def import_object(path: str) -> Any:
         raise ValueError(f"cannot import {path!r}: {exc}") from None
 
 
+def planner_fingerprint(cls_path: str) -> str:
+    """SHA-256 of the source file defining a planner class: a log records it, so a test can tell
+    that the planner it was extracted for has changed."""
+    import hashlib
+    import inspect
+
+    src = inspect.getsourcefile(import_object(cls_path))
+    return hashlib.sha256(open(src, "rb").read()).hexdigest() if src else ""
+
+
 def load_planner(cls_path: str, map_spec: Mapping[str, Any], params: Mapping[str, Any] | None = None) -> Planner:
     """Instantiate a planner from its class path, the map spec and its parameters."""
     cls = import_object(cls_path)

@@ -48,6 +48,7 @@ class LatticeParams(BaseModel):
     stop_time_factors: tuple[float, ...] = (1.0, 1.5)
     lane_change_time: float = 3.5
     nudge_time: float = 2.5
+    recentre_time: float = 1.5  #: a quicker return to the lane centre (after a wide turn, a swerve)
     default_cruise: float = 10.0
     max_accel: float = 2.5
     emergency_decel: float = 7.0
@@ -184,7 +185,7 @@ class LatticePlanner(Planner):
                                        (0.0, 0.0, 0.0, one, zero), (0.0, 0.0, 0.0, zero, one))],
                                      axis=1).transpose(2, 1, 0, 3)  # (T, coefficient, s/v/a, K)
         self._lat_basis: dict[float, list[np.ndarray]] = {}
-        for T in {self.p.nudge_time, self.p.lane_change_time}:
+        for T in sorted({self.p.nudge_time, self.p.lane_change_time, self.p.recentre_time}):
             TT = np.array([[T]])
             self._lat_basis[T] = [np.stack(_quintic(*u, TT, t))[:, 0] for u in
                                   ((1.0, 0.0, 0.0, np.zeros((1, 1)), 0.0, 0.0),
@@ -217,6 +218,9 @@ class LatticePlanner(Planner):
         vs0 = v0 * math.cos(dh) / max(1.0 - kr * d0, 0.2)
         vd0 = v0 * math.sin(dh)
         as0, ad0 = a0 * math.cos(dh), a0 * math.sin(dh)
+        # a (nearly) stopped car cannot brake harder than its speed allows: a stitched braking
+        # acceleration would make every profile dip below zero speed
+        as0 = max(as0, -max(vs0, 0.0) / 0.3)
         v_des = min(route.cruise, float(self.map.lanes[lane].speed_limit or route.cruise))
 
         obs = self._obstacles(frame.get("prediction"), t0, ref, s0, d0)
@@ -328,7 +332,8 @@ class LatticePlanner(Planner):
             return ref
         chain = [lane]
         total = self.map.geoms[lane].length
-        while total < 250.0:
+        reach = total + 150.0  # the horizon from anywhere on the lane, with margin
+        while total < reach:
             nxt = self._next_on_route(chain[-1], route)
             if nxt is None or nxt in chain:
                 break
@@ -343,7 +348,9 @@ class LatticePlanner(Planner):
         k = line.curvature(s)
         s1 = np.arange(float(s[0]), float(s[-1]), 1.0)
         k1 = np.abs(np.interp(s1, s, k))
-        vlim = np.sqrt(self.p.max_lat_accel / np.maximum(k1, 1e-6))
+        # speed limit along the chain: curvature (lateral acceleration) and each lane's limit
+        lane_limit = np.array([float(self.map.lanes[lid].speed_limit or np.inf) for lid in chain])
+        vlim = np.minimum(np.sqrt(self.p.max_lat_accel / np.maximum(k1, 1e-6)), lane_limit[line._piece(s1)])
         ref = _Ref(line, s, xy[:, 0].copy(), xy[:, 1].copy(), h, k, vlim, continues)
         self._ref_cache[key] = ref
         return ref
@@ -424,7 +431,8 @@ class LatticePlanner(Planner):
         if lat is not None:
             return lat
         p, w = self.p, self.map.spec.lane_width
-        targets: list[tuple[LaneId, float, float, float]] = [(lane, 0.0, 0.0, p.nudge_time)]
+        targets: list[tuple[LaneId, float, float, float]] = [(lane, 0.0, 0.0, p.nudge_time),
+                                                             (lane, 0.0, 0.0, p.recentre_time)]
         targets += [(lane, 0.0, off, p.nudge_time) for off in p.nudges]
         nbs = self.map.changeable_neighbours(lane)
         for nb in nbs:
@@ -589,7 +597,13 @@ class LatticePlanner(Planner):
         jerk = la[:, 1:] - la[:, :-1]
         c_lon = ((p.w_speed * inv_k / vref**2) * (dv * dv).sum(axis=-1) + (p.w_accel * inv_k) * (la * la).sum(axis=-1)
                  + (p.w_jerk / p.dt**2 / (self.K - 1)) * (jerk * jerk).sum(axis=-1) + lon["penalty"])
-        ok_lon = lv.min(axis=-1) > -0.1
+        # speed limits (lanes and curvature) ahead; only a start that is already above the limit
+        # where the ego is may take time to come down (3 m/s^2)
+        idx = np.clip((ls - float(ref.s[0])).astype(np.int64), 0, len(ref.vlim) - 1)
+        limit = ref.vlim[idx] + 0.3
+        if lv[0, 0] > limit[0, 0]:
+            limit = np.maximum(limit, lv[:, :1] - 3.0 * self.tk)
+        ok_lon = (lv.min(axis=-1) > -0.1) & (lv <= limit).all(axis=-1)
         # lateral-only: stay inside the drivable band (the current road's lanes while on it, the
         # lane itself beyond); a start outside the band is allowed but must not get worse
         left, right = lat.band
@@ -634,10 +648,11 @@ class LatticePlanner(Planner):
                        kr: np.ndarray, obs: dict[str, np.ndarray]) -> np.ndarray:
         """Soft-buffer cost of candidate rows, ``inf`` where the hard buffer is violated.
 
-        Exact oriented-box separation (separating-axis test on the 4 box axes) between the ego at
-        each planned pose and each predicted obstacle box, in world coordinates. ``sep`` [m] is
-        the largest gap along an axis: negative = overlap. Hard: the ego box grown by the hard
-        buffers (longitudinal, lateral) overlaps; soft: ``sep`` below the soft buffer. Only
+        Exact oriented-box separation (separating-axis test, :func:`_box_separation`) between
+        the ego at each planned pose and each predicted obstacle box, in world coordinates. Hard:
+        the boxes overlap, or the ego box grown by the hard buffers (longitudinal, lateral)
+        overlaps the obstacle more than it does at the start (a buffer the ego is already inside
+        may be kept or left, not worsened); soft: separation below the soft buffer. Only
         (candidate, obstacle, time) triples whose bounding circles come within the soft buffer
         are tested; all others cannot contribute."""
         p = self.p
@@ -653,27 +668,20 @@ class LatticePlanner(Planner):
         close = dx * dx + dy * dy < reach * reach
         if not close.any():
             return np.zeros(n)
+        eh = hr + np.arctan2(dd, np.maximum(v * (1.0 - kr * d), 1e-3))
+        # the start pose (the same for every candidate) against every obstacle
+        _, sep_h0 = _box_separation(dx[0, :, 0], dy[0, :, 0], math.cos(eh[0, 0]), math.sin(eh[0, 0]),
+                                       obs["c"][:, 0], obs["s"][:, 0], obs["hl"][:, 0], obs["hw"][:, 0],
+                                       la, wa, p.lon_buffer_hard, p.lat_buffer_hard)
         ci, oi, ki = np.nonzero(close)
-        dx, dy = dx[ci, oi, ki], dy[ci, oi, ki]
-        eh = hr[ci, ki] + np.arctan2(dd[ci, ki], np.maximum(v[ci, ki] * (1.0 - kr[ci, ki] * d[ci, ki]), 1e-3))
-        ec, es = np.cos(eh), np.sin(eh)
-        oc, os_ = obs["c"][oi, ki], obs["s"][oi, ki]
-        crel = np.abs(oc * ec + os_ * es)
-        srel = np.abs(os_ * ec - oc * es)
-        lb, wb = obs["hl"][oi, 0], obs["hw"][oi, 0]
-        p1 = np.abs(dx * ec + dy * es) - (lb * crel + wb * srel)  # along the ego's axes
-        p2 = np.abs(dy * ec - dx * es) - (lb * srel + wb * crel)
-        p3 = np.abs(dx * oc + dy * os_) - lb  # along the obstacle's axes
-        p4 = np.abs(dy * oc - dx * os_) - wb
-        r_a_u = la * crel + wa * srel
-        r_a_v = la * srel + wa * crel
-        sep = np.maximum(np.maximum(p1 - la, p2 - wa), np.maximum(p3 - r_a_u, p4 - r_a_v))
-        lh, wh = p.lon_buffer_hard, p.lat_buffer_hard
-        sep_h = np.maximum(np.maximum(p1 - la - lh, p2 - wa - wh),
-                           np.maximum(p3 - r_a_u - (lh * crel + wh * srel), p4 - r_a_v - (lh * srel + wh * crel)))
+        eh = eh[ci, ki]
+        sep, sep_h = _box_separation(dx[ci, oi, ki], dy[ci, oi, ki], np.cos(eh), np.sin(eh),
+                                     obs["c"][oi, ki], obs["s"][oi, ki], obs["hl"][oi, 0], obs["hw"][oi, 0],
+                                     la, wa, p.lon_buffer_hard, p.lat_buffer_hard)
+        bad = (sep < 0.0) | (sep_h < np.minimum(0.0, sep_h0[oi] - 0.05))
         pen = np.maximum(p.lat_buffer_soft - np.maximum(sep, 0.0), 0.0)
         cost = (p.w_obstacle * p.dt / p.lat_buffer_soft) * np.bincount(ci, weights=pen, minlength=n)
-        hard = np.bincount(ci, weights=(sep_h < 0.0), minlength=n) > 0
+        hard = np.bincount(ci, weights=bad, minlength=n) > 0
         return np.where(hard, np.inf, cost)
 
     # -- outputs ------------------------------------------------------------------------------
@@ -719,6 +727,29 @@ class LatticePlanner(Planner):
                     "target_lane": list(target) if target else [], "stitched": stitched,
                     "cost": cost if math.isfinite(cost) else -1.0}
         return {"trajectory": traj, "decision": decision}
+
+
+def _box_separation(dx: np.ndarray, dy: np.ndarray, ec: np.ndarray | float, es: np.ndarray | float,
+                    oc: np.ndarray, os_: np.ndarray, lb: np.ndarray, wb: np.ndarray, la: float, wa: float,
+                    lh: float, wh: float) -> tuple[np.ndarray, np.ndarray]:
+    """Separating-axis test of two oriented boxes, element-wise.
+
+    The ego box (half length ``la``, half width ``wa``, heading cos/sin ``ec, es``) and an
+    obstacle box (``lb, wb``, heading ``oc, os_``) whose centre is ``(dx, dy)`` from the ego's.
+    Returns the separation [m] (the largest gap along the four box axes; negative = overlap)
+    and the same for the ego box grown by ``lh`` (longitudinally) and ``wh`` (laterally)."""
+    crel = np.abs(oc * ec + os_ * es)
+    srel = np.abs(os_ * ec - oc * es)
+    p1 = np.abs(dx * ec + dy * es) - (lb * crel + wb * srel)  # along the ego's axes
+    p2 = np.abs(dy * ec - dx * es) - (lb * srel + wb * crel)
+    p3 = np.abs(dx * oc + dy * os_) - lb  # along the obstacle's axes
+    p4 = np.abs(dy * oc - dx * os_) - wb
+    r_a_u = la * crel + wa * srel
+    r_a_v = la * srel + wa * crel
+    sep = np.maximum(np.maximum(p1 - la, p2 - wa), np.maximum(p3 - r_a_u, p4 - r_a_v))
+    sep_h = np.maximum(np.maximum(p1 - la - lh, p2 - wa - wh),
+                       np.maximum(p3 - r_a_u - (lh * crel + wh * srel), p4 - r_a_v - (lh * srel + wh * crel)))
+    return sep, sep_h
 
 
 # -- polynomial profiles (vectorised over rows, Horner form) -------------------------------------

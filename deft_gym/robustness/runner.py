@@ -236,7 +236,7 @@ def run_case(case: TestCase, out_dir: Path | str | None = None, stop_on: str | N
             result.harness_errors.append("bus: " + traceback.format_exc(limit=-4))
     try:
         if sim.recorder is not None:
-            sim.recorder.writer.add_metadata(ASTAA_METADATA, {
+            sim.recorder.add_metadata(ASTAA_METADATA, {
                 "case": json.dumps(case.model_dump(mode="json", exclude_none=True)),
                 "applied": json.dumps(icpt.applied)})
         res = sim.finish()
