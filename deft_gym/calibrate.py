@@ -2,8 +2,9 @@
 
     python -m deft_gym.calibrate --variants 10 --reruns 10 --out runs/calibration
 
-For every seed scenario and ``--variants`` perturbations of it (:mod:`deft_gym.variants`), the
-scenario is run ``--reruns`` times with different jitter seeds. A *collision scenario* collides
+For every seed scenario, ``--variants`` perturbations of it, ``--cut-ins`` variants with a
+vehicle cutting in ahead of the ego and ``--brakes`` variants with a leader braking hard
+(:mod:`deft_gym.variants`), the scenario is run ``--reruns`` times with different jitter seeds. A *collision scenario* collides
 in at least one rerun; it is *flaky* when it does not collide in all of them. The DeFT paper saw
 187 flaky of 658 collision scenarios (28 %) in Apollo. Writes ``OUT/calibration.json``.
 """
@@ -24,7 +25,7 @@ from deft_gym.config import load_ads_config
 from deft_gym.recorder import write_atomic
 from deft_gym.scenario import list_scenarios, load_scenario, scenario_from_dict, scenario_to_dict
 from deft_gym.simulation import run_episode
-from deft_gym.variants import inject_cut_in, perturb, reference_path
+from deft_gym.variants import inject_cut_in, inject_hard_brake, perturb, reference_path
 
 
 def _job(args: tuple[dict[str, Any], int, str | None]) -> dict[str, Any]:
@@ -43,7 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variants", type=int, default=10, help="perturbed variants per seed (default 10)")
     ap.add_argument("--reruns", type=int, default=10, help="reruns per variant (default 10)")
     ap.add_argument("--strength", type=float, default=1.0, help="perturbation strength (default 1.0)")
-    ap.add_argument("--cut-ins", type=int, default=10, help="cut-in variants per seed (default 10)")
+    ap.add_argument("--cut-ins", type=int, default=6, help="cut-in variants per seed (default 6)")
+    ap.add_argument("--brakes", type=int, default=6, help="hard-braking-leader variants per seed (default 6)")
     ap.add_argument("--jitter-seed", type=int, default=1000, help="rerun i uses jitter seed S+i (default 1000)")
     ap.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
     ap.add_argument("--ads-config", default=None, help="ADS config YAML (default configs/ads/default.yaml)")
@@ -56,9 +58,10 @@ def main(argv: list[str] | None = None) -> int:
         seed_sc = load_scenario(path)
         variants = [perturb(seed_sc, seed=v, strength=args.strength) if v else seed_sc
                     for v in range(args.variants)]
-        if args.cut_ins:
+        if args.cut_ins or args.brakes:
             path = reference_path(seed_sc)
             variants += [inject_cut_in(seed_sc, path, seed=c) for c in range(args.cut_ins)]
+            variants += [inject_hard_brake(seed_sc, path, seed=c) for c in range(args.brakes)]
         for var in variants:
             data = scenario_to_dict(var)
             jobs += [(data, args.jitter_seed + r, args.ads_config) for r in range(args.reruns)]

@@ -75,7 +75,8 @@ def reference_path(sc: Scenario, jitter_seed: int = 0) -> np.ndarray:
 def inject_cut_in(sc: Scenario, path: np.ndarray, seed: int) -> Scenario:
     """``sc`` plus a scripted vehicle that cuts in ahead of the ego (from its left or right) at a
     random moment of the reference path ``path`` - the manoeuvre a constant-velocity predictor
-    sees late. Lateral start offset, lead distance, timing and speeds are drawn from ``seed``."""
+    sees late. Lateral start offset, lead distance (0-12 m: from unavoidable to easy), timing and
+    speeds are drawn from ``seed``."""
     rng = np.random.default_rng(seed)
     moving = path[path[:, 4] > 2.0]
     if len(moving) < 20:
@@ -84,9 +85,9 @@ def inject_cut_in(sc: Scenario, path: np.ndarray, seed: int) -> Scenario:
     t_h, x, y, h, v = moving[i]
     c, s_ = np.cos(h), np.sin(h)
     side = rng.choice([-1.0, 1.0]) * rng.uniform(3.0, 4.0)
-    lead = rng.uniform(4.0, 12.0)
-    dur = rng.uniform(1.5, 3.0)
-    v_npc = v * rng.uniform(0.4, 0.9)
+    lead = rng.uniform(0.0, 12.0)
+    dur = rng.uniform(1.0, 3.0)
+    v_npc = v * rng.uniform(0.3, 1.0)
 
     def at(ahead: float, lateral: float) -> tuple[float, float]:
         return float(x + ahead * c - lateral * s_), float(y + ahead * s_ + lateral * c)
@@ -101,3 +102,40 @@ def inject_cut_in(sc: Scenario, path: np.ndarray, seed: int) -> Scenario:
     data["name"] = f"{sc.name}~cut{seed}"
     data.setdefault("participants", []).append({"id": f"cut_in_{seed}", "type": "scripted", "waypoints": wps})
     return scenario_from_dict(data, source=f"{sc.source or sc.name} (cut-in {seed})")
+
+
+def inject_hard_brake(sc: Scenario, path: np.ndarray, seed: int) -> Scenario:
+    """``sc`` plus a scripted vehicle that appears ahead of the ego on its reference path, drives
+    at the ego's speed and then brakes hard to a stop. Gap (6-25 m), braking moment and
+    deceleration (4-9 m/s^2) are drawn from ``seed``."""
+    rng = np.random.default_rng(seed)
+    moving = path[path[:, 4] > 3.0]
+    if len(moving) < 20:
+        return sc
+    xy = path[:, 1:3]
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    i = int(np.flatnonzero(path[:, 4] > 3.0)[rng.integers(len(moving) // 5, len(moving) * 3 // 5)])
+    t0, v = float(path[i, 0]), float(path[i, 4])
+    gap = rng.uniform(6.0, 25.0) + 4.8
+    t_brake = t0 + rng.uniform(0.5, 3.0)
+    decel = rng.uniform(4.0, 9.0)
+    s_at = []  # the vehicle's arc length over time: ego speed until t_brake, then braking
+    for k in range(0, 41):
+        t = t0 + 0.25 * k
+        if t <= t_brake:
+            s_v = arc[i] + gap + v * (t - t0)
+        else:
+            tb = min(t - t_brake, v / decel)
+            s_v = arc[i] + gap + v * (t_brake - t0) + v * tb - 0.5 * decel * tb * tb
+        s_at.append((t, s_v))
+    wps = []
+    for t, s_v in s_at:
+        if s_v > arc[-1]:
+            break
+        wps.append({"t": float(t), "x": float(np.interp(s_v, arc, xy[:, 0])), "y": float(np.interp(s_v, arc, xy[:, 1]))})
+    if len(wps) < 3:
+        return sc
+    data = copy.deepcopy(scenario_to_dict(sc))
+    data["name"] = f"{sc.name}~brake{seed}"
+    data.setdefault("participants", []).append({"id": f"brake_{seed}", "type": "scripted", "waypoints": wps})
+    return scenario_from_dict(data, source=f"{sc.source or sc.name} (hard brake {seed})")

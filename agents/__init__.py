@@ -1,0 +1,1 @@
+"""Adversaries and the scripts users run: training, evaluation, search baselines, the robustness campaign, the demo."""

@@ -1,0 +1,54 @@
+"""Training configuration (``configs/train/*.yaml``), validated with pydantic.
+
+Any problem is reported as one line per field: ``<file>: <field.path>: <what was expected>``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from deft_gym.config import ConfigError, format_validation_error, load_yaml
+from deft_gym.envs.adversary import AdversaryConfig
+
+ALGOS = ("ppo", "a2c")  # SB3 algorithms that take MultiDiscrete actions
+
+
+class TrainConfig(BaseModel):
+    """One training run of the adversary."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = "adversary"
+    algo: Literal["ppo", "a2c"] = "ppo"
+    policy: str = "MlpPolicy"
+    timesteps: int = Field(100_000, ge=1)
+    seed: int = 0
+    n_envs: int = Field(2, ge=1, le=64)
+    vec_env: Literal["subproc", "dummy"] = "subproc"
+    checkpoint_every: int = Field(10_000, ge=1, description="env steps between checkpoints")
+    algo_kwargs: dict[str, Any] = Field(default_factory=dict)
+    policy_kwargs: dict[str, Any] = Field(default_factory=lambda: {"net_arch": [128, 128]})
+    env: AdversaryConfig = AdversaryConfig()
+    log_episodes: bool = Field(True, description="record every episode's MCAP log (failures -> extractor)")
+
+
+def load_train_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """Load ``path`` (or the defaults) with ``overrides`` on top; errors name file and field."""
+    data: dict[str, Any] = {}
+    name = "<defaults>"
+    if path is not None:
+        name = str(path)
+        raw = load_yaml(path)
+        if raw is not None and not isinstance(raw, dict):
+            raise ConfigError(f"{path}: expected a mapping at the top level")
+        data = dict(raw or {})
+    for key, value in (overrides or {}).items():
+        if value is not None:
+            data[key] = value
+    try:
+        return TrainConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(name, err)) from None

@@ -1,0 +1,443 @@
+"""Compare adversaries at an equal budget of simulated scenarios (Decictor Table I / Figure 7).
+
+    python -m agents.evaluate --methods rl,decictor,random_delta,random --budget 100 --repeats 2 \\
+        --scenarios left_turn,right_turn --variants 1 --model runs/adversary/x/model.zip --out runs/eval/x
+
+Methods: ``rl`` (the trained adversary, stochastic actions), ``decictor`` (Decictor-GA),
+``random_delta``, ``random`` (see :mod:`agents.search`) and ``random_online`` (uniform random
+actions in the adversary env: the env without learning, an ablation).
+
+Every (method, scenario, repeat) is one job of ``budget`` simulated scenarios; jobs run in
+parallel worker processes. Outputs in ``--out``:
+
+- ``records.jsonl`` - one line per simulated scenario (append-only; a rerun with the same
+  ``--out`` skips the jobs already complete, so an interrupted evaluation resumes);
+- ``summary.json`` - per method and scenario: ``nods``, ``collisions``, ``failures`` (mean per
+  repeat), ``validity`` (share of non-invasive mutations), ``distinct`` (distinct failures per
+  repeat, by location and participant), ``scenarios`` (budget), ``seconds`` (wall time per
+  simulated scenario), plus totals for seeds and held-out variants and the ratios between
+  methods;
+- ``table.md`` - the Table I analogue; ``cumulative_failures.png`` - the Figure 7 analogue.
+
+Held-out variants (``--variants K``) are the first K *robust* variants ``<seed>~v<1000000+i>``
+(:func:`deft_gym.variants.perturb`, seeds the adversary never trains on; robust: their unmutated
+runs complete consistently under eight jitter seeds, see :func:`deft_gym.envs.context.robust`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import sys
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from deft_gym.config import ConfigError, format_validation_error, load_yaml
+from deft_gym.envs.context import SEED_SCENARIOS
+from deft_gym.envs.sink import append_jsonl, write_json_atomic
+
+METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
+DEFAULT_METHODS = ("rl", "decictor", "random_delta", "random")
+HELD_OUT_BASE = 1_000_000
+
+
+class EvalConfig(BaseModel):
+    """``configs/eval/*.yaml`` (command-line options override it)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    methods: list[str] = Field(default_factory=lambda: list(DEFAULT_METHODS))
+    budget: int = Field(50, ge=1)
+    repeats: int = Field(1, ge=1)
+    scenarios: list[str] = Field(default_factory=lambda: list(SEED_SCENARIOS))
+    variants: int = Field(0, ge=0, description="held-out variants per seed scenario")
+    model: str | None = None
+    deterministic: bool = False
+    workers: int = Field(2, ge=1)
+    seed: int = 0
+    log_failures: bool = False
+    max_added: int = Field(8, ge=1)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m agents.evaluate", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", type=Path, default=None, help="evaluation YAML (configs/eval/*.yaml)")
+    p.add_argument("--methods", default=None, help=f"comma-separated, of {','.join(METHODS)}")
+    p.add_argument("--budget", type=int, default=None, help="simulated scenarios per method, scenario and repeat")
+    p.add_argument("--repeats", type=int, default=None)
+    p.add_argument("--scenarios", default=None, help="comma-separated seed scenarios (names or YAML paths)")
+    p.add_argument("--variants", type=int, default=None, help="held-out variants per seed scenario")
+    p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl'")
+    p.add_argument("--deterministic", action="store_true", default=None, help="greedy RL actions")
+    p.add_argument("--workers", type=int, default=None, help="parallel worker processes (default 2)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--log-failures", action="store_true", default=None,
+                   help="keep MCAP logs of failing scenarios and extract tests from them")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--no-progress", action="store_true")
+    return p.parse_args(argv)
+
+
+def load_eval_config(args: argparse.Namespace) -> EvalConfig:
+    data: dict[str, Any] = {}
+    name = "<command line>"
+    if args.config is not None:
+        name = str(args.config)
+        data = dict(load_yaml(args.config) or {})
+    for key in ("budget", "repeats", "variants", "model", "deterministic", "workers", "seed", "log_failures"):
+        if getattr(args, key) is not None:
+            data[key] = getattr(args, key)
+    for key in ("methods", "scenarios"):
+        if getattr(args, key) is not None:
+            data[key] = [s.strip() for s in getattr(args, key).split(",") if s.strip()]
+    try:
+        cfg = EvalConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(name, err)) from None
+    bad = [m for m in cfg.methods if m not in METHODS]
+    if bad:
+        raise ConfigError(f"{name}: methods: unknown {bad}; expected some of {list(METHODS)}")
+    if "rl" in cfg.methods and not cfg.model:
+        raise ConfigError(f"{name}: model: method 'rl' needs --model (a trained model.zip)")
+    if cfg.model and not Path(cfg.model).exists():
+        raise ConfigError(f"{name}: model: {cfg.model} does not exist")
+    return cfg
+
+
+def model_env_config(model: str | None) -> dict[str, Any]:
+    """The env section of the training config stored next to a model (or in its run folder)."""
+    if not model:
+        return {}
+    p = Path(model)
+    for d in (p.parent, p.parent.parent):
+        if (d / "config.yaml").exists():
+            return dict((load_yaml(d / "config.yaml") or {}).get("env", {}))
+    return {}
+
+
+# -- one job --------------------------------------------------------------------------------------
+_POLICIES: dict[str, Any] = {}
+
+
+def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
+    """``budget`` simulated scenarios of one method on one scenario (in a worker process)."""
+    from deft_gym.envs.adversary import load_env_config
+    from deft_gym.envs.context import seed_context
+
+    env_cfg = load_env_config(job["env"])
+    method, scenario, budget = job["method"], job["scenario"], job["budget"]
+    seed = job["seed"]
+    out = Path(job["out"])
+    recs: list[dict[str, Any]] = []
+    base = {"method": method, "scenario": scenario, "repeat": job["repeat"]}
+    if method in ("rl", "random_online"):
+        recs = _run_rl(job, env_cfg, progress)
+    else:
+        from agents.search import search
+
+        ctx = seed_context(scenario, env_cfg.feasible, reference_seed=env_cfg.reference_seed, grid=env_cfg.grid,
+                           threshold=env_cfg.threshold)
+        log_root = out / "logs" / method / scenario.replace("~", "_") / f"r{job['repeat']}"
+
+        def log_dir(i: int) -> Path | None:
+            return (log_root / f"{i:05d}") if job["log_failures"] else None
+
+        for rec in search(method, ctx, budget, seed, job["max_added"], log_dir):
+            if job["log_failures"]:
+                _keep_or_drop(log_dir(rec["index"]), rec)
+            recs.append({**base, **rec})
+            if progress is not None:
+                progress.put(1)
+    from deft_gym.envs.trace import code_fingerprint
+
+    code = code_fingerprint()  # the simulation code this job ran (a changed planner shows here)
+    return [{**base, **r, "code": code} for r in recs]
+
+
+def _keep_or_drop(d: Path | None, rec: dict[str, Any]) -> None:
+    import shutil
+
+    if d is None:
+        return
+    if not rec.get("failure"):
+        shutil.rmtree(d, ignore_errors=True)
+        return
+    from deft_gym.envs.sink import extractor
+
+    write_json_atomic(d / "episode.json", rec)
+    fn = extractor()
+    if fn is not None:
+        try:
+            res = fn(d / "episode.mcap", d / "extracted", test_suffix="_".join(d.parts[-4:]))
+            rec["extraction"] = {"status": "ok", "test": str(getattr(res, "test_path", "") or "")}
+        except Exception as exc:  # keep evaluating
+            rec["extraction"] = {"status": f"error: {type(exc).__name__}: {exc}"}
+    else:
+        rec["extraction"] = {"status": "extractor unavailable"}
+    rec["log"] = str(d)
+
+
+def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, Any]]:
+    import time as _time
+
+    import torch
+    from stable_baselines3 import A2C, PPO
+
+    from deft_gym.envs.adversary import AdversaryEnv
+
+    torch.set_num_threads(1)
+    key = job["model"] if job["method"] == "rl" else None
+    model = _POLICIES.get(key) if key else None
+    if key and model is None:
+        for cls in (PPO, A2C):
+            try:
+                model = cls.load(key, device="cpu")
+                break
+            except Exception:  # not this algorithm
+                continue
+        if model is None:
+            raise RuntimeError(f"cannot load model {key}")
+        _POLICIES[key] = model
+    log_dir = None
+    if job["log_failures"]:
+        log_dir = str(Path(job["out"]) / "logs" / job["method"] / job["scenario"].replace("~", "_") / f"r{job['repeat']}")
+    cfg = env_cfg.model_copy(update={"scenarios": [job["scenario"]], "variant_prob": 0.0, "log_dir": log_dir,
+                                     "keep_passing": 0.0, "extract": True})
+    env = AdversaryEnv(config=cfg)
+    env.action_space.seed(job["seed"])
+    recs = []
+    for i in range(job["budget"]):
+        t0 = _time.perf_counter()
+        obs, _ = env.reset(seed=job["seed"] * 100_003 + i)
+        done = False
+        info: dict[str, Any] = {}
+        while not done:
+            if model is None:  # random_online: uniform random actions in the same env
+                action = env.action_space.sample()
+            else:
+                action, _ = model.predict(obs, deterministic=job["deterministic"])
+            obs, _, done, _, info = env.step(action)
+        rec = {"index": i, **{k: info.get(k) for k in ("outcome", "collision", "nods", "iou", "f_p", "f_b", "valid",
+                                                        "invasive", "failure", "signature", "added", "sim_time",
+                                                        "jitter_seed")},
+               "seconds": round(_time.perf_counter() - t0, 4)}
+        if info.get("failure"):
+            rec["scenario_equivalent"] = env.equivalent_scenario()
+            rec["collision_detail"] = info.get("collision_detail")
+            rec["ops"] = env.ops
+            if info.get("log"):
+                rec["log"], rec["extraction"] = info["log"], info.get("extraction")
+        recs.append(rec)
+        if progress is not None:
+            progress.put(1)
+    env.close()
+    return recs
+
+
+def _job_entry(args: tuple[dict[str, Any], Any]) -> list[dict[str, Any]]:
+    return run_job(*args)
+
+
+# -- aggregation ----------------------------------------------------------------------------------
+def summarize(records: list[dict[str, Any]], cfg: EvalConfig, seeds: list[str], held_out: list[str]) -> dict[str, Any]:
+    """Table I analogue per method and scenario, totals and ratios."""
+    groups: dict[tuple[str, str], dict[int, list[dict[str, Any]]]] = defaultdict(lambda: defaultdict(list))
+    for r in records:
+        groups[(r["method"], r["scenario"])][r["repeat"]].append(r)
+    per: dict[str, dict[str, Any]] = defaultdict(dict)
+    for (method, scn), reps in sorted(groups.items()):
+        n_rep = len(reps)
+        rows = [x for rs in reps.values() for x in rs]
+        nods = sum(1 for x in rows if x.get("failure") == "nods")
+        col = sum(1 for x in rows if x.get("failure") == "collision")
+        distinct = [len({x["signature"] for x in rs if x.get("failure")}) for rs in reps.values()]
+        per[method][scn] = {
+            "nods": round(nods / n_rep, 3), "collisions": round(col / n_rep, 3),
+            "failures": round((nods + col) / n_rep, 3),
+            "validity": round(sum(1 for x in rows if x.get("valid")) / max(len(rows), 1), 4),
+            "distinct": round(sum(distinct) / n_rep, 3),
+            "distinct_all_repeats": len({x["signature"] for x in rows if x.get("failure")}),
+            "scenarios": round(len(rows) / n_rep, 1), "repeats": n_rep,
+            "seconds": round(sum(x.get("seconds", 0.0) for x in rows) / max(len(rows), 1), 4),
+            "collisions_any": round(sum(1 for x in rows if x.get("collision")) / n_rep, 3),
+            "task_failures": round(sum(1 for x in rows if x.get("outcome") in ("timeout", "stuck")) / n_rep, 3)}
+    totals: dict[str, dict[str, Any]] = {}
+    for method, scns in per.items():
+        for label, names in (("seeds", seeds), ("held_out", held_out), ("all", seeds + held_out)):
+            sel = [scns[n] for n in names if n in scns]
+            if not sel:
+                continue
+            totals.setdefault(method, {})[label] = {
+                k: round(sum(s[k] for s in sel), 3) for k in ("nods", "collisions", "failures", "distinct", "scenarios")}
+            totals[method][label]["validity"] = round(sum(s["validity"] for s in sel) / len(sel), 4)
+            totals[method][label]["seconds"] = round(sum(s["seconds"] for s in sel) / len(sel), 4)
+    ratios: dict[str, Any] = {}
+    for label in ("seeds", "held_out", "all"):
+        f = {m: totals[m][label]["failures"] for m in totals if label in totals[m]}
+        for a, b in (("rl", "decictor"), ("rl", "random_delta"), ("rl", "random"), ("decictor", "random_delta"),
+                     ("random_delta", "random"), ("decictor", "random"), ("rl", "random_online")):
+            if a in f and b in f:
+                ratios.setdefault(label, {})[f"{a}/{b}"] = round(f[a] / f[b], 3) if f[b] else None
+    codes = sorted({r.get("code", "?") for r in records})
+    return {"config": cfg.model_dump(), "seeds": seeds, "held_out": held_out, "per_method": per,
+            "totals": totals, "ratios": ratios, "simulation_code": codes}
+
+
+def write_table(summary: dict[str, Any], path: Path) -> str:
+    """Markdown Table I analogue: failures (NoDS + collisions), validity and distinct failures."""
+    per = summary["per_method"]
+    scns = summary["seeds"] + summary["held_out"]
+    methods = [m for m in METHODS if m in per]
+    head = "| method | " + " | ".join(scns) + " | sum seeds | sum held-out |\n"
+    head += "|---" * (len(scns) + 3) + "|\n"
+    lines = [f"Budget: {summary['config']['budget']} simulated scenarios per method, scenario and repeat; "
+             f"{summary['config']['repeats']} repeat(s). Cells: NoDS + collisions = failures "
+             "(mean per repeat), validity %, distinct failures.\n", head]
+    for m in methods:
+        cells = []
+        for s in scns:
+            c = per[m].get(s)
+            cells.append("-" if c is None else f"{c['nods']:g}+{c['collisions']:g}={c['failures']:g} "
+                         f"({100 * c['validity']:.1f} %, {c['distinct']:g} d)")
+        t = summary["totals"].get(m, {})
+        ts = t.get("seeds", {})
+        th = t.get("held_out", {})
+        cells.append(f"{ts.get('failures', 0):g} ({100 * ts.get('validity', 0):.1f} %)" if ts else "-")
+        cells.append(f"{th.get('failures', 0):g} ({100 * th.get('validity', 0):.1f} %)" if th else "-")
+        lines.append(f"| {m} | " + " | ".join(cells) + " |\n")
+    text = "".join(lines)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+    return text
+
+
+def plot_cumulative(records: list[dict[str, Any]], summary: dict[str, Any], path: Path) -> None:
+    """Cumulative failures over the budget, mean over repeats, summed over scenarios."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    budget = summary["config"]["budget"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=False)
+    for ax, label in zip(axes, ("seeds", "held_out")):
+        names = set(summary[label])
+        for m in METHODS:
+            rows = [r for r in records if r["method"] == m and r["scenario"] in names]
+            if not rows:
+                continue
+            reps = {r["repeat"] for r in rows}
+            curve = np.zeros(budget)
+            for r in rows:
+                if r.get("failure") and r["index"] < budget:
+                    curve[r["index"]] += 1
+            ax.plot(np.arange(1, budget + 1), np.cumsum(curve) / max(len(reps), 1), label=m)
+        ax.set_title(f"{'seed scenarios' if label == 'seeds' else 'held-out variants'} ({len(names)})")
+        ax.set_xlabel("simulated scenarios per scenario")
+        ax.set_ylabel("cumulative failures (NoDS + collisions)")
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# -- main -----------------------------------------------------------------------------------------
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        cfg = load_eval_config(args)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    seeds = list(cfg.scenarios)
+    held_out = []
+    if cfg.variants:
+        from deft_gym.envs.context import held_out_variants
+
+        print(f"choosing {cfg.variants} robust held-out variant(s) per seed ...", flush=True)
+        for s in seeds:
+            held_out += held_out_variants(s, cfg.variants, HELD_OUT_BASE) if "~v" not in s else []
+    env = model_env_config(cfg.model)
+    env["max_added"] = env.get("max_added", cfg.max_added)
+    rec_path = out / "records.jsonl"
+    done: dict[tuple[str, str, int], int] = defaultdict(int)
+    records: list[dict[str, Any]] = []
+    if rec_path.exists():  # resume: keep what earlier runs simulated with the same simulation code
+        from deft_gym.envs.trace import code_fingerprint
+
+        code, names = code_fingerprint(), set(seeds + held_out)
+        records = [json.loads(x) for x in rec_path.read_text().splitlines() if x.strip()]
+        stale = sum(1 for r in records if r.get("code") != code)
+        records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code and r["scenario"] in names]
+        if stale:
+            print(f"{stale} earlier record(s) ran other simulation code: simulating them again")
+        for r in records:
+            done[(r["method"], r["scenario"], r["repeat"])] += 1
+    jobs = []
+    for rep in range(cfg.repeats):
+        for scn in seeds + held_out:
+            for m in cfg.methods:
+                if done[(m, scn, rep)] >= cfg.budget:
+                    continue
+                records = [r for r in records if (r["method"], r["scenario"], r["repeat"]) != (m, scn, rep)]
+                jobs.append({"method": m, "scenario": scn, "repeat": rep, "budget": cfg.budget,
+                             "seed": cfg.seed * 1000 + rep, "env": env, "model": cfg.model,
+                             "deterministic": cfg.deterministic, "out": str(out), "log_failures": cfg.log_failures,
+                             "max_added": cfg.max_added})
+    write_json_atomic(out / "eval_config.json", {**cfg.model_dump(), "held_out": held_out})
+    # rewrite the journal without partial jobs, then append as jobs finish
+    tmp = rec_path.with_suffix(".tmp")
+    tmp.write_text("".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
+    tmp.replace(rec_path)
+    total = sum(j["budget"] for j in jobs)
+    print(f"{len(jobs)} jobs, {total} simulated scenarios, {cfg.workers} workers -> {out}")
+    t0 = time.time()
+    if jobs:
+        from tqdm import tqdm
+
+        ctx = mp.get_context("forkserver")
+        with ctx.Manager() as manager:
+            queue = manager.Queue()
+            bar = tqdm(total=total, unit="scn", disable=args.no_progress, smoothing=0.05)
+
+            def pump() -> None:
+                while True:
+                    item = queue.get()
+                    if item is None:
+                        return
+                    bar.update(item)
+
+            th = threading.Thread(target=pump, daemon=True)
+            th.start()
+            with ctx.Pool(cfg.workers) as pool:
+                for recs in pool.imap_unordered(_job_entry, [(j, queue) for j in jobs]):
+                    for r in recs:
+                        append_jsonl(rec_path, r)
+                    records.extend(recs)
+            queue.put(None)
+            th.join()
+            bar.close()
+    summary = summarize(records, cfg, seeds, held_out)
+    summary["wall_seconds"] = round(time.time() - t0, 1)
+    write_json_atomic(out / "summary.json", summary)
+    table = write_table(summary, out / "table.md")
+    plot_cumulative(records, summary, out / "cumulative_failures.png")
+    print(table)
+    print(json.dumps({"totals": summary["totals"], "ratios": summary["ratios"]}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

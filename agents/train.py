@@ -1,0 +1,211 @@
+"""Train the RL adversary on ``deft_gym/Adversary-v0`` with stable-baselines3.
+
+    python -m agents.train --config configs/train/adversary.yaml [--timesteps N] [--out runs/adversary/x]
+    python -m agents.train --config ... --resume runs/adversary/x/checkpoints/ppo_20000_steps.zip
+
+The run folder holds ``config.yaml`` (the resolved configuration), ``tb/`` (TensorBoard),
+``checkpoints/`` (every ``checkpoint_every`` steps), ``monitor/`` (per-env episode CSVs),
+``episodes-<worker>.jsonl`` (one line per episode: verdict, scenario, seeds, what happened to the
+log), ``episodes/`` (the logs of failing episodes with their extracted tests, plus a sample of
+passing ones), ``progress.jsonl`` (failure counts as training goes) and, at the end, ``model.zip``
+and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from agents.config import TrainConfig, load_train_config
+from deft_gym.config import ConfigError
+from deft_gym.envs.sink import append_jsonl, write_json_atomic
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m agents.train", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", type=Path, default=None, help="training YAML (configs/train/*.yaml)")
+    p.add_argument("--timesteps", type=int, default=None, help="env steps to train (overrides the config)")
+    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/adversary/<name>)")
+    p.add_argument("--resume", type=Path, default=None, help="checkpoint .zip to continue from")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: config, 2)")
+    p.add_argument("--algo", choices=("ppo", "a2c"), default=None)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p.parse_args(argv)
+
+
+# -- environments --------------------------------------------------------------------------------
+def make_env(cfg: TrainConfig, rank: int, out: Path | None) -> Any:
+    """A thunk building env ``rank`` (own worker id, own episode journal, Monitor-wrapped)."""
+
+    def thunk() -> Any:
+        from stable_baselines3.common.monitor import Monitor
+
+        from deft_gym.envs.adversary import AdversaryEnv
+
+        env_cfg = cfg.env.model_copy(update={
+            "worker": rank,
+            "log_dir": str(out) if (out is not None and cfg.log_episodes) else cfg.env.log_dir})
+        env = AdversaryEnv(config=env_cfg)
+        env.reset(seed=cfg.seed * 1000 + rank)
+        monitor = None
+        if out is not None:
+            (out / "monitor").mkdir(parents=True, exist_ok=True)
+            monitor = str(out / "monitor" / f"env{rank}")
+        return Monitor(env, monitor, info_keywords=("failure", "scenario", "valid", "iou"))
+
+    return thunk
+
+
+def make_vec_env(cfg: TrainConfig, out: Path | None) -> Any:
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    fns = [make_env(cfg, i, out) for i in range(cfg.n_envs)]
+    if cfg.vec_env == "subproc" and cfg.n_envs > 1:
+        return SubprocVecEnv(fns, start_method="forkserver")
+    return DummyVecEnv(fns)
+
+
+# -- callbacks ------------------------------------------------------------------------------------
+def failure_callback(out: Path | None) -> Any:
+    """Logs failures per episode to TensorBoard and appends ``progress.jsonl``."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class FailureStats(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.counts: Counter[str] = Counter()
+            self.t0 = time.time()
+
+        def _on_step(self) -> bool:
+            for info, done in zip(self.locals["infos"], self.locals["dones"]):
+                if not done or "outcome" not in info:
+                    continue
+                c = self.counts
+                c["episodes"] += 1
+                c[f"outcome_{info['outcome']}"] += 1
+                c["valid"] += int(bool(info.get("valid")))
+                fail = info.get("failure")
+                if fail:
+                    c[fail] += 1
+                self.logger.record_mean("adversary/failure", float(bool(fail)))
+                self.logger.record_mean("adversary/collision", float(fail == "collision"))
+                self.logger.record_mean("adversary/nods", float(fail == "nods"))
+                self.logger.record_mean("adversary/valid", float(bool(info.get("valid"))))
+                self.logger.record_mean("adversary/iou", float(info.get("iou", 1.0)))
+                if out is not None and c["episodes"] % 50 == 0:
+                    append_jsonl(out / "progress.jsonl", {"timesteps": self.num_timesteps,
+                                                          "seconds": round(time.time() - self.t0, 1), **c})
+            return True
+
+    return FailureStats()
+
+
+# -- summary --------------------------------------------------------------------------------------
+def summarize_run(out: Path) -> dict[str, Any]:
+    """Aggregate the episode journals of a run folder into ``summary.json``."""
+    recs = []
+    for f in sorted(out.glob("episodes-*.jsonl")):
+        recs += [json.loads(line) for line in f.read_text().splitlines() if line.strip()]
+    by_scn: dict[str, Counter[str]] = {}
+    tests, extraction = [], Counter()
+    for r in recs:
+        c = by_scn.setdefault(r.get("scenario", "?"), Counter())
+        c["episodes"] += 1
+        c["valid"] += int(bool(r.get("valid")))
+        if r.get("failure"):
+            c[r["failure"]] += 1
+        ex = r.get("extraction")
+        if ex:
+            extraction[ex.get("status", "?").split(":")[0]] += 1
+            if ex.get("test"):
+                tests.append(ex["test"])
+    total: Counter[str] = Counter()
+    for c in by_scn.values():
+        total.update(c)
+    summary = {"episodes": total["episodes"], "collisions": total["collision"], "nods": total["nods"],
+               "valid": total["valid"], "validity": round(total["valid"] / max(total["episodes"], 1), 4),
+               "failure_rate": round((total["collision"] + total["nods"]) / max(total["episodes"], 1), 4),
+               "per_scenario": {k: dict(v) for k, v in sorted(by_scn.items())},
+               "extraction": dict(extraction), "extracted_tests": tests,
+               "kept_logs": sum(1 for r in recs if r.get("kept"))}
+    write_json_atomic(out / "summary.json", summary)
+    return summary
+
+
+# -- main -----------------------------------------------------------------------------------------
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        cfg = load_train_config(args.config, {"timesteps": args.timesteps, "seed": args.seed,
+                                              "n_envs": args.n_envs, "algo": args.algo})
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    out = args.out or Path("runs/adversary") / cfg.name
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / "config.yaml.tmp"
+    tmp.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
+    os.replace(tmp, out / "config.yaml")
+
+    import torch
+    from stable_baselines3 import A2C, PPO
+    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
+
+    torch.set_num_threads(1)  # the cores belong to the simulation workers
+    algo_cls = {"ppo": PPO, "a2c": A2C}[cfg.algo]
+    vec_env = make_vec_env(cfg, out)
+    if args.resume is not None:
+        model = algo_cls.load(args.resume, env=vec_env, tensorboard_log=str(out / "tb"), device="cpu")
+        print(f"resumed from {args.resume} at {model.num_timesteps} steps")
+    else:
+        model = algo_cls(cfg.policy, vec_env, seed=cfg.seed, tensorboard_log=str(out / "tb"), device="cpu",
+                         policy_kwargs=cfg.policy_kwargs, verbose=0, **cfg.algo_kwargs)
+    remaining = max(cfg.timesteps - (model.num_timesteps if args.resume else 0), 0)
+    callbacks = CallbackList([
+        CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.n_envs, 1), save_path=str(out / "checkpoints"),
+                           name_prefix=cfg.algo),
+        failure_callback(out),
+    ])
+    signal.signal(signal.SIGTERM, _interrupt)  # `kill PID` stops training like Ctrl-C: model saved
+    t0 = time.time()
+    steps0 = model.num_timesteps
+    interrupted = False
+    try:
+        model.learn(total_timesteps=remaining, callback=callbacks, progress_bar=not args.no_progress,
+                    reset_num_timesteps=args.resume is None, tb_log_name=cfg.algo)
+    except KeyboardInterrupt:
+        interrupted = True
+        print("interrupted: saving the model", file=sys.stderr)
+    finally:
+        model.save(out / "model.tmp.zip")
+        os.replace(out / "model.tmp.zip", out / "model.zip")
+        vec_env.close()
+    seconds = time.time() - t0
+    summary = summarize_run(out)
+    summary.update({"timesteps": int(model.num_timesteps), "train_seconds": round(seconds, 1),
+                    "interrupted": interrupted,
+                    "env_steps_per_second": round((model.num_timesteps - steps0) / max(seconds, 1e-9), 2),
+                    "episodes_per_hour": round(summary["episodes"] / max(seconds, 1e-9) * 3600, 1)})
+    write_json_atomic(out / "summary.json", summary)
+    print(json.dumps({k: v for k, v in summary.items() if k not in ("per_scenario", "extracted_tests")}, indent=1))
+    print(f"model: {out / 'model.zip'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,614 @@
+"""``deft_gym/Adversary-v0``: an RL adversary places vehicles and obstacles around the ego.
+
+One episode is one simulated scenario: a seed scenario (or a perturbed variant) runs on the full
+jittered ADS stack, and every ``dt`` seconds (2 s) the adversary may add one participant or
+change the motion of one vehicle it added. Every placement is projected onto the non-invasive
+feasible area (:mod:`deft_gym.feasible`, Decictor eq. 3-4), so the action space only reaches
+placements that never enter the ego's reference motion area, nor the areas of the other
+participants - validity by construction. The episode's log can be handed to the DeFT extractor
+(:class:`deft_gym.envs.sink.EpisodeSink`).
+
+**Action** ``MultiDiscrete([5, 9, 9, 5, 5])``: operation (no-op, cone, static vehicle, vehicle,
+change a vehicle), where along the reference path relative to the ego (``ALONG`` m), lateral
+offset from the path (``LATERAL`` m, right +; for obstacles the projection moves a placement
+outwards until it is feasible, so +-1.5 means "as close as allowed"), speed (``SPEEDS`` x the
+lane speed limit) and manoeuvre for the next window (keep lane, change towards / away from the
+ego's path, turn left / right at the next junction).
+
+**Observation** (``Box``, 119 floats): progress, the ego's state relative to the reference path
+and to the reference timing, the planner's current decision, the lane structure, the curvature
+of the path and the closest feasible obstacle offset at every ``ALONG`` anchor, the six nearest
+participants in the path frame, and where the previous placement went.
+
+**Reward**: per window, potential-based shaping - the growth of the ego's largest distance from the
+reference path (objective ``nods``) and of its largest proximity (gap / time to collision) to an
+added participant (``collision``); at the end a bonus for a collision
+(``collision``) or a non-optimal decision (``nods``) of a valid mutation (``both``: either), a
+small penalty for a timeout/stuck ego (a task failure, no NoDS) or for a participant running into
+the ego (not the ego's fault), and shaping by 1 - IoU.
+
+**info** (final step): ``collision``, ``ego_at_fault``, ``nods``, ``failure``, ``iou``, ``f_p``, ``f_b``,
+``valid``, ``invasive``, ``outcome``, ``signature``, ``scenario``, ``jitter_seed``, ``added``,
+and the log / extraction results when logging.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+from typing import Any, Literal
+
+import gymnasium as gym
+import numpy as np
+import shapely
+from gymnasium import spaces
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from deft_gym.config import ConfigError, format_validation_error, load_yaml
+from deft_gym.envs.context import SEED_SCENARIOS, SeedContext, robust, seed_context
+from deft_gym.envs.sink import EpisodeSink
+from deft_gym.envs.trace import TraceRecorder
+from deft_gym.envs.vehicles import (
+    LENGTH,
+    WIDTH,
+    Controls,
+    LaneDriver,
+    Trajectory,
+    complete,
+    lateral_shifts,
+    start_state,
+    vehicle_spec,
+)
+from deft_gym.feasible import FeasibleConfig, Layout, Placed
+from deft_gym.nods import EGO_LENGTH, EGO_WIDTH, box_gap
+from deft_gym.participants import SIZES, ScriptedVehicle
+from deft_gym.scenario import scenario_to_dict
+from deft_gym.simulation import Simulation
+
+OPS = ("noop", "cone", "static_vehicle", "vehicle", "change")
+ALONG = (-20.0, -10.0, 0.0, 10.0, 20.0, 30.0, 45.0, 60.0, 80.0)
+AT_LAST = ("last", "last+8")  # anchors relative to the previous placement (gates, walls)
+LATERAL = (-3.5, -2.5, -2.0, -1.5, 0.0, 1.5, 2.0, 2.5, 3.5)
+SPEEDS = (0.0, 0.3, 0.6, 0.9, 1.2)
+MANOEUVRES = ("keep", "toward", "away", "left", "right")
+BEHAVIOURS = ("CRUISE", "FOLLOW", "STOP", "NUDGE", "CHANGE_LANE", "ESTOP")
+N_NEAR = 6
+OBS_DIM = 6 + 8 + 8 + 3 * len(ALONG) + 2 * len(ALONG) + 8 * N_NEAR + 4
+
+
+class RewardConfig(BaseModel):
+    """Reward weights."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    failure_bonus: float = 10.0
+    task_failure: float = -2.0
+    invalid: float = -5.0
+    deviation: float = 2.0
+    proximity: float = 1.0
+    iou_shaping: float = 2.0
+    placement_cost: float = 0.0
+
+
+class AdversaryConfig(BaseModel):
+    """Everything that shapes the adversary env (``configs/train/*.yaml``: key ``env``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scenarios: list[str] = Field(default_factory=lambda: list(SEED_SCENARIOS), min_length=1)
+    objective: Literal["collision", "nods", "both"] = "both"
+    variant_prob: float = Field(0.0, ge=0.0, le=1.0, description="share of episodes on a training variant")
+    variant_seeds: int = Field(200, ge=1, description="training variants use seeds [0, variant_seeds)")
+    feasible: FeasibleConfig = FeasibleConfig()
+    max_added: int = Field(8, ge=1, le=40)
+    respect_plan: bool = Field(True, description="never place into the ego's current planned trajectory")
+    plan_margin: float = Field(0.3, ge=0.0, le=5.0)
+    reward: RewardConfig = RewardConfig()
+    grid: Literal["lane", "world"] = "lane"
+    threshold: float = Field(0.6, gt=0.0, lt=1.0)
+    reference_seed: int = 0
+    log_dir: str | None = None
+    keep_passing: float = Field(0.02, ge=0.0, le=1.0)
+    extract: bool = True
+    worker: int = 0
+
+
+def load_env_config(source: dict[str, Any] | str | Path | AdversaryConfig | None = None,
+                    **overrides: Any) -> AdversaryConfig:
+    """Validate an env config (dict, YAML path or object) with keyword overrides."""
+    name = "env config"
+    if isinstance(source, AdversaryConfig):
+        data = source.model_dump()
+    elif isinstance(source, str | Path):
+        name = str(source)
+        data = load_yaml(source) or {}
+    else:
+        data = dict(source or {})
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return AdversaryConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(name, err)) from None
+
+
+class AdversaryEnv(gym.Env):
+    """See the module docstring."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
+
+    def __init__(self, scenario: str | list[str] | None = None,
+                 objective: Literal["collision", "nods", "both"] | None = None,
+                 config: dict[str, Any] | str | Path | AdversaryConfig | None = None,
+                 render_mode: str | None = None, **overrides: Any) -> None:
+        if isinstance(scenario, str):
+            overrides["scenarios"] = [scenario]
+        elif scenario is not None:
+            overrides["scenarios"] = list(scenario)
+        self.cfg = load_env_config(config, objective=objective, **overrides)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode {render_mode!r} not in {self.metadata['render_modes']}")
+        self.render_mode = render_mode
+        self.action_space = spaces.MultiDiscrete([len(OPS), len(ALONG) + len(AT_LAST), len(LATERAL), len(SPEEDS),
+                                                  len(MANOEUVRES)])
+        self.observation_space = spaces.Box(-10.0, 10.0, shape=(OBS_DIM,), dtype=np.float32)
+        self.sink = (EpisodeSink(self.cfg.log_dir, self.cfg.worker, self.cfg.keep_passing, self.cfg.extract)
+                     if self.cfg.log_dir else None)
+        self._bad: set[str] = set()
+        self.sim: Simulation | None = None
+        self._finished = False
+        self.ctx: SeedContext | None = None
+        self.episodes = 0
+
+    # -- episode ------------------------------------------------------------------------------
+    def _context(self) -> SeedContext:
+        cfg, rng = self.cfg, self.np_random
+        for _ in range(20):
+            name = cfg.scenarios[int(rng.integers(len(cfg.scenarios)))]
+            if cfg.variant_prob > 0 and "~v" not in name and rng.random() < cfg.variant_prob:
+                name = f"{name}~v{int(rng.integers(cfg.variant_seeds))}"
+            if name in self._bad:
+                continue
+            try:
+                ctx = seed_context(name, cfg.feasible, reference_seed=cfg.reference_seed, grid=cfg.grid,
+                                   threshold=cfg.threshold)
+            except ValueError:  # a variant whose reference run fails is no optimal seed
+                if "~v" not in name:
+                    raise
+                self._bad.add(name)
+                continue
+            if "~v" in name and not robust(ctx):  # flaky under timing noise: failures for free
+                self._bad.add(name)
+                continue
+            return ctx
+        raise RuntimeError("no usable scenario among " + ", ".join(cfg.scenarios))
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        self._close_sim()
+        options = options or {}
+        if "scenario" in options:
+            self.ctx = seed_context(options["scenario"], self.cfg.feasible, reference_seed=self.cfg.reference_seed,
+                                    grid=self.cfg.grid, threshold=self.cfg.threshold)
+        else:
+            self.ctx = self._context()
+        ctx = self.ctx
+        self.jitter_seed = int(options.get("jitter_seed", self.np_random.integers(2**31 - 1)))
+        self.log_dir = self.sink.episode_dir(ctx.name.replace("~", "_")) if self.sink else None
+        self.sim = Simulation(ctx.scenario, ctx.ads, jitter_seed=self.jitter_seed, out_dir=self.log_dir)
+        self.added_ids: set[str] = set()
+        self.added_at: dict[str, float] = {}
+        self._until = 0.0
+        self.recorder = TraceRecorder(self.sim, self.added_ids)
+        self.layout = Layout(ctx.areas)
+        self.driver = LaneDriver(ctx.roadmap, ctx.feasible.dt, ctx.feasible.sample_dt)
+        self.k = 0
+        self.n_placed = 0
+        self._last_sigma: float | None = None
+        self.ops: list[dict[str, Any]] = []
+        self._hint = 0
+        self._seen = 1  # ego rows of the recorder already rewarded
+        self._max_dev = 0.0
+        self._max_close = 0.0
+        self.sim.start()
+        self._finished = False
+        self.episodes += 1
+        return self._obs(), {"scenario": ctx.name, "jitter_seed": self.jitter_seed}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self.sim is None:
+            raise RuntimeError("call reset() before step()")
+        sim, dt = self.sim, self.ctx.feasible.dt
+        op_info = self._apply(np.asarray(action, dtype=np.int64))
+        self.k += 1
+        self._until = self.k * dt + 1e-6
+        done = sim.advance(self._until)
+        reward = self._shaping() + (self.cfg.reward.placement_cost if op_info.get("placed") else 0.0)
+        info: dict[str, Any] = {"t": round(sim.world.time, 3), **op_info}
+        if done:
+            r_end, end_info = self._finish()
+            reward += r_end
+            info.update(end_info)
+        obs = self._obs()
+        return obs, float(reward), bool(done), False, info
+
+    def close(self) -> None:
+        self._close_sim()
+
+    def _close_sim(self) -> None:
+        """Close an episode; one abandoned before its end leaves no log behind."""
+        if self.sim is not None and not self._finished:
+            self.sim.finish()
+            if self.sink is not None and self.log_dir is not None:
+                shutil.rmtree(self.log_dir, ignore_errors=True)
+        self.sim = None
+
+    # -- actions ------------------------------------------------------------------------------
+    def _apply(self, a: np.ndarray) -> dict[str, Any]:
+        op = OPS[int(a[0])]
+        info: dict[str, Any] = {"op": op, "placed": False}
+        if op == "noop":
+            return info
+        if op != "change" and len(self.layout.placed) >= self.cfg.max_added:
+            info["rejected"] = "max_added"
+            return info
+        along, lateral = self._along(int(a[1])), LATERAL[int(a[2])]
+        speed, man = SPEEDS[int(a[3])], MANOEUVRES[int(a[4])]
+        if op in ("cone", "static_vehicle"):
+            placed = self._place_static("CONE" if op == "cone" else "STATIC_VEHICLE", along, lateral)
+        elif op == "vehicle":
+            placed = self._place_vehicle(along, lateral, speed, man)
+        else:
+            placed = self._change_vehicle(along, lateral, speed, man)
+        if placed is not None:
+            if "sigma" in placed:
+                self._last_sigma = self._ego_sigma()[0] + placed["sigma"]
+            info.update(placed=True, **placed)
+            self.ops.append({"t": round(self.sim.world.time, 3), "op": op, **placed})
+        else:
+            info["rejected"] = "infeasible"
+        return info
+
+    def _along(self, i: int) -> float:
+        """Anchor [m] ahead of the ego's projection on the reference path."""
+        if i < len(ALONG):
+            return ALONG[i]
+        sigma_e = self._ego_sigma()[0]
+        base = (self._last_sigma if self._last_sigma is not None else sigma_e + 30.0) - sigma_e
+        return base + (8.0 if AT_LAST[i - len(ALONG)] == "last+8" else 0.0)
+
+    def _ego(self) -> tuple[float, float, float, float]:
+        e = self.sim.world.ego
+        return float(e.position[0]), float(e.position[1]), float(e.heading), float(e.speed)
+
+    def _ego_sigma(self) -> tuple[float, float]:
+        x, y, _, _ = self._ego()
+        sigma, lat, self._hint = self.ctx.path.project(np.array([x, y]), self._hint)
+        return sigma, lat
+
+    def _plan(self) -> dict[str, np.ndarray] | None:
+        outs = self.sim.planning_outputs
+        if not outs:
+            return None
+        tr = outs[-1]["trajectory"]
+        return {k: np.asarray(tr[k], dtype=float) for k in ("t", "x", "y", "heading")}
+
+    def _new_id(self, kind: str) -> str:
+        self.n_placed += 1
+        return f"adv_{kind}_{self.n_placed}"
+
+    def _place_static(self, obstacle: str, along: float, lateral: float) -> dict[str, Any] | None:
+        ctx, cfg = self.ctx, self.cfg
+        sigma_e, _ = self._ego_sigma()
+        length, width = SIZES[obstacle]
+        side = np.sign(lateral) if lateral else 1.0
+        steps = np.arange(0, 21) * 0.15
+        lats = [lateral + side * steps] if lateral else [steps + 0.5, -(steps + 0.5)]
+        cands = [(sigma_e + along + ds, lat) for ds in (0.0, 3.0, -3.0, 6.0, -6.0) for ls in lats for lat in ls]
+        sig = np.array([c[0] for c in cands])
+        lat = np.array([c[1] for c in cands])
+        xy, h = ctx.path.offset(sig, lat)
+        ok = self.layout.static_ok(xy[:, 0], xy[:, 1], h, length, width)
+        ex, ey, _, _ = self._ego()
+        ok &= np.hypot(xy[:, 0] - ex, xy[:, 1] - ey) >= ctx.feasible.spawn_distance
+        plan = self._plan() if cfg.respect_plan else None
+        if plan is not None and ok.any():
+            g = box_gap(plan["x"][None, :], plan["y"][None, :], plan["heading"][None, :],
+                        EGO_LENGTH + 2 * cfg.plan_margin, EGO_WIDTH + 2 * cfg.plan_margin,
+                        xy[:, :1], xy[:, 1:], h[:, None], length, width)
+            ok &= (g > 0.0).all(axis=1)
+        idx = np.flatnonzero(ok)
+        if not len(idx):
+            return None
+        i = int(idx[0])
+        pid = self._new_id("cone" if obstacle == "CONE" else "static")
+        spec = {"id": pid, "type": "static", "obstacle": obstacle, "x": float(xy[i, 0]), "y": float(xy[i, 1]),
+                "heading": float(h[i])}
+        self._add(spec)
+        self.layout.add(Placed(pid, "static", spec,
+                               area=self.layout.static_footprint(xy[i, 0], xy[i, 1], h[i], length, width)))
+        return {"id": pid, "x": spec["x"], "y": spec["y"], "sigma": float(sig[i] - sigma_e),
+                "lateral": float(lat[i]), "moved": float(abs(sig[i] - sigma_e - along) + abs(lat[i] - lateral))}
+
+    def _add(self, spec: dict[str, Any]) -> None:
+        self.added_ids.add(spec["id"])
+        self.added_at[spec["id"]] = self._until  # replay: advance(until), then add
+        self.sim.add_participant(spec)
+
+    def _first_window(self, st: Any, t0: float, v: float, man: str) -> Trajectory | None:
+        turn = man if man in ("left", "right") else "straight"
+        shift = 0
+        if man in ("toward", "away"):
+            away, toward = lateral_shifts(self.driver, st, self.ctx.path.xy)
+            choice = away if man == "away" else toward
+            if not choice:
+                return None
+            shift = choice[0]
+        return self.driver.window(st, t0, Controls(v, shift, 0.0 if shift else st.d, turn))
+
+    def _vehicle_ok(self, first: Trajectory, t0: float, skip: str | None) -> bool:
+        ex, ey, _, _ = self._ego()
+        if math.hypot(first.x[0] - ex, first.y[0] - ey) < self.ctx.feasible.spawn_distance and skip is None:
+            return False
+        k = self.layout.areas.window(t0 + 1e-6)
+        return not self.layout.first_conflict(first.t, first.x, first.y, first.h, LENGTH, WIDTH, skip, k, k + 1) >= 0
+
+    def _plan_ok(self, traj: Trajectory) -> bool:
+        if not self.cfg.respect_plan:
+            return True
+        plan = self._plan()
+        x, y, h, _ = self._ego()
+        pt = np.array([self.sim.world.time])
+        px, py, ph = np.array([x]), np.array([y]), np.array([h])
+        if plan is not None:
+            keep = plan["t"] >= self.sim.world.time - 1e-6
+            pt = np.concatenate([pt, plan["t"][keep]])
+            px, py = np.concatenate([px, plan["x"][keep]]), np.concatenate([py, plan["y"][keep]])
+            ph = np.concatenate([ph, plan["heading"][keep]])
+        inside = (pt >= traj.t[0]) & (pt <= traj.t[-1])
+        if not inside.any():
+            return True
+        pt, px, py, ph = pt[inside], px[inside], py[inside], ph[inside]
+        vx, vy = np.interp(pt, traj.t, traj.x), np.interp(pt, traj.t, traj.y)
+        vh = np.interp(pt, traj.t, np.unwrap(traj.h))
+        m = self.cfg.plan_margin
+        return bool((box_gap(px, py, ph, EGO_LENGTH + 2 * m, EGO_WIDTH + 2 * m, vx, vy, vh, LENGTH, WIDTH) > 0).all())
+
+    def _place_vehicle(self, along: float, lateral: float, speed: float, man: str) -> dict[str, Any] | None:
+        ctx = self.ctx
+        t0 = round(self.sim.world.time, 6)
+        sigma_e, _ = self._ego_sigma()
+        side = np.sign(lateral) if lateral else 0.0
+        tries = 0
+        for ds in (0.0, 5.0, -5.0, 10.0, -10.0):
+            for dl in (0.0, 0.5, 1.0, 1.75, 2.5, 3.5):
+                if dl and not side:
+                    continue
+                sig, lat = sigma_e + along + ds, lateral + side * dl
+                xy, h = ctx.path.offset(np.array([sig]), np.array([lat]))
+                st = start_state(ctx.roadmap, float(xy[0, 0]), float(xy[0, 1]), float(h[0]), 0.0)
+                if st is None:
+                    continue
+                v = speed * self.driver.v_max(st.lane) / self.driver.v_max_factor
+                st = type(st)(st.lane, st.s, st.d, v)
+                first = self._first_window(st, t0, v, man)
+                if first is None or not self._vehicle_ok(first, t0, None) or not self._plan_ok(first):
+                    continue
+                tries += 1
+                traj = complete(self.driver, self.layout, first, ctx.scenario.duration, ctx.path.xy)
+                if traj is not None and self._plan_ok(traj):
+                    pid = self._new_id("veh")
+                    spec = vehicle_spec(pid, traj)
+                    self._add(spec)
+                    self.layout.add(Placed(pid, "scripted", spec, self.layout.window_areas(
+                        traj.t, traj.x, traj.y, traj.h, LENGTH, WIDTH), traj=traj))
+                    return {"id": pid, "x": float(traj.x[0]), "y": float(traj.y[0]), "sigma": along + ds,
+                            "lateral": float(lat), "speed": float(v), "manoeuvre": man,
+                            "moved": float(abs(ds) + abs(lat - lateral))}
+                if tries >= 6:
+                    return None
+        return None
+
+    def _change_vehicle(self, along: float, lateral: float, speed: float, man: str) -> dict[str, Any] | None:
+        ctx = self.ctx
+        vehicles = [p for p in self.layout.placed if p.kind == "scripted"]
+        if not vehicles:
+            return None
+        t0 = round(self.sim.world.time, 6)
+        sigma_e, _ = self._ego_sigma()
+        target, _ = ctx.path.offset(np.array([sigma_e + along]), np.array([lateral]))
+        pos = [(p, p.traj.state_at(t0), p.traj.index(t0)) for p in vehicles]
+        p, st, i = min(pos, key=lambda q: math.hypot(q[0].traj.x[q[2]] - target[0, 0], q[0].traj.y[q[2]] - target[0, 1]))
+        if p.traj.t[i] > t0 + 1e-6 or p.traj.t[-1] < t0:
+            return None
+        v = speed * self.driver.v_max(st.lane) / self.driver.v_max_factor
+        first = self._first_window(st, t0, v, man)
+        if first is None or not self._vehicle_ok(first, t0, p.id) or not self._plan_ok(first):
+            return None
+        new = complete(self.driver, self.layout, first, ctx.scenario.duration, ctx.path.xy, skip=p.id)
+        if new is None or not self._plan_ok(new):
+            return None
+        traj = p.traj.until(t0).extend(new)
+        spec = vehicle_spec(p.id, traj)
+        self.layout.replace(Placed(p.id, "scripted", spec, self.layout.window_areas(
+            traj.t, traj.x, traj.y, traj.h, LENGTH, WIDTH), traj=traj))
+        _retarget(self.sim, p.id, spec)
+        return {"id": p.id, "speed": float(v), "manoeuvre": man}
+
+    # -- reward / end -------------------------------------------------------------------------
+    def _shaping(self) -> float:
+        """Potential-based shaping (it telescopes: no reward for merely keeping the ego near
+        something): the increase of the largest deviation from the reference path so far and of
+        the largest closeness to an added participant so far."""
+        cfg, ctx = self.cfg.reward, self.ctx
+        ego = self.recorder.ego_rows(self._seen)  # this window's ego states
+        self._seen = len(self.recorder)
+        if not len(ego):
+            return 0.0
+        r = 0.0
+        if self.cfg.objective in ("nods", "both"):
+            lane_w = ctx.roadmap.spec.lane_width
+            dev = np.asarray(ctx.oracle.ref_line.distance(shapely.points(ego[:, :2])), dtype=float)
+            new = max(self._max_dev, min(float(dev.max()), lane_w))
+            r += cfg.deviation * (new - self._max_dev) / lane_w
+            self._max_dev = new
+        if self.cfg.objective in ("collision", "both") and self.added_ids:
+            close = max(self._max_close, self._proximity())
+            r += cfg.proximity * (close - self._max_close)
+            self._max_close = close
+        return r
+
+    def _proximity(self) -> float:
+        """exp(-gap / 2 m) or exp(-TTC / 2 s) to the closest added participant, now."""
+        w = self.sim.world
+        ex, ey, eh, ev = self._ego()
+        best = 0.0
+        for p in w.present_participants():
+            if p.id not in self.added_ids:
+                continue
+            o = p.obj
+            gap = float(box_gap(np.array(ex), np.array(ey), np.array(eh), EGO_LENGTH, EGO_WIDTH,
+                                np.array(o.position[0]), np.array(o.position[1]), np.array(o.heading),
+                                np.array(o.LENGTH), np.array(o.WIDTH)))
+            rel = np.array([o.position[0] - ex, o.position[1] - ey])
+            dist = max(float(np.hypot(*rel)), 1e-3)
+            vrel = np.array([o.speed * math.cos(o.heading) - ev * math.cos(eh),
+                             o.speed * math.sin(o.heading) - ev * math.sin(eh)])
+            closing = -float(rel @ vrel) / dist
+            ttc = max(gap, 0.0) / closing if closing > 0.1 else math.inf
+            best = max(best, math.exp(-max(gap, 0.0) / 2.0), math.exp(-ttc / 2.0))
+        return best
+
+    def _finish(self) -> tuple[float, dict[str, Any]]:
+        sim, ctx, cfg = self.sim, self.ctx, self.cfg
+        result = sim.finish()
+        self._finished = True
+        o = result.outcome
+        trace = self.recorder.trace(o.outcome, o.sim_time)
+        verdict = ctx.oracle.judge(trace, o.collision.as_dict() if o.collision else None)
+        rw = cfg.reward
+        r = 0.0
+        if not verdict.valid:
+            r += rw.invalid
+        else:
+            if verdict.collision and cfg.objective in ("collision", "both"):
+                r += rw.failure_bonus
+            if verdict.nods and cfg.objective in ("nods", "both"):
+                r += rw.failure_bonus
+            if o.outcome in ("timeout", "stuck") or (verdict.collision and not verdict.ego_at_fault):
+                r += rw.task_failure  # no failure of the ADS, and the scenario is spent
+            if o.outcome == "completed" and not verdict.nods and cfg.objective in ("nods", "both"):
+                r += rw.iou_shaping * (1.0 - verdict.iou)
+        info = {**verdict.as_dict(), "scenario": ctx.name, "jitter_seed": self.jitter_seed,
+                "added": len(self.layout.placed), "sim_time": round(o.sim_time, 3),
+                "wall_time": round(result.wall_time, 3)}
+        if self.sink is not None and self.log_dir is not None:
+            details = {"scenario_equivalent": self.equivalent_scenario(), "ops": self.ops,
+                       "reference_seed": cfg.reference_seed}
+            done = self.sink.finish(Path(self.log_dir), {k: info[k] for k in info if k != "collision_detail"}
+                                    | {"collision_detail": verdict.collision_detail}, details)
+            info["log"] = done.get("dir")
+            info["extraction"] = done.get("extraction")
+        return r, info
+
+    def equivalent_scenario(self) -> dict[str, Any]:
+        """``{"scenario", "added_at", "jitter_seed"}``: the seed scenario plus every added
+        participant with its final motion, and when each was added.
+        ``deft_gym.envs.episode.run_scenario`` with these replays this episode exactly."""
+        data = scenario_to_dict(self.ctx.scenario)
+        data["name"] = f"{self.ctx.name}+adv"
+        data.setdefault("participants", []).extend(p.spec for p in self.layout.placed)
+        return {"scenario": data, "added_at": dict(self.added_at), "jitter_seed": self.jitter_seed}
+
+    # -- observation --------------------------------------------------------------------------
+    def _obs(self) -> np.ndarray:
+        ctx, sim, cfg = self.ctx, self.sim, self.cfg
+        path = ctx.path
+        w = sim.world
+        t = w.time
+        x, y, h, v = self._ego()
+        sigma_e, lat_e = self._ego_sigma()
+        L = max(path.length, 1.0)
+        sig_ref = path.sigma_at_time(t)
+        n_win = ctx.areas.n_windows
+        f: list[float] = [t / ctx.scenario.duration, sigma_e / L, sig_ref / L, (sigma_e - sig_ref) / 30.0,
+                          len(self.layout.placed) / cfg.max_added, (n_win - self.k) / n_win]
+        _, hp = path.at(sigma_e)
+        dh = float((h - hp[0] + math.pi) % (2 * math.pi) - math.pi)
+        f += [lat_e / 3.5, v / 15.0, (v - path.speed_at(sigma_e)) / 10.0, math.sin(dh), math.cos(dh) - 1.0,
+              float(w.ego.accel) / 5.0, self._max_dev / 3.5, 1.0 if w.collision else 0.0]
+        outs = sim.planning_outputs
+        beh = [0.0] * (len(BEHAVIOURS) + 2)
+        if outs:
+            dec = outs[-1]["decision"]
+            b = dec.get("behavior")
+            beh[BEHAVIOURS.index(b) if b in BEHAVIOURS else len(BEHAVIOURS)] = 1.0
+            beh[-1] = 1.0 if dec.get("lane") != dec.get("target_lane") else 0.0
+        else:
+            beh[len(BEHAVIOURS)] = 1.0
+        f += beh
+        grid, left, right = path.lanes_beside
+        anchors = sigma_e + np.array(ALONG)
+        gi = np.clip(np.searchsorted(grid, anchors), 0, len(grid) - 1)
+        f += (left[gi] / 2.0).tolist() + (right[gi] / 2.0).tolist()
+        _, h0 = path.at(anchors)
+        _, h1 = path.at(anchors + 10.0)
+        f += np.clip((h1 - h0) * 2.0, -3.0, 3.0).tolist()  # heading change over the next 10 m (curves)
+        f += self._closest_static(anchors)
+        f += self._nearest(x, y, sigma_e)
+        n_veh = sum(1 for p in self.layout.placed if p.kind == "scripted")
+        f += [n_veh / cfg.max_added, (len(self.layout.placed) - n_veh) / cfg.max_added]
+        last = self._last_sigma
+        f += [0.0, 0.0] if last is None else [1.0, (last - sigma_e) / 50.0]
+        return np.clip(np.asarray(f, dtype=np.float32), -10.0, 10.0)
+
+    def _closest_static(self, anchors: np.ndarray) -> list[float]:
+        """Per anchor and side: smallest feasible |lateral| of a cone, normalised (1.5: none)."""
+        lats = np.arange(1.2, 6.01, 0.3)
+        n_a, n_l = len(anchors), len(lats)
+        sig = np.repeat(anchors, 2 * n_l)
+        lat = np.tile(np.concatenate([-lats, lats]), n_a)
+        xy, h = self.ctx.path.offset(sig, lat)
+        ok = self.layout.static_ok(xy[:, 0], xy[:, 1], h, 0.6, 0.6).reshape(n_a, 2, n_l)
+        first = np.where(ok.any(axis=2), lats[np.argmax(ok, axis=2)], 7.5)
+        return ((first - 1.2) / 4.0).ravel().tolist()
+
+    def _nearest(self, x: float, y: float, sigma_e: float) -> list[float]:
+        parts = self.sim.world.present_participants()
+        out = np.zeros((N_NEAR, 8))
+        if parts:
+            pos = np.array([p.obj.position for p in parts], dtype=float)
+            dist = np.hypot(pos[:, 0] - x, pos[:, 1] - y)
+            order = np.argsort(dist)[:N_NEAR]
+            path = self.ctx.path
+            for r, i in enumerate(order):
+                p = parts[int(i)]
+                sig, lat, _ = path.project(pos[i])
+                _, hp = path.at(sig)
+                dh = float(p.obj.heading - hp[0])
+                out[r] = [1.0, (sig - sigma_e) / 50.0, lat / 10.0, float(p.obj.speed) / 15.0, math.sin(dh),
+                          math.cos(dh), 1.0 if p.kind == "static" else 0.0, 1.0 if p.id in self.added_ids else 0.0]
+        return out.ravel().tolist()
+
+    # -- rendering ----------------------------------------------------------------------------
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array" or self.sim is None:
+            return None
+        from deft_gym.envs.render import render_state
+
+        return render_state(self)
+
+
+def _retarget(sim: Simulation, pid: str, spec: dict[str, Any]) -> None:
+    """Give a scripted vehicle already in the world new waypoints (its past is unchanged)."""
+    wp = np.array([[w["t"], w["x"], w["y"]] for w in spec["waypoints"]])
+    for p in sim.world.participants:
+        if p.id == pid:
+            o = p.obj
+            new = ScriptedVehicle(o.road, wp, float(o.heading), o.LENGTH, o.WIDTH)
+            o.wp_t, o.wp_xy, o.seg_v, o.seg_heading = new.wp_t, new.wp_xy, new.seg_v, new.seg_heading
+            break
+    for entry in sim.added:
+        if entry.get("id") == pid:
+            entry["waypoints"] = spec["waypoints"]
+            entry.setdefault("changed_at", []).append(round(sim.world.time, 6))

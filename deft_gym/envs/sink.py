@@ -1,0 +1,104 @@
+"""Where episode logs go: failing episodes to the DeFT extractor, passing ones only as a sample.
+
+Every episode that logs writes ``<root>/episodes/<tag>/episode.mcap``. When it ends,
+:meth:`EpisodeSink.finish` appends one line to ``<root>/episodes-<worker>.jsonl`` (append-only,
+one file per worker process, so parallel workers never interleave) and then:
+
+- a failing episode (collision or non-optimal decision of a valid mutation) keeps its log plus
+  ``episode.json`` (verdict, equivalent scenario, seeds) and is passed to the DeFT extractor
+  (``extract.extract_episode``), which writes the extracted frames and a pytest module into
+  ``<episode>/extracted``;
+- a passing episode is kept with probability ``keep_passing`` (seeded), otherwise deleted, so a
+  long run does not fill the disk.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def extractor() -> Any | None:
+    """``extract.extract_episode`` if the extractor package provides it, else None."""
+    try:
+        from extract import extract_episode  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    return extract_episode
+
+
+def append_jsonl(path: Path, record: dict[str, Any]) -> None:
+    """Append one JSON line (a single write of a whole line: no torn lines on crash)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    line = json.dumps(record, sort_keys=True) + "\n"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    try:
+        os.write(fd, line.encode())
+    finally:
+        os.close(fd)
+
+
+def write_json_atomic(path: Path, data: Any) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=str))
+    os.replace(tmp, path)
+    return path
+
+
+class EpisodeSink:
+    """Decides what happens to each episode's log (see the module docstring)."""
+
+    def __init__(self, root: Path | str, worker: int = 0, keep_passing: float = 0.02, extract: bool = True,
+                 seed: int = 0, extract_kwargs: dict[str, Any] | None = None) -> None:
+        self.root = Path(root)
+        self.worker = worker
+        self.keep_passing = keep_passing
+        self.extract = extract
+        self.extract_kwargs = dict(extract_kwargs or {})
+        self.rng = np.random.default_rng([seed, worker])
+        self.count = 0
+        self.journal = self.root / f"episodes-{worker}.jsonl"
+
+    def episode_dir(self, tag: str) -> Path:
+        """A fresh directory for the next episode's log."""
+        self.count += 1
+        d = self.root / "episodes" / f"w{self.worker}-{self.count:06d}-{tag}"
+        if d.exists():
+            shutil.rmtree(d)
+        d.mkdir(parents=True)
+        return d
+
+    def finish(self, episode_dir: Path, record: dict[str, Any], details: dict[str, Any]) -> dict[str, Any]:
+        """Extract / keep / delete; returns what was done (also added to the journal line)."""
+        failing = bool(record.get("failure"))
+        done: dict[str, Any] = {"kept": False, "extraction": None}
+        if failing or self.rng.random() < self.keep_passing:
+            done["kept"] = True
+            write_json_atomic(episode_dir / "episode.json", {**record, **details})
+            if failing and self.extract:
+                done["extraction"] = self._extract(episode_dir)
+        else:
+            shutil.rmtree(episode_dir, ignore_errors=True)
+        done["dir"] = str(episode_dir) if done["kept"] else None
+        append_jsonl(self.journal, {**record, **done})
+        return done
+
+    def _extract(self, episode_dir: Path) -> dict[str, Any]:
+        fn = extractor()
+        if fn is None:
+            return {"status": "extractor unavailable (extract.extract_episode not importable)"}
+        kwargs = {"test_suffix": episode_dir.name, **self.extract_kwargs}  # unique module names
+        try:
+            res = fn(episode_dir / "episode.mcap", episode_dir / "extracted", **kwargs)
+        except Exception as exc:  # an extractor bug must not kill a training run
+            return {"status": f"error: {type(exc).__name__}: {exc}"}
+        return {"status": "ok", "test": str(getattr(res, "test_path", None) or ""),
+                "frames": str(getattr(res, "frames_path", None) or ""),
+                "faulty": getattr(res, "faulty", None), "summary": getattr(res, "summary", None)}

@@ -1,0 +1,46 @@
+"""A failing adversary episode goes to the DeFT extractor, whose pytest module reproduces it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from deft_gym.envs.adversary import ALONG, AT_LAST, LATERAL, OPS, AdversaryEnv
+from deft_gym.envs.context import seed_context
+from deft_gym.envs.episode import run_scenario
+
+pytestmark = pytest.mark.slow
+
+
+def _cone(along: float | str, lateral: float) -> np.ndarray:
+    i = ALONG.index(along) if along in ALONG else len(ALONG) + AT_LAST.index(along)
+    return np.array([OPS.index("cone"), i, LATERAL.index(lateral), 0, 0])
+
+
+def test_failing_episode_is_extracted_into_a_passing_pytest_module(tmp_path):
+    # two cones forming a gate ahead of the ego: the planner leaves its lane -> NoDS
+    plan = {3: _cone(80.0, -1.5), 4: _cone("last", 1.5)}
+    env = AdversaryEnv(scenario="lane_follow_static", log_dir=str(tmp_path), keep_passing=0.0)
+    env.reset(seed=0)
+    done, k, info = False, 0, {}
+    while not done:
+        _, _, done, _, info = env.step(plan.get(k, np.zeros(5, dtype=np.int64)))
+        k += 1
+    assert info["failure"] == "nods" and info["valid"], info
+    ex = info["extraction"]
+    assert ex and ex["status"] == "ok" and ex["test"], ex
+    episode = json.loads((tmp_path / info["log"].split(str(tmp_path) + "/")[-1] / "episode.json").read_text())
+    # the failure replays deterministically from the episode's equivalent scenario
+    eq = episode["scenario_equivalent"]
+    ctx = seed_context("lane_follow_static")
+    specs = eq["scenario"]["participants"][len(ctx.scenario.participants):]
+    again = run_scenario(ctx, specs, eq["jitter_seed"], added_at=eq["added_at"])
+    assert again.verdict.failure == "nods" and again.verdict.iou == pytest.approx(info["iou"], abs=1e-4)
+    # and the extracted planning-module tests pass
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
+                           ex["test"]], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
