@@ -7,7 +7,7 @@
    replayed frames give the recorded plans); the failure oracles of a collision fail - the
    failure reproduces deterministically in the planning module.
 
-    python -m agents.demo --out runs/demo [--timesteps 2000] [--budget 12]
+    python -m agents.demo --out runs/demo [--timesteps 1536] [--budget 16]
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=Path("runs/demo"))
     p.add_argument("--config", type=Path, default=Path("configs/train/demo.yaml"))
     p.add_argument("--timesteps", type=int, default=None, help="training steps (default: the config's)")
-    p.add_argument("--budget", type=int, default=8, help="simulated scenarios per method in the evaluation")
+    p.add_argument("--budget", type=int, default=16, help="simulated scenarios per method in the evaluation")
     p.add_argument("--scenario", default=None, help="seed scenario (default: the config's first)")
     p.add_argument("--no-progress", action="store_true")
     return p.parse_args(argv)

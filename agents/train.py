@@ -184,6 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, _interrupt)  # `kill PID` stops training like Ctrl-C: model saved
     t0 = time.time()
     steps0 = model.num_timesteps
+    episodes0 = summarize_run(out)["episodes"]  # a resumed run's earlier episodes
     interrupted = False
     try:
         model.learn(total_timesteps=remaining, callback=callbacks, progress_bar=not args.no_progress,
@@ -200,7 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     summary.update({"timesteps": int(model.num_timesteps), "train_seconds": round(seconds, 1),
                     "interrupted": interrupted,
                     "env_steps_per_second": round((model.num_timesteps - steps0) / max(seconds, 1e-9), 2),
-                    "episodes_per_hour": round(summary["episodes"] / max(seconds, 1e-9) * 3600, 1)})
+                    "episodes_this_session": summary["episodes"] - episodes0,
+                    "episodes_per_hour": round((summary["episodes"] - episodes0) / max(seconds, 1e-9) * 3600, 1)})
     write_json_atomic(out / "summary.json", summary)
     print(json.dumps({k: v for k, v in summary.items() if k not in ("per_scenario", "extracted_tests")}, indent=1))
     print(f"model: {out / 'model.zip'}")
