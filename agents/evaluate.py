@@ -41,6 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from deft_gym.config import ConfigError, format_validation_error, load_yaml
 from deft_gym.envs.context import SEED_SCENARIOS
 from deft_gym.envs.sink import append_jsonl, write_json_atomic
+from deft_gym.recorder import write_atomic
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
 DEFAULT_METHODS = ("rl", "decictor", "random_delta", "random")
@@ -313,9 +314,7 @@ def write_table(summary: dict[str, Any], path: Path) -> str:
         cells.append(f"{th.get('failures', 0):g} ({100 * th.get('validity', 0):.1f} %)" if th else "-")
         lines.append(f"| {m} | " + " | ".join(cells) + " |\n")
     text = "".join(lines)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    write_atomic(path, text)
     return text
 
 

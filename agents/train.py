@@ -28,6 +28,7 @@ import yaml
 from agents.config import TrainConfig, load_train_config
 from deft_gym.config import ConfigError
 from deft_gym.envs.sink import append_jsonl, write_json_atomic
+from deft_gym.recorder import write_atomic
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -158,9 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out = args.out or Path("runs/adversary") / cfg.name
     out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "config.yaml.tmp"
-    tmp.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
-    os.replace(tmp, out / "config.yaml")
+    write_atomic(out / "config.yaml", yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
 
     import torch
     from stable_baselines3 import A2C, PPO

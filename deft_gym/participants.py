@@ -50,6 +50,14 @@ class ScriptedVehicle(Vehicle):
     def __init__(self, road: Road, waypoints: np.ndarray, heading0: float,
                  length: float = 4.8, width: float = 2.0) -> None:
         self.LENGTH, self.WIDTH = length, width
+        self.set_waypoints(waypoints, heading0)
+        super().__init__(road, self.wp_xy[0].copy(), heading0, 0.0)
+        self.check_collisions = False
+        self.spawn_time = self.wp_t[0]
+
+    def set_waypoints(self, waypoints: np.ndarray, heading0: float) -> None:
+        """Replace the timed waypoints ``(t [s], x [m], y [m])``; ``heading0`` [rad] is the
+        heading kept while the vehicle stands still before its first move."""
         wp = np.asarray(waypoints, dtype=float)
         if wp.ndim != 2 or wp.shape[1] != 3 or len(wp) < 1:
             raise ValueError("waypoints must be an (n, 3) array of (t, x, y)")
@@ -64,9 +72,6 @@ class ScriptedVehicle(Vehicle):
         for d in seg:
             heads.append(math.atan2(d[1], d[0]) if np.hypot(*d) > 1e-6 else heads[-1])
         self.seg_heading = heads[1:]
-        super().__init__(road, self.wp_xy[0].copy(), heading0, 0.0)
-        self.check_collisions = False
-        self.spawn_time = self.wp_t[0]
 
     def place(self, t: float) -> None:
         """Set the state at time ``t`` [s] (kinematic replay)."""

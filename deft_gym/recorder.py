@@ -88,12 +88,13 @@ class McapRecorder:
         return self.path
 
 
-def write_atomic(path: Path | str, text: str) -> Path:
-    """Write a text file via a temporary file and rename, so readers never see half of it."""
+def write_atomic(path: Path | str, data: str | bytes) -> Path:
+    """Write a file (text as UTF-8, or bytes) via ``<name>.tmp`` and rename, so readers never
+    see half of it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
+    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
     os.replace(tmp, path)
     return path
 

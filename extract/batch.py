@@ -14,7 +14,8 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from extract.emit import slug, write_atomic
+from deft_gym.recorder import write_atomic
+from extract.emit import slug
 from extract.episode import ExtractionResult, extract_episode
 from extract.logs import LogError
 from extract.mapping import MappingError, load_mapping

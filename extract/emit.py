@@ -6,24 +6,15 @@ byte-for-byte what the log holds. Both files are written to a temporary name and
 
 from __future__ import annotations
 
-import os
 import textwrap
 from pathlib import Path
 from typing import Any
 
 from deft_gym.codec import encode
+from deft_gym.recorder import write_atomic
 from extract.io_filter import PlanningIOFilter
 from extract.runtime import finite_or_none
 from extract.search import FrameChoice
-
-
-def write_atomic(path: Path, data: bytes | str) -> Path:
-    """Write via ``<name>.tmp`` and rename, so readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
-    os.replace(tmp, path)
-    return path
 
 
 def frame_line(fc: FrameChoice, pif: PlanningIOFilter) -> bytes:

@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from deft_gym.planner.base import load_planner
-from extract.emit import slug, test_module, write_atomic, write_frames
+from deft_gym.recorder import write_atomic
+from extract.emit import slug, test_module, write_frames
 from extract.io_filter import PlanningIOFilter
 from extract.logs import EpisodeLog, LogError, read_log
 from extract.mapping import MappingError, TopicMapping, load_mapping

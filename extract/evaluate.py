@@ -47,12 +47,12 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from deft_gym.config import load_ads_config
+from deft_gym.recorder import write_atomic
 from deft_gym.scenario import list_scenarios, load_scenario, scenario_from_dict, scenario_to_dict
 from deft_gym.simulation import Simulation
 from deft_gym.trajectory import lsed
 from deft_gym.variants import inject_cut_in, perturb, reference_path
 from extract.batch import extract_directory
-from extract.emit import write_atomic
 from extract.record import ads_overrides
 from extract.report import write_report
 from extract.runtime import load_frames, make_planner, replay

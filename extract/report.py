@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from extract.emit import write_atomic
+from deft_gym.recorder import write_atomic
 from extract.runtime import read_header
 
 if TYPE_CHECKING:

@@ -62,7 +62,7 @@ from deft_gym.envs.vehicles import (
 )
 from deft_gym.feasible import FeasibleConfig, Layout, Placed
 from deft_gym.nods import EGO_LENGTH, EGO_WIDTH, box_gap
-from deft_gym.participants import SIZES, ScriptedVehicle
+from deft_gym.participants import SIZES
 from deft_gym.scenario import scenario_to_dict
 from deft_gym.simulation import Simulation
 
@@ -604,9 +604,7 @@ def _retarget(sim: Simulation, pid: str, spec: dict[str, Any]) -> None:
     wp = np.array([[w["t"], w["x"], w["y"]] for w in spec["waypoints"]])
     for p in sim.world.participants:
         if p.id == pid:
-            o = p.obj
-            new = ScriptedVehicle(o.road, wp, float(o.heading), o.LENGTH, o.WIDTH)
-            o.wp_t, o.wp_xy, o.seg_v, o.seg_heading = new.wp_t, new.wp_xy, new.seg_v, new.seg_heading
+            p.obj.set_waypoints(wp, float(p.obj.heading))
             break
     for entry in sim.added:
         if entry.get("id") == pid:

@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.recorder import write_atomic
+
 
 def extractor() -> Any | None:
     """``extract.extract_episode`` if the extractor package provides it, else None."""
@@ -44,12 +46,8 @@ def append_jsonl(path: Path, record: dict[str, Any]) -> None:
 
 
 def write_json_atomic(path: Path, data: Any) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=str))
-    os.replace(tmp, path)
-    return path
+    """Write ``data`` as indented JSON, atomically (:func:`deft_gym.recorder.write_atomic`)."""
+    return write_atomic(path, json.dumps(data, indent=1, sort_keys=True, default=str))
 
 
 class EpisodeSink:
