@@ -10,7 +10,7 @@ Measures simulated seconds per wall second (one process) of
    frequency (its default observation and action types), as the reference;
 
 and prints both, their ratio, the recording overhead and where the stack's time goes.
-Each figure is the median over ``--repeats`` runs.
+Each figure is the median over ``--repeats`` runs; the runs of the three kinds are interleaved.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.progress import track
 from rich.table import Table
 
 from deft_gym.bus import TimingSupervisor
@@ -83,9 +84,12 @@ def main(argv: list[str] | None = None) -> int:
     n_part = len(sc.participants)
     console.print(f"scenario {sc.name}: {n_part} participants, world {ads.world_hz:g} Hz, "
                   f"{sc.duration:g} s simulated per run, {args.repeats} runs each")
-    rec = [stack_speed(sc, True, seed=i, breakdown=(i == 0)) for i in range(args.repeats)]
-    norec = [stack_speed(sc, False, seed=i) for i in range(args.repeats)]
-    hw = [highway_speed(n_part, ads.world_hz, sc.duration, seed=i) for i in range(args.repeats)]
+    # interleaved (one of each per repeat), so drifting machine load biases no measurement
+    rec, norec, hw = [], [], []
+    for i in track(range(args.repeats), description="benchmark", console=console, transient=True):
+        rec.append(stack_speed(sc, True, seed=i, breakdown=(i == 0)))
+        norec.append(stack_speed(sc, False, seed=i))
+        hw.append(highway_speed(n_part, ads.world_hz, sc.duration, seed=i))
     med = {name: statistics.median(r["speed"] for r in rs) for name, rs in
            (("stack_recording", rec), ("stack_no_recording", norec), ("highway_v0", hw))}
     overhead = med["stack_no_recording"] / med["stack_recording"] - 1.0

@@ -38,12 +38,17 @@ class LaneGeom:
             self.dir = np.asarray(lane.direction, dtype=float)
             self.lat = np.asarray(lane.direction_lateral, dtype=float)
             self.heading0 = float(lane.heading)
+            # the same values as plain floats, for the scalar transforms
+            self._s0 = (float(self.start[0]), float(self.start[1]))
+            self._dir = (float(self.dir[0]), float(self.dir[1]))
+            self._lat = (float(self.lat[0]), float(self.lat[1]))
         elif isinstance(lane, CircularLane):
             self.kind = "circular"
             self.center = np.asarray(lane.center, dtype=float)
             self.radius = float(lane.radius)
             self.phase0 = float(lane.start_phase)
             self.sense = float(lane.direction)
+            self._c0 = (float(self.center[0]), float(self.center[1]))
         else:
             self.kind = "polyline"
             s = np.linspace(0.0, self.length, max(2, int(self.length / 0.25) + 1))
@@ -96,10 +101,13 @@ class LaneGeom:
     def frenet_point(self, x: float, y: float) -> tuple[float, float]:
         """Scalar :meth:`frenet` for one point (no array overhead)."""
         if self.kind == "straight":
-            dx, dy = x - self.start[0], y - self.start[1]
-            return (float(dx * self.dir[0] + dy * self.dir[1]), float(dx * self.lat[0] + dy * self.lat[1]))
+            sx, sy = self._s0
+            dx, dy = float(x) - sx, float(y) - sy
+            (ux, uy), (lx, ly) = self._dir, self._lat
+            return dx * ux + dy * uy, dx * lx + dy * ly
         if self.kind == "circular":
-            dx, dy = x - self.center[0], y - self.center[1]
+            cx, cy = self._c0
+            dx, dy = float(x) - cx, float(y) - cy
             phi = math.atan2(dy, dx)
             phi = self.phase0 + ((phi - self.phase0 + math.pi) % TWO_PI - math.pi)
             r = math.hypot(dx, dy)
@@ -153,10 +161,10 @@ class ReferenceLine:
 
     def xy(self, s: np.ndarray, d: np.ndarray | float = 0.0) -> np.ndarray:
         """World positions of reference-line coordinates."""
-        s = np.asarray(s, dtype=float)
-        d = np.broadcast_to(np.asarray(d, dtype=float), s.shape)
         if len(self.geoms) == 1:
             return self.geoms[0].xy(s, d)
+        s = np.asarray(s, dtype=float)
+        d = np.broadcast_to(np.asarray(d, dtype=float), s.shape)
         out = np.empty((*s.shape, 2))
         piece = self._piece(s)
         for k, g in enumerate(self.geoms):

@@ -53,12 +53,14 @@ class FastRoad(Road):
         if out is None:
             geom = self.geoms[lane_index]
             if len(self._xy):
-                s, lat = geom.frenet(self._xy)
+                s_a, lat_a = geom.frenet(self._xy)
+                s, lat = s_a.tolist(), lat_a.tolist()
             else:
-                s, lat = np.zeros(0), np.zeros(0)
+                s, lat = [], []
             L = AbstractLane.VEHICLE_LENGTH
-            on = (np.abs(lat) <= geom.width / 2 + 1.0) & (s >= -L) & (s < geom.length + L)
-            out = (s.tolist(), on.tolist())
+            half, end = geom.width / 2 + 1.0, geom.length + L
+            on = [abs(d) <= half and -L <= s_v < end for s_v, d in zip(s, lat, strict=True)]
+            out = (s, on)
             self._lane_cache[lane_index] = out
         return out
 

@@ -105,6 +105,7 @@ class World:
         self.participants: list[Participant] = []
         self.collision: Collision | None = None
         self.min_distance = math.inf
+        self._static_polygons: dict[int, shapely.Polygon] = {}
 
     @property
     def time(self) -> float:
@@ -158,26 +159,37 @@ class World:
         present = self.present_participants()
         if not present:
             return
-        pos = np.array([p.obj.position for p in present])
-        radius = np.array([p.obj.diagonal for p in present]) / 2
-        centre_gap = np.hypot(*(pos - ego.position).T) - radius - ego.diagonal / 2
+        ex, ey = ego.position
+        half_ego = ego.diagonal / 2
         # exact polygon distances only where they can lower the minimum (or be a collision):
         # the bounding-circle gap is a lower bound of the polygon distance
-        order = np.argsort(centre_gap)
+        gaps = []
+        for i, p in enumerate(present):
+            px, py = p.obj.position
+            gaps.append((float(np.hypot(px - ex, py - ey)) - p.obj.diagonal / 2 - half_ego, i))
+        gaps.sort()
         ego_poly = None
-        for i in order:
-            if centre_gap[i] >= self.min_distance:
+        for gap, i in gaps:
+            if gap >= self.min_distance:
                 break
             if ego_poly is None:
                 ego_poly = shapely.Polygon(ego.polygon())
-            other = shapely.Polygon(present[i].obj.polygon())
-            dist = ego_poly.distance(other)
+            p = present[i]
+            dist = ego_poly.distance(self._polygon(p))
             self.min_distance = min(self.min_distance, dist)
             if dist <= 0.0 and self.collision is None:
-                p = present[i]
                 self.collision = Collision(p.id, p.num, p.kind, p.obstacle_type, t, float(ego.speed),
                                            bool(ego.speed > 0.1), float(ego.position[0]),
                                            float(ego.position[1]))
+
+    def _polygon(self, p: Participant) -> shapely.Polygon:
+        """A participant's footprint; static obstacles' never change and are kept."""
+        if p.kind != "static":
+            return shapely.Polygon(p.obj.polygon())
+        poly = self._static_polygons.get(p.num)
+        if poly is None:
+            poly = self._static_polygons[p.num] = shapely.Polygon(p.obj.polygon())
+        return poly
 
     # -- ground truth for sensors -----------------------------------------------------------
     def ego_state(self) -> dict[str, float]:

@@ -15,6 +15,7 @@ import numpy as np
 
 from deft_gym.bus import Node, header
 from deft_gym.config import ModuleConfig
+from deft_gym.interp import interp1
 from deft_gym.messages import NS_PER_S
 
 WHEELBASE_HALF = 2.4  # [m] highway-env's bicycle: half the vehicle length
@@ -38,17 +39,26 @@ class ControlNode(Node):
         self.max_dec = float(p.get("max_decel", 8.0))
         self.max_steer = float(p.get("max_steering", math.pi / 3))
         self._cache_seq = -1
-        self._arrays: dict[str, np.ndarray] = {}
+        self._tr: dict[str, Any] = {}
+        self._fast = False
 
-    def _traj(self, msg: Any) -> dict[str, np.ndarray]:
+    def _traj(self, msg: Any) -> dict[str, Any]:
+        """The planned trajectory as arrays (unwrapped heading, arc length ``s``), converted once
+        per plan. A well-formed one (equal lengths, finite ascending times) is kept as plain lists
+        for the scalar look-ups; anything else takes numpy's path, with numpy's errors."""
         if msg.seq != self._cache_seq:
             tr = msg.payload["trajectory"]
             arr = {k: np.asarray(tr[k], dtype=float) for k in ("t", "x", "y", "v", "a")}
             arr["heading"] = np.unwrap(np.asarray(tr["heading"], dtype=float))
             seg = np.hypot(np.diff(arr["x"]), np.diff(arr["y"]))
             arr["s"] = np.concatenate([[0.0], np.cumsum(seg)])
-            self._arrays, self._cache_seq = arr, msg.seq
-        return self._arrays
+            n = arr["t"].shape
+            self._fast = (all(a.ndim == 1 and a.shape == n for a in arr.values())
+                          and bool(np.isfinite(arr["t"]).all() and np.isfinite(arr["s"]).all())
+                          and bool((np.diff(arr["t"]) >= 0.0).all()))
+            self._tr = {k: a.tolist() for k, a in arr.items()} if self._fast else arr
+            self._cache_seq = msg.seq
+        return self._tr
 
     def compute(self, now_ns: int) -> list[tuple[str, dict[str, Any]]]:
         t = now_ns / NS_PER_S
@@ -56,19 +66,21 @@ class ControlNode(Node):
         steer, acc, seq = 0.0, -2.0, -1
         if plan is not None and loc is not None and plan.payload["trajectory"]["t"]:
             tr = self._traj(plan)
+            interp = interp1 if self._fast else _np_interp
             seq = plan.seq
             pose = loc.payload
             x, y, h, v = pose["x"], pose["y"], pose["heading"], pose["v"]
-            if t > tr["t"][-1]:
+            ts, xs, ys, ss = tr["t"], tr["x"], tr["y"], tr["s"]
+            if t > ts[-1]:
                 acc = -3.0
             else:
                 # longitudinal
-                v_ref = float(np.interp(t, tr["t"], tr["v"]))
-                a_ref = float(np.interp(t, tr["t"], tr["a"]))
-                s_ref = float(np.interp(t, tr["t"], tr["s"]))
-                i = int(np.argmin((tr["x"] - x) ** 2 + (tr["y"] - y) ** 2))
+                v_ref = interp(t, ts, tr["v"])
+                a_ref = interp(t, ts, tr["a"])
+                s_ref = interp(t, ts, ss)
+                i = _nearest(xs, ys, x, y) if self._fast else int(np.argmin((xs - x) ** 2 + (ys - y) ** 2))
                 hi = tr["heading"][i]
-                s_match = tr["s"][i] + (x - tr["x"][i]) * math.cos(hi) + (y - tr["y"][i]) * math.sin(hi)
+                s_match = ss[i] + (x - xs[i]) * math.cos(hi) + (y - ys[i]) * math.sin(hi)
                 acc = a_ref + self.kp_v * (v_ref - v) + self.kp_s * (s_ref - s_match)
                 if v_ref < 0.05 and v < 0.3:
                     acc = min(acc, -1.0)
@@ -76,13 +88,13 @@ class ControlNode(Node):
                 # lateral: pure pursuit
                 la = self.la_min + self.la_gain * v
                 s_t = s_match + la
-                if s_t <= tr["s"][-1]:
-                    tx = float(np.interp(s_t, tr["s"], tr["x"]))
-                    ty = float(np.interp(s_t, tr["s"], tr["y"]))
+                if s_t <= ss[-1]:
+                    tx = interp(s_t, ss, xs)
+                    ty = interp(s_t, ss, ys)
                 else:
-                    extra = s_t - tr["s"][-1]
-                    tx = tr["x"][-1] + extra * math.cos(tr["heading"][-1])
-                    ty = tr["y"][-1] + extra * math.sin(tr["heading"][-1])
+                    extra = s_t - ss[-1]
+                    tx = xs[-1] + extra * math.cos(tr["heading"][-1])
+                    ty = ys[-1] + extra * math.sin(tr["heading"][-1])
                 alpha = math.atan2(ty - y, tx - x) - h
                 alpha = (alpha + math.pi) % (2 * math.pi) - math.pi
                 kappa = 2.0 * math.sin(alpha) / max(math.hypot(tx - x, ty - y), 1e-3)
@@ -92,3 +104,21 @@ class ControlNode(Node):
         payload = {"header": header(t, self.name), "steering": steer, "acceleration": acc,
                    "trajectory_seq": seq}
         return [(self.out_topic, payload)]
+
+
+def _np_interp(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
+    return float(np.interp(x, xp, fp))
+
+
+def _nearest(xs: list[float], ys: list[float], x: float, y: float) -> int:
+    """Index of the point nearest to ``(x, y)``, as ``np.argmin`` of the squared distances
+    picks it (the first of equals; the first NaN if there is one)."""
+    i, best = 0, math.inf
+    for k in range(len(xs)):
+        dx, dy = xs[k] - x, ys[k] - y
+        d2 = dx * dx + dy * dy
+        if d2 < best:
+            i, best = k, d2
+        elif d2 != d2:
+            return k
+    return i

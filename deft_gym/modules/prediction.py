@@ -33,6 +33,7 @@ class PredictionNode(Node):
         self.t = np.arange(round(self.horizon / self.dt) + 1) * self.dt
         self._chains: dict[Any, Any] = {}
         self._lane_of: dict[int, Any] = {}  # obstacle id -> its lane last cycle (tracking)
+        self._const_heading: dict[int, float] = {}  # id(reference line) -> its wrapped heading
 
     def compute(self, now_ns: int) -> list[tuple[str, dict[str, Any]]]:
         msg = self.latest[self.in_topic]
@@ -62,7 +63,11 @@ class PredictionNode(Node):
             ref = self._chain(lane, s + dist[-1] + 5.0)
             ss = s + dist
             pts = ref.xy(ss, d)
-            xs, ys, hs = pts[:, 0], pts[:, 1], ref.heading(ss)
+            xs, ys = pts[:, 0], pts[:, 1]
+            const = self._const_heading.get(id(ref))
+            if const is not None:  # one straight lane: the heading is the same everywhere
+                return {**base, "is_static": False, "x": xs.tolist(), "y": ys.tolist(), "heading": [const] * len(ss)}
+            hs = ref.heading(ss)
         return {**base, "is_static": False, "x": xs.tolist(), "y": ys.tolist(), "heading": wrap_angle(hs).tolist()}
 
     def _locate(self, ob: dict[str, Any]) -> tuple[Any, float, float] | None:
@@ -90,4 +95,6 @@ class PredictionNode(Node):
         if ref is None:
             ref = self.roadmap.reference_line(self.roadmap.default_chain(lane, length))
             self._chains[key] = ref
+            if len(ref.geoms) == 1 and ref.geoms[0].kind == "straight":
+                self._const_heading[id(ref)] = float(wrap_angle(np.full(1, ref.geoms[0].heading0))[0])
         return ref

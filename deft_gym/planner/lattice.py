@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from itertools import chain
 from typing import Any
 
 import numpy as np
@@ -33,6 +34,15 @@ from pydantic import BaseModel, ConfigDict, Field
 from deft_gym.geometry import ReferenceLine, wrap_angle
 from deft_gym.planner.base import Frame, Planner
 from deft_gym.roadmap import LaneId, shared_roadmap
+
+try:  # the C function behind np.interp: the same results without the Python wrapper's overhead
+    from numpy._core.multiarray import interp as _interp
+
+    _interp(0.5, np.array([0.0, 1.0]), np.array([0.0, 1.0]))
+except (ImportError, TypeError):  # pragma: no cover - other numpy layouts
+    _interp = np.interp
+
+_FLIP = np.array([[1.0], [-1.0]])  # see _perp
 
 
 class LatticeParams(BaseModel):
@@ -107,7 +117,8 @@ class _Route:
 
 @dataclass
 class _Ref:
-    """A reference line sampled on a uniform grid (for fast interpolation)."""
+    """A reference line sampled on a uniform grid (for fast interpolation), plus what the
+    planner needs of it every cycle, precomputed (it is cached per lane and route)."""
 
     line: ReferenceLine
     s: np.ndarray
@@ -117,6 +128,15 @@ class _Ref:
     k: np.ndarray
     vlim: np.ndarray  # curvature speed limit [m/s] on a 1 m grid starting at s[0]
     continues: bool  # the chain reaches the destination road or follows the route to its end
+    stops: list[tuple[float, str]]  # (s of the stop line, light id) along the chain
+    dest_offsets: list[float]  # offsets of the chain's lanes on the destination road
+    end: float  # s of the end of the chain
+
+    def __post_init__(self) -> None:
+        self.s_first = float(self.s[0])
+        self.vlim_list: list[float] = self.vlim.tolist()
+        self.vlim_min = min(self.vlim_list, default=math.inf)
+        self.vlim_max = max(self.vlim_list, default=math.inf)
 
     def at(self, s: float) -> tuple[float, float]:
         """Heading [rad] and curvature [1/m] at one ``s`` (linear interpolation)."""
@@ -128,10 +148,36 @@ class _Ref:
 
     def min_vlim(self, s_a: float, s_b: float) -> float:
         """Lowest curvature speed limit between ``s_a`` and ``s_b``."""
-        i = max(int(s_a - float(self.s[0])), 0)
-        j = max(int(s_b - float(self.s[0])) + 1, i + 1)
-        seg = self.vlim[i:j]
-        return float(seg.min()) if seg.size else math.inf
+        i = max(int(s_a - self.s_first), 0)
+        j = max(int(s_b - self.s_first) + 1, i + 1)
+        seg = self.vlim_list[i:j]
+        return min(seg) if seg else math.inf
+
+
+@dataclass
+class _Poses:
+    """Ego poses along candidate rows (rows x time, or one row): the reference heading, the
+    centre (x, y), the speed along the reference and the heading relative to it."""
+
+    h: np.ndarray
+    xy: np.ndarray  # (2, rows, time)
+    vs: np.ndarray
+    rel: np.ndarray
+
+    @staticmethod
+    def along(ref: _Ref, d: np.ndarray, dd: np.ndarray, s: np.ndarray, v: np.ndarray,
+              kr: np.ndarray) -> _Poses:
+        """Poses of profiles ``s`` (speed ``v``, curvature ``kr`` there), offset ``d`` (rate ``dd``)."""
+        hr = _interp(s, ref.s, ref.h)
+        sh, ch = np.sin(hr), np.cos(hr)
+        xy = np.empty((2, *s.shape))
+        np.subtract(_interp(s, ref.s, ref.x), d * sh, out=xy[0])
+        np.add(_interp(s, ref.s, ref.y), d * ch, out=xy[1])
+        vs = v * (1.0 - kr * d)
+        return _Poses(hr, xy, vs, np.arctan2(dd, np.maximum(vs, 1e-3)))
+
+    def row(self, j: int) -> _Poses:
+        return _Poses(self.h[j], self.xy[:, j], self.vs[j], self.rel[j])
 
 
 @dataclass
@@ -148,7 +194,23 @@ class _Lateral:
     band: tuple[float, float]
     basis: list[np.ndarray] = field(default_factory=list)  # (3, n, K) for d0, d0', d0'', targets
     needed: np.ndarray = field(default_factory=lambda: np.zeros(0))  # lane changes still needed
-    centres: np.ndarray = field(default_factory=lambda: np.zeros(0))  # distinct target lane centres
+    centres: list[float] = field(default_factory=list)  # distinct target lane centres
+    target_d: np.ndarray = field(default_factory=lambda: np.zeros(0))  # centre + offset
+    band_lo: float = 0.0  # band[0] - edge margin + half the ego width
+    w_lat: float = 0.0  # weight of the squared lateral offset (per sample, per lane width^2)
+    route_cost: tuple[np.ndarray, ...] = ()  # needed lane changes x (urgent, far) weight
+    route_dist: tuple[np.ndarray, ...] = ()  # needed lane changes x (destination, fork) distance
+    dead_end: list[int] = field(default_factory=list)  # options stopped by the end of a leaving lane
+    _hyst: dict[tuple[LaneId, float], np.ndarray] = field(default_factory=dict)
+
+    def hysteresis(self, target: LaneId, offset: float, weight: float) -> np.ndarray:
+        """Cost of leaving the previous decision (target lane and offset); ``weight`` must be
+        the same in every call (results are cached)."""
+        c = self._hyst.get((target, offset))
+        if c is None:
+            same = np.fromiter((t == target for t in self.target), bool, len(self.target))
+            c = self._hyst[(target, offset)] = weight * (~same + np.abs(self.offset - offset))
+        return c
 
 
 class LatticePlanner(Planner):
@@ -157,35 +219,49 @@ class LatticePlanner(Planner):
     def __init__(self, map_spec: dict[str, Any], **params: Any) -> None:
         super().__init__(map_spec, **params)
         self.p = LatticeParams.model_validate(params)
+        p = self.p
         self.map = shared_roadmap(self.map_spec)
-        self.K = round(self.p.horizon / self.p.dt) + 1
-        self.tk = np.arange(self.K) * self.p.dt
+        self.K = round(p.horizon / p.dt) + 1
+        self.tk = np.arange(self.K) * p.dt
         self._route_cache: dict[Any, _Route] = {}
         self._ref_cache: dict[Any, _Ref] = {}
         self._lat_cache: dict[Any, _Lateral] = {}
-        reach = max(self.p.horizon * self.p.horizon, 30.0) + 20.0  # [m] obstacles farther never matter
+        self._cand_cache: dict[LaneId, list[LaneId]] = {}
+        reach = max(p.horizon * p.horizon, 30.0) + 20.0  # [m] obstacles farther never matter
         self._reach2 = reach * reach
         self._half_lane = self.map.spec.lane_width / 2
         self._inv_k = 1.0 / self.K
+        # constants of the cost and the collision check (the same float operations as inline)
+        self._w_acc = p.w_accel * self._inv_k
+        self._w_jerk = p.w_jerk / p.dt**2 / (self.K - 1)
+        self._w_obs = p.w_obstacle * p.dt / p.lat_buffer_soft
+        la, wa = p.ego_length / 2, p.ego_width / 2
+        self._ego_half = np.array([[la], [wa]])
+        self._hard_buf = np.array([[p.lon_buffer_hard], [p.lat_buffer_hard]])
+        # bounding-circle radius of the ego grown by the hard buffers, plus the soft buffer
+        self._reach_ego = math.hypot(la + p.lon_buffer_hard, wa + p.lat_buffer_hard) + p.lat_buffer_soft
+        self._penalty = {"BRAKE": p.w_brake, "BLOCKED": p.w_blocked}
         # Profiles with a fixed duration are linear in their start/end values, so their shapes
         # are computed once: cruise rows (speed factor x duration) and lateral durations.
         t = self.tk[None, :]
-        qT = np.array([[T for _ in self.p.speed_factors for T in self.p.speed_times]]).T
-        qf = np.array([[f for f in self.p.speed_factors for _ in self.p.speed_times]]).T
+        qT = np.array([[T for _ in p.speed_factors for T in p.speed_times]]).T
+        qf = np.array([[f for f in p.speed_factors for _ in p.speed_times]]).T
         _one, zero = np.ones_like(qT), np.zeros_like(qT)
         self._cruise_basis = [np.stack(_quartic(0.0, *u, qT, t)) for u in
                               ((1.0, 0.0, zero), (0.0, 1.0, zero), (0.0, 0.0, qf))]
+        self._n_cruise = len(p.speed_factors) * len(p.speed_times)
         # reach quintics (to s1, v1 at T, then constant speed): T on a 0.1 s grid; for one T the
         # profile is linear in (s0, v0, a0, s1, v1), so each grid T has a (5, 3, K) basis
-        self._reach_T = np.round(np.arange(1.0, self.p.horizon + 4.0 + 1e-9, 0.1), 6)
+        self._reach_T = np.round(np.arange(1.0, p.horizon + 4.0 + 1e-9, 0.1), 6)
         TT = self._reach_T[:, None]
         one, zero = np.ones_like(TT), np.zeros_like(TT)
-        self._reach_basis = np.stack([np.stack(_quintic(*u, zero, TT, t)) for u in
-                                      ((0.0, 1.0, 0.0, zero, zero), (0.0, 0.0, 1.0, zero, zero),
-                                       (0.0, 0.0, 0.0, one, zero), (0.0, 0.0, 0.0, zero, one))],
-                                     axis=1).transpose(2, 1, 0, 3)  # (T, coefficient, s/v/a, K)
+        self._reach_basis = np.ascontiguousarray(
+            np.stack([np.stack(_quintic(*u, zero, TT, t)) for u in
+                      ((0.0, 1.0, 0.0, zero, zero), (0.0, 0.0, 1.0, zero, zero),
+                       (0.0, 0.0, 0.0, one, zero), (0.0, 0.0, 0.0, zero, one))],
+                     axis=1).transpose(2, 1, 0, 3))  # (T, coefficient, s/v/a, K)
         self._lat_basis: dict[float, list[np.ndarray]] = {}
-        for T in sorted({self.p.nudge_time, self.p.lane_change_time, self.p.recentre_time}):
+        for T in sorted({p.nudge_time, p.lane_change_time, p.recentre_time}):
             TT = np.array([[T]])
             self._lat_basis[T] = [np.stack(_quintic(*u, TT, t))[:, 0] for u in
                                   ((1.0, 0.0, 0.0, np.zeros((1, 1)), 0.0, 0.0),
@@ -226,18 +302,20 @@ class LatticePlanner(Planner):
         obs = self._obstacles(frame.get("prediction"), t0, ref, s0, d0)
         lat = self._lateral(lane, route)
         b0, b1, b2, b3 = lat.basis
-        d, dd, ddd = d0 * b0 + vd0 * b1 + ad0 * b2 + b3
-        walls = self._walls(frame.get("traffic_light"), ref, route, lane, s0, vs0, lat)
-        lon = self._longitudinal(s0, vs0, as0, v_des, ref, walls, obs, lat)
+        lat_d = d0 * b0 + vd0 * b1 + ad0 * b2 + b3  # (d, d', d'') x option x time
+        walls, wall_s = self._walls(frame.get("traffic_light"), ref, route, lane, s0, vs0, lat)
+        lon = self._longitudinal(s0, vs0, as0, v_des, ref, wall_s, obs, lat)
         c_route = self._route_cost(lat, ref, route, lane, s0)
-        best, cost = self._evaluate(ref, lat, d, dd, ddd, lon, obs, walls, v_des, c_route)
+        best, cost, poses = self._evaluate(ref, lat, lat_d, lon, obs, walls, v_des, c_route)
         if best is None:
             s, v, acc = _brake(s0, vs0, self.p.emergency_decel, self.tk)
-            out = self._to_xy(ref, t0, s, v, acc, np.full(self.K, d0), np.zeros(self.K), h0)
+            dd = np.zeros(self.K)
+            poses = _Poses.along(ref, np.full(self.K, d0), dd, s, v, _interp(s, ref.s, ref.k))
+            out = self._to_xy(poses, t0, dd, acc, h0)
             behavior, target, off = "ESTOP", lane, st.offset
         else:
             li, pi = best
-            out = self._to_xy(ref, t0, lon["s"][pi], lon["v"][pi], lon["a"][pi], d[li], dd[li], h0)
+            out = self._to_xy(poses, t0, lat_d[1, li], lon["a"][pi], h0)
             target, off = lat.target[li], float(lat.offset[li])
             behavior = self._behavior(lane, target, off, lon["label"][pi])
         self._commit(out, target, off, lane)
@@ -286,7 +364,10 @@ class LatticePlanner(Planner):
         neighbours), the whole map only when that finds nothing good."""
         prev = self.state.lane
         if prev is not None:
-            cand = [prev, *self.map.successors[prev], *self.map.changeable_neighbours(prev)]
+            cand = self._cand_cache.get(prev)
+            if cand is None:  # the map is static
+                cand = [prev, *self.map.successors[prev], *self.map.changeable_neighbours(prev)]
+                self._cand_cache[prev] = cand
             best, score = self._best_lane(cand, x, y, h, route)
             if best is not None and score < 1.5:
                 return best
@@ -351,20 +432,33 @@ class LatticePlanner(Planner):
         # speed limit along the chain: curvature (lateral acceleration) and each lane's limit
         lane_limit = np.array([float(self.map.lanes[lid].speed_limit or np.inf) for lid in chain])
         vlim = np.minimum(np.sqrt(self.p.max_lat_accel / np.maximum(k1, 1e-6)), lane_limit[line._piece(s1)])
-        ref = _Ref(line, s, xy[:, 0].copy(), xy[:, 1].copy(), h, k, vlim, continues)
+        stops, dest_offsets = [], []
+        for j, lid in enumerate(line.lane_ids):
+            off = float(line.offsets[j])
+            sl = self.map.stop_line_of.get(lid)
+            if sl is not None:
+                stops.append((off + sl.s, sl.light_id))
+            if lid[:2] == route.dest_lane[:2]:
+                dest_offsets.append(off)
+        end = float(line.offsets[-1] + line.geoms[-1].length)
+        ref = _Ref(line, s, xy[:, 0].copy(), xy[:, 1].copy(), h, k, vlim, continues, stops, dest_offsets, end)
         self._ref_cache[key] = ref
         return ref
 
     # -- obstacles ----------------------------------------------------------------------------
     def _obstacles(self, pred: dict[str, Any] | None, t0: float, ref: _Ref, s0: float,
-                   d0: float) -> dict[str, np.ndarray] | None:
+                   d0: float) -> dict[str, Any] | None:
         """Predicted obstacle boxes at the planning times ``t0 + k dt`` (held at their last
         prediction point): centre, heading and half-size in world coordinates for the collision
         check, plus their Frenet coordinates now and at the horizon for choosing leaders.
-        Obstacles that stay out of the ego's reach over the horizon are dropped."""
+        Obstacles that stay out of the ego's reach over the horizon are dropped.
+
+        Per (obstacle, time) values are ``(2, n, K)`` (``xy``) or flat ``(2, n K)`` (``cs``:
+        heading cos/sin, ``lw``: half length/width); per obstacle values for the leaders are
+        lists."""
         if not pred or not pred.get("obstacles"):
             return None
-        K, tq = self.K, t0 + self.tk
+        K = self.K
         statics = []
         groups: dict[tuple[float, float, int], list[dict[str, Any]]] = {}
         for ob in pred["obstacles"]:
@@ -372,51 +466,69 @@ class LatticePlanner(Planner):
                 statics.append((ob["x"][0], ob["y"][0], ob["heading"][0], 0.5 * ob["length"], 0.5 * ob["width"], 0.0))
             else:  # moving: grouped by time base, resampled together
                 groups.setdefault((float(ob["t0"]), float(ob["dt"]), len(ob["x"])), []).append(ob)
-        blocks_x, blocks_y, blocks_h, dims = [], [], [], []
+        n = len(statics) + sum(len(g) for g in groups.values())
+        oxy = np.empty((2, n, K))  # centre (x, y) over time
+        oh = np.empty((n, K))  # heading over time
+        dims = np.empty((n, 3))  # half length, half width, speed
+        j = len(statics)
         if statics:
             st = np.array(statics)
-            blocks_x.append(np.repeat(st[:, :1], K, axis=1))
-            blocks_y.append(np.repeat(st[:, 1:2], K, axis=1))
-            blocks_h.append(np.repeat(st[:, 2:3], K, axis=1))
-            dims.append(st[:, 3:])
-        for (ot0, odt, n), obs_g in groups.items():
-            f = np.clip((tq - ot0) * (1.0 / odt), 0.0, n - 1.0)
-            i = np.minimum(f.astype(np.int64), n - 2)
+            oxy[:, :j] = st[:, :2].T[:, :, None]
+            oh[:j] = st[:, 2:3]
+            dims[:j] = st[:, 3:]
+        if groups:
+            tq = t0 + self.tk
+        for (ot0, odt, m), obs_g in groups.items():
+            f = np.minimum(np.maximum((tq - ot0) * (1.0 / odt), 0.0), m - 1.0)
+            i = np.minimum(f.astype(np.int64), m - 2)
             w = f - i
-            X = np.array([ob["x"] for ob in obs_g])
-            Y = np.array([ob["y"] for ob in obs_g])
-            x0, y0 = X[:, i], Y[:, i]
-            blocks_x.append(x0 + (X[:, i + 1] - x0) * w)
-            blocks_y.append(y0 + (Y[:, i + 1] - y0) * w)
-            blocks_h.append(np.array([ob["heading"] for ob in obs_g])[:, np.rint(f).astype(np.int64)])
-            dims.append(np.array([(0.5 * ob["length"], 0.5 * ob["width"], ob.get("v", 0.0)) for ob in obs_g]))
-        if len(blocks_x) == 1:
-            ox, oy, oh, dims_a = blocks_x[0], blocks_y[0], blocks_h[0], dims[0]
-        else:
-            ox, oy, oh = np.concatenate(blocks_x), np.concatenate(blocks_y), np.concatenate(blocks_h)
-            dims_a = np.concatenate(dims)
+            j1 = j + len(obs_g)
+            # x, y and heading of the group's predictions: (3, obstacle, point)
+            xyh = np.fromiter(chain.from_iterable(ob[key] for key in ("x", "y", "heading") for ob in obs_g),
+                              float).reshape(3, len(obs_g), m)
+            xy0 = xyh[:2].take(i, axis=2)
+            np.add(xy0, (xyh[:2].take(i + 1, axis=2) - xy0) * w, out=oxy[:, j:j1])
+            oh[j:j1] = xyh[2].take(np.rint(f).astype(np.int64), axis=1)
+            dims_g = np.array([(0.5 * ob["length"], 0.5 * ob["width"], ob.get("v", 0.0)) for ob in obs_g])
+            if dims_g.dtype.kind not in "biuf":  # a null or a string is an error, never a NaN
+                raise TypeError(f"prediction obstacle length/width/v must be numbers (got {dims_g.dtype})")
+            dims[j:j1] = dims_g
+            j = j1
         # relevance: within reach of the ego over the horizon
-        ex, ey = float(np.interp(s0, ref.s, ref.x)), float(np.interp(s0, ref.s, ref.y))
-        gx, gy = ox - ex, oy - ey
-        near = (gx * gx + gy * gy).min(axis=1) < self._reach2
-        # Frenet now and at the horizon (leaders, gaps, followers)
-        ends = np.stack([ox[:, ::K - 1], oy[:, ::K - 1]], axis=-1)
-        sf, df = ref.line.frenet(ends)
-        phi = oh[:, ::K - 1] - np.interp(sf, ref.s, ref.h)
-        c, sn = np.abs(np.cos(phi)), np.abs(np.sin(phi))
-        hl, hw = dims_a[:, :1], dims_a[:, 1:2]
-        fes = hl * c + hw * sn
-        # a follower in the ego's own lane is responsible for keeping its distance
-        follower = (sf[:, 0] + fes[:, 0] < s0 - self.p.ego_length / 2) & (np.abs(df[:, 0] - d0) < self._half_lane)
-        keep = near & ~follower
-        if not keep.any():
+        ex, ey = float(_interp(s0, ref.s, ref.x)), float(_interp(s0, ref.s, ref.y))
+        gx, gy = oxy[0] - ex, oxy[1] - ey
+        near = ((gx * gx + gy * gy).min(axis=1) < self._reach2).tolist()
+        if not any(near):
             return None
-        if not keep.all():
-            ox, oy, oh, dims_a, sf, df, fes = (a[keep] for a in (ox, oy, oh, dims_a, sf, df, fes))
-            c, sn, hl, hw = c[keep], sn[keep], hl[keep], hw[keep]
-        return {"x": ox, "y": oy, "c": np.cos(oh), "s": np.sin(oh), "hl": hl, "hw": hw,
-                "r": np.hypot(hl, hw), "v": dims_a[:, 2], "fs": sf, "fd": df, "fes": fes,
-                "fed": hl * sn + hw * c}
+        # Frenet now and at the horizon (leaders, gaps, followers)
+        ends = np.ascontiguousarray(oxy[:, :, ::K - 1].transpose(1, 2, 0))  # (n, now/end, x/y)
+        sf, df = ref.line.frenet(ends)
+        phi = oh[:, ::K - 1] - _interp(sf, ref.s, ref.h)
+        c, sn = np.abs(np.cos(phi)), np.abs(np.sin(phi))
+        hl, hw = dims[:, :1], dims[:, 1:2]
+        fes = hl * c + hw * sn
+        fed0 = hl[:, 0] * sn[:, 0] + hw[:, 0] * c[:, 0]
+        fs_l, fes_l, fd0_l = sf.tolist(), fes.tolist(), df[:, 0].tolist()
+        # a follower in the ego's own lane is responsible for keeping its distance
+        behind = s0 - self.p.ego_length / 2
+        keep = [o for o in range(n) if near[o] and not (fs_l[o][0] + fes_l[o][0] < behind
+                                                         and abs(fd0_l[o] - d0) < self._half_lane)]
+        if not keep:
+            return None
+        if len(keep) < n:
+            oxy, oh, dims = oxy.take(keep, axis=1), oh.take(keep, axis=0), dims.take(keep, axis=0)
+            hl, hw, fed0 = dims[:, :1], dims[:, 1:2], fed0.take(keep)
+            fs_l, fes_l, fd0_l = [fs_l[o] for o in keep], [fes_l[o] for o in keep], [fd0_l[o] for o in keep]
+        n = len(keep)
+        ocs = np.empty((2, n * K))  # cos, sin of the heading, flat (obstacle, time)
+        np.cos(oh.ravel(), out=ocs[0])
+        np.sin(oh.ravel(), out=ocs[1])
+        reach = self._reach_ego + np.hypot(hl, hw)
+        return {"n": n, "xy": oxy, "cs": ocs, "lw": np.repeat(dims[:, :2].T, K, axis=1), "reach2": reach * reach,
+                "start": np.arange(n) * K,  # flat (obstacle, time) index of time 0
+                # per obstacle, for choosing leaders: Frenet s (now, end), extent along s (now,
+                # end), d now, extent along d now, speed
+                "fs": fs_l, "fes": fes_l, "fd": fd0_l, "fed": fed0.tolist(), "v": dims[:, 2].tolist()}
 
     # -- lateral options ----------------------------------------------------------------------
     def _continues(self, lid: LaneId, route: _Route) -> bool:
@@ -451,10 +563,16 @@ class LatticePlanner(Planner):
         lat = _Lateral([t[0] for t in targets], np.array([t[1] for t in targets]), offset,
                        np.array([t[3] for t in targets]), compat, change, static_cost, band)
         lat.needed = needed
-        lat.centres = np.unique(lat.centre)
+        lat.centres = np.unique(lat.centre).tolist()
+        lat.target_d = lat.centre + lat.offset
+        lat.band_lo = band[0] - p.edge_margin + p.ego_width / 2
+        lat.w_lat = p.w_lat * self._inv_k / (w * w)
+        lat.route_cost = (needed * p.w_route, needed * p.w_route_far)
+        lat.route_dist = (needed * p.route_dest_distance, needed * p.route_fork_distance)
+        lat.dead_end = [i for i, tgt in enumerate(lat.target) if tgt == lane or not compat[i]]
         rows = [[self._lat_basis[t[3]][c] for t in targets] for c in range(4)]
         lat.basis = [np.stack(r, axis=1) for r in rows[:3]]
-        lat.basis.append(np.stack(rows[3], axis=1) * (lat.centre + lat.offset)[None, :, None])
+        lat.basis.append(np.stack(rows[3], axis=1) * lat.target_d[None, :, None])
         self._lat_cache[key] = lat
         return lat
 
@@ -462,190 +580,213 @@ class LatticePlanner(Planner):
         """Cost of the lane changes each option still leaves to do: mild while the point where
         the lane must be right (the end of the road before a fork, or the destination) is far,
         strong once fewer than ``route_*_distance`` metres per needed change remain."""
-        p = self.p
         if lane[:2] == route.dest_lane[:2]:
-            dist, per_lane = route.dest_s - s0, p.route_dest_distance
+            dist, limit = route.dest_s - s0, lat.route_dist[0]
         else:
-            dist, per_lane = float(ref.line.geoms[0].length) - s0, p.route_fork_distance
-        urgent = dist < lat.needed * per_lane
-        return lat.needed * np.where(urgent, p.w_route, p.w_route_far)
+            dist, limit = float(ref.line.geoms[0].length) - s0, lat.route_dist[1]
+        return np.where(dist < limit, *lat.route_cost)
 
     # -- walls --------------------------------------------------------------------------------
     def _walls(self, tl: dict[str, Any] | None, ref: _Ref, route: _Route, lane: LaneId, s0: float,
-               v0: float, lat: _Lateral) -> np.ndarray:
-        """Per lateral option, the largest allowed centre ``s`` over the horizon: red (or
-        stoppable yellow, or unknown) lights, the destination, and the end of a lane that leaves
-        the route."""
+               v0: float, lat: _Lateral) -> tuple[np.ndarray | float, list[float]]:
+        """Per lateral option (one value when the same for all), the largest allowed centre
+        ``s`` over the horizon: red (or stoppable yellow, or unknown) lights, the destination,
+        and the end of a lane that leaves the route. Also the distinct finite values, ascending."""
         p = self.p
         half = p.ego_length / 2
         colors = {lt["id"]: lt["color"] for lt in (tl or {}).get("lights", [])}
         limit_all = math.inf
-        line = ref.line
-        for j, lid in enumerate(line.lane_ids):
-            off = float(line.offsets[j])
-            sl = self.map.stop_line_of.get(lid)
-            if sl is not None:
-                s_line = off + sl.s
-                gap = s_line - (s0 + half)
-                if gap > -0.5:
-                    color = colors.get(sl.light_id, "UNKNOWN")
-                    need = v0 * v0 / (2 * max(gap - p.stop_gap, 0.1))
-                    stop = (color in ("RED", "UNKNOWN") and need <= p.emergency_decel) or (
-                        color == "YELLOW" and need <= p.yellow_decel)
-                    if stop:
-                        limit_all = min(limit_all, s_line - half - p.stop_gap)
-            if lid[:2] == route.dest_lane[:2]:
-                limit_all = min(limit_all, off + route.dest_s)
+        for s_line, light in ref.stops:
+            gap = s_line - (s0 + half)
+            if gap > -0.5:
+                color = colors.get(light, "UNKNOWN")
+                need = v0 * v0 / (2 * max(gap - p.stop_gap, 0.1))
+                stop = (color in ("RED", "UNKNOWN") and need <= p.emergency_decel) or (
+                    color == "YELLOW" and need <= p.yellow_decel)
+                if stop:
+                    limit_all = min(limit_all, s_line - half - p.stop_gap)
+        for off in ref.dest_offsets:
+            limit_all = min(limit_all, off + route.dest_s)
+        if ref.continues:  # the same for every option
+            return limit_all, [limit_all] if math.isfinite(limit_all) else []
         limits = np.full(len(lat.target), limit_all)
-        if not ref.continues:
-            dead_end = float(line.offsets[-1] + line.geoms[-1].length) - half - p.stop_gap
-            for i, tgt in enumerate(lat.target):
-                if tgt == lane or not lat.compat[i]:
-                    limits[i] = min(limits[i], dead_end)
-        return limits
+        dead_end = ref.end - half - p.stop_gap
+        for i in lat.dead_end:
+            limits[i] = min(limits[i], dead_end)
+        return limits, sorted({x for x in limits.tolist() if math.isfinite(x)})
 
     # -- longitudinal profiles ----------------------------------------------------------------
     def _longitudinal(self, s0: float, v0: float, a0: float, v_des: float, ref: _Ref,
-                      walls: np.ndarray, obs: dict[str, np.ndarray] | None, lat: _Lateral) -> dict[str, Any]:
-        """Speed profiles: cruise quartics, and quintics reaching (s, v) targets - stops at walls,
-        slowing for curves, keeping a gap behind leaders - plus an emergency brake."""
-        p, tk = self.p, self.tk
-        labels: list[str] = []
+                      wall_s: list[float], obs: dict[str, Any] | None, lat: _Lateral) -> dict[str, Any]:
+        """Speed profiles: cruise quartics, and quintics reaching (s, v) targets - stops at walls
+        (``wall_s``), slowing for curves, keeping a gap behind leaders - plus an emergency brake."""
+        p = self.p
         v_des = min(v_des, ref.min_vlim(s0, s0 + 8.0))
-        labels = ["CRUISE"] * (len(p.speed_factors) * len(p.speed_times))
-        bv, ba, bf = self._cruise_basis
-        cruise = v0 * bv + a0 * ba + v_des * bf
-        cruise[0] += s0
-        targets: list[tuple[float, float, str]] = []
-        for lim in sorted(set(walls[np.isfinite(walls)].tolist())):
-            targets.append((lim, 0.0, "STOP"))
+        targets = [(lim, 0.0, "STOP") for lim in wall_s]
         s_c, v_c = self._curve_target(ref, s0, v0)
         if s_c is not None:
             targets.append((s_c, v_c, "CRUISE"))
-        if obs is not None:  # leaders: nearest obstacle ahead in each lateral target's band
-            half = p.ego_length / 2
-            centres = lat.centres
-            s_first, e_first = obs["fs"][:, 0], obs["fes"][:, 0]
-            band = np.abs(obs["fd"][None, :, 0] - centres[:, None]) < obs["fed"][None, :, 0] + (p.ego_width / 2 + 0.3)
-            ahead = band & (s_first - e_first > s0 + half - 0.5)[None, :]
-            lead = np.where(ahead, s_first[None, :], np.inf).argmin(axis=1)
-            for ci in np.flatnonzero(ahead.any(axis=1)).tolist():
-                m = int(lead[ci])
-                vl = float(obs["v"][m])
-                if vl < 0.5:
-                    targets.append((float(s_first[m] - e_first[m]) - half - p.static_gap, 0.0, "BLOCKED"))
-                else:
-                    rear_end = float(obs["fs"][m, -1] - obs["fes"][m, -1]) - half
-                    targets.append((rear_end - max(p.follow_gap, p.time_gap * vl), vl, "FOLLOW"))
-        rs, rv, rT = [], [], []
+        if obs is not None:
+            targets += self._leaders(obs, lat, s0)
+        labels = ["CRUISE"] * self._n_cruise
+        ds, rv, ti = [], [], []
+        last_T = len(self._reach_T) - 1
         for s_e, v_e, label in targets:
             dist = s_e - s0
             if dist <= 0.05:
                 continue
             for f in p.stop_time_factors:
-                rs.append(s_e)
+                T = f * 2.0 * dist / max(v0 + v_e, 0.5)
+                ti.append(_grid_index((T - 1.0) * 10.0, last_T))  # nearest grid T
+                ds.append(s_e - s0)
                 rv.append(v_e)
-                rT.append(f * 2.0 * dist / max(v0 + v_e, 0.5))
                 labels.append(label)
-        brake = np.stack(_brake(s0, v0, p.emergency_decel, tk))[:, None, :]
         labels.append("BRAKE")
-        if rs:
-            ti = np.clip(np.rint((np.array(rT) - 1.0) * 10.0).astype(np.int64), 0, len(self._reach_T) - 1)
-            B = self._reach_basis[ti]  # (R, 4, 3, K): v0, a0, s1, v1 shapes
+        # (s, v, a) x profile x time: cruise rows, reach rows, the brake
+        n_c = self._n_cruise
+        sva = np.empty((3, len(labels), self.K))
+        bv, ba, bf = self._cruise_basis
+        np.add(v0 * bv + a0 * ba, v_des * bf, out=sva[:, :n_c])
+        sva[0, :n_c] += s0
+        if ds:
+            B = self._reach_basis.take(ti, axis=0)  # (R, 4, 3, K): v0, a0, s1, v1 shapes
             # positions are shift-invariant: plan from 0 to (s1 - s0), then add s0
-            reach = (v0 * B[:, 0] + a0 * B[:, 1] + (np.array(rs) - s0)[:, None, None] * B[:, 2]
-                     + np.array(rv)[:, None, None] * B[:, 3])  # (R, 3, K)
-            reach[:, 0] += s0
-            sva = np.concatenate([cruise, reach.transpose(1, 0, 2), brake], axis=1)
-        else:
-            sva = np.concatenate([cruise, brake], axis=1)
-        penalty = np.array([{"BRAKE": p.w_brake, "BLOCKED": p.w_blocked}.get(x, 0.0) for x in labels])
-        labels = [{"BRAKE": "STOP", "BLOCKED": "STOP"}.get(x, x) for x in labels]
-        return {"s": sva[0], "v": sva[1], "a": sva[2], "label": labels, "n": len(labels), "penalty": penalty}
+            coef = np.array((ds, rv))[:, :, None, None]
+            np.add(v0 * B[:, 0] + a0 * B[:, 1] + coef[0] * B[:, 2], coef[1] * B[:, 3],
+                   out=sva[:, n_c:-1].transpose(1, 0, 2))
+            sva[0, n_c:-1] += s0
+        sva[0, -1], sva[1, -1], sva[2, -1] = _brake(s0, v0, p.emergency_decel, self.tk)
+        penalty = np.array([self._penalty.get(x, 0.0) for x in labels])
+        labels = ["STOP" if x in self._penalty else x for x in labels]
+        return {"s": sva[0], "v": sva[1], "a": sva[2], "sva": sva, "label": labels, "n": len(labels),
+                "penalty": penalty}
+
+    def _leaders(self, obs: dict[str, Any], lat: _Lateral, s0: float) -> list[tuple[float, float, str]]:
+        """Per distinct lateral target centre, a target behind the nearest obstacle ahead in its
+        band: a standstill gap behind a static one, a time gap behind a moving one."""
+        p = self.p
+        half = p.ego_length / 2
+        margin = p.ego_width / 2 + 0.3
+        front = s0 + half - 0.5
+        fs, fes, fd, fed, vs = obs["fs"], obs["fes"], obs["fd"], obs["fed"], obs["v"]
+        ahead = [o for o in range(obs["n"]) if fs[o][0] - fes[o][0] > front]
+        targets = []
+        for c in lat.centres:
+            m, best = -1, math.inf
+            for o in ahead:
+                if abs(fd[o] - c) < fed[o] + margin and fs[o][0] < best:
+                    m, best = o, fs[o][0]
+            if m < 0:
+                continue
+            vl = vs[m]
+            if vl < 0.5:
+                targets.append((fs[m][0] - fes[m][0] - half - p.static_gap, 0.0, "BLOCKED"))
+            else:
+                rear_end = fs[m][1] - fes[m][1] - half
+                targets.append((rear_end - max(p.follow_gap, p.time_gap * vl), vl, "FOLLOW"))
+        return targets
 
     def _curve_target(self, ref: _Ref, s0: float, v0: float) -> tuple[float | None, float]:
         """Where a curve ahead needs a lower speed than ``v0``, and that speed."""
-        i0 = max(int(s0 - float(ref.s[0])), 0)
+        if not v0 - 0.2 > ref.vlim_min:  # nothing anywhere on the line is slow enough
+            return None, 0.0
+        i0 = max(int(s0 - ref.s_first), 0)
         ahead = ref.vlim[i0:i0 + int(max(30.0, v0 * self.p.horizon)) + 1]
         slow = np.flatnonzero(ahead < v0 - 0.2)
         if slow.size == 0:
             return None, 0.0
         i = int(slow[0])
-        return float(ref.s[0]) + i0 + i - self.p.ego_length / 2, float(ahead[i:].min())
+        return ref.s_first + i0 + i - self.p.ego_length / 2, float(ahead[i:].min())
 
     # -- evaluation ---------------------------------------------------------------------------
     BATCH = 8
 
-    def _evaluate(self, ref: _Ref, lat: _Lateral, d: np.ndarray, dd: np.ndarray, ddd: np.ndarray,
-                  lon: dict[str, Any], obs: dict[str, np.ndarray] | None, walls: np.ndarray,
-                  v_des: float, c_route: np.ndarray) -> tuple[tuple[int, int] | None, float]:
-        """Cheapest feasible (lateral, longitudinal) pair.
+    def _evaluate(self, ref: _Ref, lat: _Lateral, lat_d: np.ndarray, lon: dict[str, Any],
+                  obs: dict[str, Any] | None, walls: np.ndarray | float, v_des: float,
+                  c_route: np.ndarray) -> tuple[tuple[int, int] | None, float, _Poses | None]:
+        """Cheapest feasible (lateral, longitudinal) pair, its cost, and the ego poses along it.
 
         Costs and constraints that do not involve obstacles are separable and evaluated for all
         pairs at once; the obstacle check (hard buffer -> infeasible, soft buffer -> extra cost)
         runs lazily on pairs in order of their obstacle-free cost, stopping as soon as no
-        unchecked pair can beat the best one (exact, as the obstacle cost is never negative)."""
+        unchecked pair can beat the best one (exact, as the obstacle cost is never negative).
+        A pair's obstacle cost does not depend on the pairs checked with it, so the batch sizes
+        change the speed only, never the result."""
         p, st = self.p, self.state
         nP = lon["n"]
-        ls, lv, la = lon["s"], lon["v"], lon["a"]
-        w = self.map.spec.lane_width
+        sva = lon["sva"]
+        ls, lv, la = sva[0], sva[1], sva[2]
+        d, ddd = lat_d[0], lat_d[2]
         # longitudinal-only
-        kr = np.interp(ls, ref.s, ref.k)
+        kr = _interp(ls, ref.s, ref.k)
         vref = max(v_des, 1.0)
-        inv_k = self._inv_k
         dv = lv - v_des
         jerk = la[:, 1:] - la[:, :-1]
-        c_lon = ((p.w_speed * inv_k / vref**2) * (dv * dv).sum(axis=-1) + (p.w_accel * inv_k) * (la * la).sum(axis=-1)
-                 + (p.w_jerk / p.dt**2 / (self.K - 1)) * (jerk * jerk).sum(axis=-1) + lon["penalty"])
+        c_lon = ((p.w_speed * self._inv_k / vref**2) * (dv * dv).sum(axis=-1) + self._w_acc * (la * la).sum(axis=-1)
+                 + self._w_jerk * (jerk * jerk).sum(axis=-1) + lon["penalty"])
         # speed limits (lanes and curvature) ahead; only a start that is already above the limit
         # where the ego is may take time to come down (3 m/s^2)
-        idx = np.clip((ls - float(ref.s[0])).astype(np.int64), 0, len(ref.vlim) - 1)
-        limit = ref.vlim[idx] + 0.3
-        if lv[0, 0] > limit[0, 0]:
+        if ref.vlim_min == ref.vlim_max:  # the same limit everywhere
+            limit = ref.vlim_min + 0.3
+            high = lv[0, 0] > limit
+        else:
+            idx = np.minimum(np.maximum((ls - ref.s_first).astype(np.int64), 0), len(ref.vlim) - 1)
+            limit = ref.vlim.take(idx) + 0.3
+            high = lv[0, 0] > limit[0, 0]
+        if high:
             limit = np.maximum(limit, lv[:, :1] - 3.0 * self.tk)
-        ok_lon = (lv.min(axis=-1) > -0.1) & (lv <= limit).all(axis=-1)
+        ok_lon = ((lv > -0.1) & (lv <= limit)).all(axis=-1)  # min(v) > -0.1 and v <= limit
         # lateral-only: stay inside the drivable band (the current road's lanes while on it, the
         # lane itself beyond); a start outside the band is allowed but must not get worse
-        left, right = lat.band
-        half_w = p.ego_width / 2
-        out = np.maximum(left - p.edge_margin + half_w - d, 0.0) + np.maximum(d + half_w - right - p.edge_margin, 0.0)
+        out = (np.maximum(lat.band_lo - d, 0.0)
+               + np.maximum(d + p.ego_width / 2 - lat.band[1] - p.edge_margin, 0.0))
         ok_lat = (out <= out[:, :1] + 0.05).all(axis=-1)
-        dl = d - (lat.centre + lat.offset)[:, None]
-        c_lat = (p.w_lat * inv_k / (w * w)) * (dl * dl).sum(axis=-1) + lat.static_cost + c_route
+        dl = d - lat.target_d[:, None]
+        c_lat = lat.w_lat * (dl * dl).sum(axis=-1) + lat.static_cost + c_route
         if st.target_lane is not None:
-            same = np.fromiter((t == st.target_lane for t in lat.target), bool, len(lat.target))
-            c_lat = c_lat + p.w_hysteresis * (~same + np.abs(lat.offset - st.offset))
-        # pairs: walls and lateral acceleration (Frenet: kappa v^2 + d'')
-        cent = kr * lv * lv
-        pair = cent[None] + ddd[:, None]
-        a_lat = np.maximum(pair.max(axis=-1), -pair.min(axis=-1))
-        feasible = ((ls.max(axis=-1)[None, :] <= walls[:, None] + 0.05) & (a_lat <= p.hard_lat_accel)
+            c_lat = c_lat + lat.hysteresis(st.target_lane, st.offset, p.w_hysteresis)
+        # pairs: walls and lateral acceleration (Frenet: kappa v^2 + d''); the largest |a| is
+        # exactly max(max a, -min a)
+        a_lat = np.abs((kr * lv * lv)[None] + ddd[:, None]).max(axis=-1)
+        wall = walls[:, None] + 0.05 if isinstance(walls, np.ndarray) else walls + 0.05
+        feasible = ((ls.max(axis=-1)[None, :] <= wall) & (a_lat <= p.hard_lat_accel)
                     & ok_lon[None, :] & ok_lat[:, None])
         base = c_lat[:, None] + c_lon[None, :] + p.w_lat_accel * a_lat
         base = np.where(feasible, base, np.inf).ravel()
-        order = np.argsort(base, kind="stable")
-        n_ok = int(np.isfinite(base).sum())
+        order = base.argsort(kind="stable")
+        n_ok = int(np.count_nonzero(np.isfinite(base)))
         if n_ok == 0:
-            return None, math.inf
+            return None, math.inf, None
         if obs is None:
             i = int(order[0])
-            return (i // nP, i % nP), float(base[i])
-        best_i, best_cost = -1, math.inf
-        for start in range(0, n_ok, self.BATCH):
-            idx = order[start:min(start + self.BATCH, n_ok)]
-            if base[idx[0]] >= best_cost:
-                break
-            li, pi = idx // nP, idx % nP
-            total = base[idx] + self._obstacle_cost(ref, d[li], dd[li], ls[pi], lv[pi], kr[pi], obs)
-            j = int(np.argmin(total))
-            if total[j] < best_cost:
-                best_i, best_cost = int(idx[j]), float(total[j])
+            li, pi = i // nP, i % nP
+            return (li, pi), float(base[i]), _Poses.along(ref, d[li], lat_d[1, li], ls[pi], lv[pi], kr[pi])
+        # Pairs are judged in batches of BATCH in cost order (a batch's pick is its argmin,
+        # which is its first NaN if there is one); the obstacle cost is computed for several
+        # batches at once when more than the first is needed, then judged batch by batch.
+        best_i, best_cost, best_poses = -1, math.inf, None
+        start, size, B = 0, self.BATCH, self.BATCH
+        while start < n_ok and base[order[start]] < best_cost:
+            idx = order[start:min(start + size, n_ok)]
+            li, pi = np.divmod(idx, nP)
+            c_obs, poses = self._obstacle_cost(ref, lat_d[:2].take(li, axis=1), sva[:2].take(pi, axis=1),
+                                               kr.take(pi, axis=0), obs)
+            total = base.take(idx) + c_obs
+            for b in range(0, len(idx), B):
+                if b and base[idx[b]] >= best_cost:
+                    start = n_ok  # no later pair can beat the best
+                    break
+                j = b + int(total[b:b + B].argmin())
+                if total[j] < best_cost:
+                    best_i, best_cost, best_poses = int(idx[j]), float(total[j]), poses.row(j)
+            else:
+                start, size = start + size, 4 * size  # rarely needed: check the rest in bigger chunks
         if best_i < 0:
-            return None, math.inf
-        return (best_i // nP, best_i % nP), best_cost
+            return None, math.inf, None
+        return (best_i // nP, best_i % nP), best_cost, best_poses
 
-    def _obstacle_cost(self, ref: _Ref, d: np.ndarray, dd: np.ndarray, s: np.ndarray, v: np.ndarray,
-                       kr: np.ndarray, obs: dict[str, np.ndarray]) -> np.ndarray:
+    def _obstacle_cost(self, ref: _Ref, d_dd: np.ndarray, s_v: np.ndarray, kr: np.ndarray,
+                       obs: dict[str, Any]) -> tuple[np.ndarray, _Poses]:
         """Soft-buffer cost of candidate rows, ``inf`` where the hard buffer is violated.
 
         Exact oriented-box separation (separating-axis test, :func:`_box_separation`) between
@@ -654,49 +795,49 @@ class LatticePlanner(Planner):
         overlaps the obstacle more than it does at the start (a buffer the ego is already inside
         may be kept or left, not worsened); soft: separation below the soft buffer. Only
         (candidate, obstacle, time) triples whose bounding circles come within the soft buffer
-        are tested; all others cannot contribute."""
+        are tested; all others cannot contribute. x/y pairs are stacked on a leading axis.
+        Also returns the ego poses of the rows."""
         p = self.p
-        n = len(s)
-        hr = np.interp(s, ref.s, ref.h)
-        sh, ch = np.sin(hr), np.cos(hr)
-        ex = np.interp(s, ref.s, ref.x) - d * sh
-        ey = np.interp(s, ref.s, ref.y) + d * ch
-        dx = obs["x"] - ex[:, None, :]
-        dy = obs["y"] - ey[:, None, :]
-        la, wa = p.ego_length / 2, p.ego_width / 2
-        reach = math.hypot(la + p.lon_buffer_hard, wa + p.lat_buffer_hard) + p.lat_buffer_soft + obs["r"]
-        close = dx * dx + dy * dy < reach * reach
-        if not close.any():
-            return np.zeros(n)
-        eh = hr + np.arctan2(dd, np.maximum(v * (1.0 - kr * d), 1e-3))
-        # the start pose (the same for every candidate) against every obstacle
-        _, sep_h0 = _box_separation(dx[0, :, 0], dy[0, :, 0], math.cos(eh[0, 0]), math.sin(eh[0, 0]),
-                                       obs["c"][:, 0], obs["s"][:, 0], obs["hl"][:, 0], obs["hw"][:, 0],
-                                       la, wa, p.lon_buffer_hard, p.lat_buffer_hard)
-        ci, oi, ki = np.nonzero(close)
-        eh = eh[ci, ki]
-        sep, sep_h = _box_separation(dx[ci, oi, ki], dy[ci, oi, ki], np.cos(eh), np.sin(eh),
-                                     obs["c"][oi, ki], obs["s"][oi, ki], obs["hl"][oi, 0], obs["hw"][oi, 0],
-                                     la, wa, p.lon_buffer_hard, p.lat_buffer_hard)
-        bad = (sep < 0.0) | (sep_h < np.minimum(0.0, sep_h0[oi] - 0.05))
+        n = d_dd.shape[1]
+        poses = _Poses.along(ref, d_dd[0], d_dd[1], s_v[0], s_v[1], kr)
+        dxy = obs["xy"][:, None] - poses.xy[:, :, None]  # (2, candidate, obstacle, time)
+        sq = dxy * dxy
+        f = np.flatnonzero(sq[0] + sq[1] < obs["reach2"])  # close: flat indices (c m + o) K + k
+        if not f.size:
+            return np.zeros(n), poses
+        eh = poses.h + poses.rel
+        # the start pose (the same for every candidate) against every obstacle, and the close
+        # triples, in one call: entries [:m] are the start, [m:] the triples
+        m, K = obs["n"], self.K
+        f_all = np.concatenate((obs["start"], f))
+        ok_all = f_all % (m * K)  # (o K + k)
+        ecs = np.empty((2, len(f_all)))
+        eh_all = np.repeat(eh, m, axis=0).ravel().take(f_all)
+        np.cos(eh_all, out=ecs[0])
+        np.sin(eh_all, out=ecs[1])
+        eh0 = eh[0, 0]
+        ecs[0, :m], ecs[1, :m] = math.cos(eh0), math.sin(eh0)
+        sep, sep_h = _box_separation(dxy.reshape(2, -1).take(f_all, axis=1), ecs, obs["cs"].take(ok_all, axis=1),
+                                     obs["lw"].take(ok_all, axis=1), self._ego_half, self._hard_buf)
+        sep_h0 = sep_h[:m]
+        sep, sep_h = sep[m:], sep_h[m:]
+        ci, oi = f // (m * K), ok_all[m:] // K
+        bad = (sep < 0.0) | (sep_h < np.minimum(0.0, sep_h0.take(oi) - 0.05))
         pen = np.maximum(p.lat_buffer_soft - np.maximum(sep, 0.0), 0.0)
-        cost = (p.w_obstacle * p.dt / p.lat_buffer_soft) * np.bincount(ci, weights=pen, minlength=n)
-        hard = np.bincount(ci, weights=bad, minlength=n) > 0
-        return np.where(hard, np.inf, cost)
+        cost = self._w_obs * np.bincount(ci, weights=pen, minlength=n)
+        cost[ci[bad]] = np.inf
+        return cost, poses
 
     # -- outputs ------------------------------------------------------------------------------
-    def _to_xy(self, ref: _Ref, t0: float, s: np.ndarray, v: np.ndarray, a: np.ndarray,
-               d: np.ndarray, dd: np.ndarray, h0: float) -> dict[str, np.ndarray]:
-        xr = np.interp(s, ref.s, ref.x)
-        yr = np.interp(s, ref.s, ref.y)
-        hr = np.interp(s, ref.s, ref.h)
-        kr = np.interp(s, ref.s, ref.k)
-        sh, ch = np.sin(hr), np.cos(hr)
-        vs = v * (1.0 - kr * d)
+    def _to_xy(self, poses: _Poses, t0: float, dd: np.ndarray, a: np.ndarray,
+               h0: float) -> dict[str, np.ndarray]:
+        """The trajectory in world coordinates from the ego poses along it (a standstill keeps
+        the start heading)."""
+        hr, vs = poses.h, poses.vs
         moving = (np.abs(vs) > 1e-3) | (np.abs(dd) > 1e-3)
         h_rel0 = (h0 - float(hr[0]) + math.pi) % (2 * math.pi) - math.pi
-        phi = np.where(moving, np.arctan2(dd, np.maximum(vs, 1e-3)), h_rel0)
-        return {"t": t0 + self.tk, "x": xr - d * sh, "y": yr + d * ch, "v": np.hypot(vs, dd),
+        phi = np.where(moving, poses.rel, h_rel0)
+        return {"t": t0 + self.tk, "x": poses.xy[0], "y": poses.xy[1], "v": np.hypot(vs, dd),
                 "hu": hr + phi, "a": np.asarray(a, dtype=float)}
 
     def _straight_stop(self, t0: float, x0: float, y0: float, h0: float, v0: float) -> dict[str, np.ndarray]:
@@ -729,26 +870,46 @@ class LatticePlanner(Planner):
         return {"trajectory": traj, "decision": decision}
 
 
-def _box_separation(dx: np.ndarray, dy: np.ndarray, ec: np.ndarray | float, es: np.ndarray | float,
-                    oc: np.ndarray, os_: np.ndarray, lb: np.ndarray, wb: np.ndarray, la: float, wa: float,
-                    lh: float, wh: float) -> tuple[np.ndarray, np.ndarray]:
+def _perp(u: np.ndarray) -> np.ndarray:
+    """``(u, v) -> (v, -u)`` along the leading axis of 2 (exact: a swap and sign flips)."""
+    return u[::-1] * _FLIP
+
+
+def _grid_index(x: float, last: int) -> int:
+    """``np.clip(np.rint(x).astype(np.int64), 0, last)`` for one value: round half to even;
+    NaN, infinities and values beyond int64 give 0, as numpy's cast does on x86 (INT64_MIN)."""
+    if not math.isfinite(x):
+        return 0
+    r = round(x)
+    if not -(2**63) <= r < 2**63:
+        return 0
+    return min(max(r, 0), last)
+
+
+def _box_separation(dxy: np.ndarray, ecs: np.ndarray, ocs: np.ndarray, lw: np.ndarray,
+                    ego: np.ndarray, grow: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Separating-axis test of two oriented boxes, element-wise.
 
-    The ego box (half length ``la``, half width ``wa``, heading cos/sin ``ec, es``) and an
-    obstacle box (``lb, wb``, heading ``oc, os_``) whose centre is ``(dx, dy)`` from the ego's.
+    Every argument stacks an x/y-like pair on a leading axis of 2: the obstacle box centre
+    relative to the ego's ``dxy = (dx, dy)``, the ego heading ``ecs = (cos, sin)``, the obstacle
+    heading ``ocs`` and half size ``lw = (half length, half width)``; the ego's half size ``ego``
+    and its growth ``grow`` (longitudinal, lateral) have shape ``(2, 1)``.
     Returns the separation [m] (the largest gap along the four box axes; negative = overlap)
-    and the same for the ego box grown by ``lh`` (longitudinally) and ``wh`` (laterally)."""
-    crel = np.abs(oc * ec + os_ * es)
-    srel = np.abs(os_ * ec - oc * es)
-    p1 = np.abs(dx * ec + dy * es) - (lb * crel + wb * srel)  # along the ego's axes
-    p2 = np.abs(dy * ec - dx * es) - (lb * srel + wb * crel)
-    p3 = np.abs(dx * oc + dy * os_) - lb  # along the obstacle's axes
-    p4 = np.abs(dy * oc - dx * os_) - wb
-    r_a_u = la * crel + wa * srel
-    r_a_v = la * srel + wa * crel
-    sep = np.maximum(np.maximum(p1 - la, p2 - wa), np.maximum(p3 - r_a_u, p4 - r_a_v))
-    sep_h = np.maximum(np.maximum(p1 - la - lh, p2 - wa - wh),
-                       np.maximum(p3 - r_a_u - (lh * crel + wh * srel), p4 - r_a_v - (lh * srel + wh * crel)))
+    and the same for the ego box grown by ``grow``."""
+    ec, es = ecs[0], ecs[1]
+    rel = np.abs(ocs * ec + _perp(ocs) * es)  # |cos|, |sin| of the relative heading
+    rel_t = rel[::-1]
+    dxy_t = _perp(dxy)
+    lb, wb = lw[0], lw[1]
+    la, wa = ego[0, 0], ego[1, 0]
+    lh, wh = grow[0, 0], grow[1, 0]
+    # along the ego's axes, then along the obstacle's
+    q12 = np.abs(dxy * ec + dxy_t * es) - (lb * rel + wb * rel_t) - ego
+    q34 = np.abs(dxy * ocs[0] + dxy_t * ocs[1]) - lw - (la * rel + wa * rel_t)
+    sep = np.maximum(np.maximum(q12[0], q12[1]), np.maximum(q34[0], q34[1]))
+    h12 = q12 - grow
+    h34 = q34 - (lh * rel + wh * rel_t)
+    sep_h = np.maximum(np.maximum(h12[0], h12[1]), np.maximum(h34[0], h34[1]))
     return sep, sep_h
 
 
