@@ -46,3 +46,29 @@ def test_nearest_matches_np_argmin() -> None:
         x, y = float(rng.normal()), float(rng.normal())
         want = int(np.argmin((xs - x) ** 2 + (ys - y) ** 2))
         assert _nearest(xs.tolist(), ys.tolist(), x, y) == want
+
+
+def test_box_gap_is_a_lower_bound_of_the_polygon_distance() -> None:
+    """The collision check skips the exact polygon distance when this bound already exceeds
+    the minimum; it must never exceed the exact distance, and must be positive when apart."""
+    from types import SimpleNamespace
+
+    import shapely
+
+    from deft_gym.world import box_gap
+
+    rng = np.random.default_rng(3)
+    for _ in range(3000):
+        boxes = []
+        for _ in range(2):
+            length, width = [(4.8, 2.0), (0.6, 0.6), (8.0, 2.5)][int(rng.integers(3))]
+            o = SimpleNamespace(position=rng.normal(size=2) * 6, heading=float(rng.uniform(-4, 4)),
+                                LENGTH=length, WIDTH=width)
+            c, s = math.cos(o.heading), math.sin(o.heading)
+            corners = np.array([[-1, -1], [-1, 1], [1, 1], [1, -1]]) * [length / 2, width / 2]
+            boxes.append((o, shapely.Polygon(corners @ np.array([[c, s], [-s, c]]) + o.position)))
+        (a, pa), (b, pb) = boxes
+        exact = pa.distance(pb)
+        gap = box_gap(a, b)
+        assert gap <= exact + 1e-9
+        assert (gap > 0) == (exact > 0)
