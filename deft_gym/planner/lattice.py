@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from itertools import chain
 from typing import Any
 
 import numpy as np
@@ -472,7 +471,7 @@ class LatticePlanner(Planner):
         dims = np.empty((n, 3))  # half length, half width, speed
         j = len(statics)
         if statics:
-            st = np.array(statics)
+            st = _numbers(statics, "x/y/heading/length/width")
             oxy[:, :j] = st[:, :2].T[:, :, None]
             oh[:j] = st[:, 2:3]
             dims[:j] = st[:, 3:]
@@ -483,16 +482,14 @@ class LatticePlanner(Planner):
             i = np.minimum(f.astype(np.int64), m - 2)
             w = f - i
             j1 = j + len(obs_g)
-            # x, y and heading of the group's predictions: (3, obstacle, point)
-            xyh = np.fromiter(chain.from_iterable(ob[key] for key in ("x", "y", "heading") for ob in obs_g),
-                              float).reshape(3, len(obs_g), m)
-            xy0 = xyh[:2].take(i, axis=2)
-            np.add(xy0, (xyh[:2].take(i + 1, axis=2) - xy0) * w, out=oxy[:, j:j1])
-            oh[j:j1] = xyh[2].take(np.rint(f).astype(np.int64), axis=1)
-            dims_g = np.array([(0.5 * ob["length"], 0.5 * ob["width"], ob.get("v", 0.0)) for ob in obs_g])
-            if dims_g.dtype.kind not in "biuf":  # a null or a string is an error, never a NaN
-                raise TypeError(f"prediction obstacle length/width/v must be numbers (got {dims_g.dtype})")
-            dims[j:j1] = dims_g
+            # x, y and heading of the group's predictions (obstacle, point), each must be numbers
+            X, Y, H = (_numbers([ob[key] for ob in obs_g], key) for key in ("x", "y", "heading"))
+            x0, y0 = X[:, i], Y[:, i]
+            oxy[0, j:j1] = x0 + (X[:, i + 1] - x0) * w
+            oxy[1, j:j1] = y0 + (Y[:, i + 1] - y0) * w
+            oh[j:j1] = H[:, np.rint(f).astype(np.int64)]
+            dims[j:j1] = _numbers([(0.5 * ob["length"], 0.5 * ob["width"], ob.get("v", 0.0)) for ob in obs_g],
+                                  "length/width/v")
             j = j1
         # relevance: within reach of the ego over the horizon
         ex, ey = float(_interp(s0, ref.s, ref.x)), float(_interp(s0, ref.s, ref.y))
@@ -873,6 +870,15 @@ class LatticePlanner(Planner):
 def _perp(u: np.ndarray) -> np.ndarray:
     """``(u, v) -> (v, -u)`` along the leading axis of 2 (exact: a swap and sign flips)."""
     return u[::-1] * _FLIP
+
+
+def _numbers(values: Any, what: str) -> np.ndarray:
+    """``np.array(values)``, which must hold numbers: a null or a string (even one that reads as
+    a number) in a prediction is an error here, never a NaN or a silently parsed value."""
+    a = np.array(values)
+    if a.dtype.kind not in "biuf":
+        raise TypeError(f"prediction obstacle {what} must be numbers (got {a.dtype})")
+    return a
 
 
 def _grid_index(x: float, last: int) -> int:
