@@ -32,7 +32,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from deft_gym.config import load_ads_config
-from deft_gym.recorder import write_atomic
+from deft_gym.recorder import read_jsonl, write_atomic
 from deft_gym.scenario import list_scenarios, load_scenario, scenario_from_dict, scenario_to_dict
 from deft_gym.simulation import run_episode
 from deft_gym.variants import inject_cut_in, inject_hard_brake, perturb, reference_path
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / "runs.jsonl"
     ads_name = args.ads_config or "configs/ads/default.yaml"
-    results = read_runs(log_path)  # the same scenario data and ADS config -> the same key
+    results = read_jsonl(log_path)  # the same scenario data and ADS config -> the same key
     done = {(r.get("key"), r["seed"]) for r in results}
     todo = [j for j in jobs if (j[3], j[1]) not in done]
     if done:
@@ -117,19 +117,6 @@ def main(argv: list[str] | None = None) -> int:
     console.print(f"{doc['total_scenarios']} scenarios; outcome differs across reruns in "
                   f"{doc['outcome_flaky_scenarios']}; wrote {out / 'calibration.json'}")
     return 0
-
-
-def read_runs(path: Path) -> list[dict[str, Any]]:
-    """The runs already appended to ``path`` (a torn last line from an interruption is skipped)."""
-    if not path.exists():
-        return []
-    runs = []
-    for line in path.read_text().splitlines():
-        try:
-            runs.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    return runs
 
 
 def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:

@@ -99,6 +99,21 @@ def write_atomic(path: Path | str, data: str | bytes) -> Path:
     return path
 
 
+def read_jsonl(path: Path | str) -> list[Any]:
+    """The records of an append-only JSON-lines file (none if it does not exist); a line cut
+    by an interruption is skipped."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return out
+
+
 def write_truth(path: Path | str, records: list[dict[str, Any]], topics: dict[str, str]) -> Path:
     """``truth.jsonl``: one JSON object per planning output (inputs keyed by topic name)."""
     lines = []

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from deft_gym.calibrate import read_runs, summarise
+from deft_gym.calibrate import summarise
+from deft_gym.recorder import read_jsonl
 
 
 def _runs(name: str, flags: str) -> list[dict]:
@@ -26,5 +27,5 @@ def test_paper_and_any_rerun_definitions() -> None:
 def test_run_log_skips_a_torn_last_line(tmp_path: Path) -> None:
     log = tmp_path / "runs.jsonl"
     log.write_text('{"name": "a", "seed": 1}\n{"name": "b", "se')
-    assert read_runs(log) == [{"name": "a", "seed": 1}]
-    assert read_runs(tmp_path / "missing.jsonl") == []
+    assert read_jsonl(log) == [{"name": "a", "seed": 1}]
+    assert read_jsonl(tmp_path / "missing.jsonl") == []

@@ -30,7 +30,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, format_validation_error, load_yaml
-from deft_gym.recorder import write_atomic
+from deft_gym.recorder import read_jsonl, write_atomic
 from deft_gym.robustness.faults import PLANTED_FAULTS, SIGNATURES
 from deft_gym.robustness.generate import GenerationConfig, case_rng, describe, generate_policies
 from deft_gym.robustness.minimise import Minimised, minimise
@@ -161,18 +161,6 @@ def _run_baseline(job: tuple[Campaign, str, int]) -> dict[str, Any]:
     return {"scenario": scenario, "jitter_seed": seed, "result": result.as_dict()}
 
 
-def _read_jsonl(path: Path) -> list[dict[str, Any]]:
-    if not path.exists():
-        return []
-    out = []
-    for line in path.read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue  # a line cut by an interruption
-    return out
-
-
 class _Appender:
     """Append-only JSON-lines file, flushed per line."""
 
@@ -227,7 +215,7 @@ def run_campaign(campaign: Campaign, out: Path, budget: int, workers: int = 1, m
 
     # 1. baseline: one unmodified run per scenario and jitter seed
     base_path = out / "baseline.jsonl"
-    baseline = {(r["scenario"], r["jitter_seed"]): r for r in _read_jsonl(base_path)}
+    baseline = {(r["scenario"], r["jitter_seed"]): r for r in read_jsonl(base_path)}
     jobs = [(campaign, s, j) for s in campaign.config.scenarios for j in campaign.jitter_seeds()
             if (s, j) not in baseline]
     app = _Appender(base_path)
@@ -242,7 +230,7 @@ def run_campaign(campaign: Campaign, out: Path, budget: int, workers: int = 1, m
 
     # 2. tests
     runs_path = out / "runs.jsonl"
-    rows = {r["index"]: r for r in _read_jsonl(runs_path) if r.get("index", budget) < budget}
+    rows = {r["index"]: r for r in read_jsonl(runs_path) if r.get("index", budget) < budget}
     todo = [i for i in range(budget) if i not in rows]
     # 3. planted faults (inline, in test order): which finding disappears without the fault
     attribution = _Attribution(campaign, out / "attribution.jsonl")
@@ -322,7 +310,7 @@ class _Attribution:
         self.faults = campaign.planted()
         self.found: dict[str, dict[str, Any]] = {f: {"found": False, "module": m} for f, m in self.faults.items()}
         self.replays = 0
-        self._memo = {(r["index"], r["fault"]): r for r in _read_jsonl(path)}
+        self._memo = {(r["index"], r["fault"]): r for r in read_jsonl(path)}
         self._app = _Appender(path) if self.faults else None
 
     @property
