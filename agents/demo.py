@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -52,6 +53,9 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     cfg = train.load_train_config(args.config)
     scenario = args.scenario or cfg.env.scenarios[0]
+    for part in ("train", "eval"):  # the demo's own outputs: a new demo replaces the last one
+        if (out / part).exists():
+            shutil.rmtree(out / part)
     print(f"[1/4] training the adversary on {scenario} ...", flush=True)
     targs = ["--config", str(args.config), "--out", str(out / "train")]
     if args.timesteps:

@@ -158,6 +158,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     out = args.out or Path("runs/adversary") / cfg.name
+    if args.resume is None and any(out.glob("episodes-*.jsonl")):
+        print(f"error: {out} already holds a training run (episodes-*.jsonl); continue it with --resume "
+              f"{out}/checkpoints/<checkpoint>.zip or train into another --out", file=sys.stderr)
+        return 2
     out.mkdir(parents=True, exist_ok=True)
     write_atomic(out / "config.yaml", yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
 

@@ -100,3 +100,14 @@ def test_tiny_ppo_learns_without_error(tmp_path):
     journal = list(tmp_path.glob("episodes-*.jsonl"))
     assert journal and journal[0].read_text().count("\n") >= 1
     venv.close()
+
+
+def test_training_refuses_to_mix_a_new_run_into_an_old_one(tmp_path, capsys):
+    """A fresh training run into a folder with another run's episode journals would mix their
+    statistics: it is refused (continue with --resume, or use another folder)."""
+    from agents import train
+
+    (tmp_path / "episodes-0.jsonl").write_text('{"scenario": "take_exit", "valid": true}\n')
+    assert train.main(["--config", "configs/train/demo.yaml", "--out", str(tmp_path), "--timesteps", "8"]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert (tmp_path / "episodes-0.jsonl").read_text().count("\n") == 1  # untouched
