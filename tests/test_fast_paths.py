@@ -72,3 +72,18 @@ def test_box_gap_is_a_lower_bound_of_the_polygon_distance() -> None:
         gap = box_gap(a, b)
         assert gap <= exact + 1e-9
         assert (gap > 0) == (exact > 0)
+
+
+def test_unwrap_shortcut_matches_np_unwrap_bitwise() -> None:
+    from deft_gym.modules.control import _unwrap
+
+    rng = np.random.default_rng(9)
+    for _ in range(3000):
+        h = np.cumsum(rng.normal(size=int(rng.integers(1, 32))) * rng.choice([0.05, 1.0, 4.0]))
+        h = (h + np.pi) % (2 * np.pi) - np.pi
+        if rng.random() < 0.2:
+            h[0] = -0.0
+        if rng.random() < 0.05:
+            h[int(rng.integers(len(h)))] = np.nan
+        want, got = np.unwrap(h), _unwrap(h)
+        assert np.array_equal(want.view(np.int64), got.view(np.int64))  # identical bits, signed zeros too

@@ -49,7 +49,7 @@ class ControlNode(Node):
         if msg.seq != self._cache_seq:
             tr = msg.payload["trajectory"]
             arr = {k: np.asarray(tr[k], dtype=float) for k in ("t", "x", "y", "v", "a")}
-            arr["heading"] = np.unwrap(np.asarray(tr["heading"], dtype=float))
+            arr["heading"] = _unwrap(np.asarray(tr["heading"], dtype=float))
             seg = np.hypot(np.diff(arr["x"]), np.diff(arr["y"]))
             arr["s"] = np.concatenate([[0.0], np.cumsum(seg)])
             n = arr["t"].shape
@@ -104,6 +104,16 @@ class ControlNode(Node):
         payload = {"header": header(t, self.name), "steering": steer, "acceleration": acc,
                    "trajectory_seq": seq}
         return [(self.out_topic, payload)]
+
+
+def _unwrap(h: np.ndarray) -> np.ndarray:
+    """``np.unwrap(h)`` (period 2 pi), without its work when no step reaches pi (then its
+    result is ``h`` with ``+ 0.0`` added after the first element)."""
+    if h.ndim == 1 and (np.abs(np.diff(h)) < math.pi).all():
+        up = h.copy()
+        up[1:] += 0.0
+        return up
+    return np.unwrap(h)
 
 
 def _np_interp(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
