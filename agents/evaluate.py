@@ -40,8 +40,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from deft_gym.config import ConfigError, format_validation_error, load_yaml
 from deft_gym.envs.context import SEED_SCENARIOS
-from deft_gym.envs.sink import append_jsonl, write_json_atomic
-from deft_gym.recorder import write_atomic
+from deft_gym.envs.sink import write_json_atomic
+from deft_gym.recorder import append_jsonl, write_atomic
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
 DEFAULT_METHODS = ("rl", "decictor", "random_delta", "random")
@@ -397,9 +397,7 @@ def main(argv: list[str] | None = None) -> int:
                              "max_added": cfg.max_added})
     write_json_atomic(out / "eval_config.json", {**cfg.model_dump(), "held_out": held_out})
     # rewrite the journal without partial jobs, then append as jobs finish
-    tmp = rec_path.with_suffix(".tmp")
-    tmp.write_text("".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
-    tmp.replace(rec_path)
+    write_atomic(rec_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
     total = sum(j["budget"] for j in jobs)
     print(f"{len(jobs)} jobs, {total} simulated scenarios, {cfg.workers} workers -> {out}")
     t0 = time.time()

@@ -27,8 +27,8 @@ import yaml
 
 from agents.config import TrainConfig, load_train_config
 from deft_gym.config import ConfigError
-from deft_gym.envs.sink import append_jsonl, write_json_atomic
-from deft_gym.recorder import write_atomic
+from deft_gym.envs.sink import write_json_atomic
+from deft_gym.recorder import append_jsonl, write_atomic
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -32,7 +32,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from deft_gym.config import load_ads_config
-from deft_gym.recorder import read_jsonl, write_atomic
+from deft_gym.recorder import append_jsonl, read_jsonl, write_atomic
 from deft_gym.scenario import list_scenarios, load_scenario, scenario_from_dict, scenario_to_dict
 from deft_gym.simulation import run_episode
 from deft_gym.variants import inject_cut_in, inject_hard_brake, perturb, reference_path
@@ -87,11 +87,10 @@ def main(argv: list[str] | None = None) -> int:
         console.print(f"resuming: {len(jobs) - len(todo)} of {len(jobs)} runs already in {log_path}")
     cols = [TextColumn("[bold]calibration"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
     with Progress(*cols, console=console, transient=True) as progress, \
-            get_context("spawn").Pool(args.workers) as pool, log_path.open("a") as log:
+            get_context("spawn").Pool(args.workers) as pool:
         task = progress.add_task("runs", total=len(todo))
         for res in pool.imap_unordered(_job, todo, chunksize=2):
-            log.write(json.dumps(res) + "\n")
-            log.flush()
+            append_jsonl(log_path, res)
             results.append(res)
             progress.advance(task)
     wanted = {(j[3], j[1]) for j in jobs}

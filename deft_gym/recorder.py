@@ -99,6 +99,21 @@ def write_atomic(path: Path | str, data: str | bytes) -> Path:
     return path
 
 
+def append_jsonl(path: Path | str, record: Any, fsync: bool = False) -> None:
+    """Append one JSON line to ``path`` in a single write of the whole line (no torn lines on
+    a crash); ``fsync`` also forces it to disk."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    line = json.dumps(record, sort_keys=True) + "\n"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    try:
+        os.write(fd, line.encode())
+        if fsync:
+            os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def read_jsonl(path: Path | str) -> list[Any]:
     """The records of an append-only JSON-lines file (none if it does not exist); a line cut
     by an interruption is skipped."""

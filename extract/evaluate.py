@@ -47,7 +47,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from deft_gym.config import load_ads_config
-from deft_gym.recorder import write_atomic
+from deft_gym.recorder import append_jsonl, read_jsonl, write_atomic
 from deft_gym.scenario import list_scenarios, load_scenario, scenario_from_dict, scenario_to_dict
 from deft_gym.simulation import Simulation
 from deft_gym.trajectory import lsed
@@ -70,18 +70,11 @@ class Records:
     def __init__(self, root: Path, name: str) -> None:
         self.path = root / "records" / f"{name}.jsonl"
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.rows: list[dict[str, Any]] = []
-        if self.path.exists():
-            for line in self.path.read_text().splitlines():
-                try:
-                    self.rows.append(json.loads(line))
-                except ValueError:
-                    continue  # a line cut by an interruption
+        self.rows: list[dict[str, Any]] = read_jsonl(self.path)  # a line cut by an interruption is skipped
 
     def add(self, row: dict[str, Any]) -> None:
         self.rows.append(row)
-        with open(self.path, "a") as fh:
-            fh.write(json.dumps(row) + "\n")
+        append_jsonl(self.path, row)
 
     def keys(self, *fields: str) -> set[tuple[Any, ...]]:
         return {tuple(r.get(f) for f in fields) for r in self.rows}

@@ -15,14 +15,13 @@ one file per worker process, so parallel workers never interleave) and then:
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from deft_gym.recorder import write_atomic
+from deft_gym.recorder import append_jsonl, write_atomic
 
 
 def extractor() -> Any | None:
@@ -32,17 +31,6 @@ def extractor() -> Any | None:
     except ImportError:
         return None
     return extract_episode
-
-
-def append_jsonl(path: Path, record: dict[str, Any]) -> None:
-    """Append one JSON line (a single write of a whole line: no torn lines on crash)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    line = json.dumps(record, sort_keys=True) + "\n"
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-    try:
-        os.write(fd, line.encode())
-    finally:
-        os.close(fd)
 
 
 def write_json_atomic(path: Path, data: Any) -> Path:

@@ -16,7 +16,6 @@ Layout of a campaign folder ``OUT``:
 from __future__ import annotations
 
 import json
-import os
 import re
 import time
 import traceback
@@ -30,7 +29,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, format_validation_error, load_yaml
-from deft_gym.recorder import read_jsonl, write_atomic
+from deft_gym.recorder import append_jsonl, read_jsonl, write_atomic
 from deft_gym.robustness.faults import PLANTED_FAULTS, SIGNATURES
 from deft_gym.robustness.generate import GenerationConfig, case_rng, describe, generate_policies
 from deft_gym.robustness.minimise import Minimised, minimise
@@ -161,21 +160,6 @@ def _run_baseline(job: tuple[Campaign, str, int]) -> dict[str, Any]:
     return {"scenario": scenario, "jitter_seed": seed, "result": result.as_dict()}
 
 
-class _Appender:
-    """Append-only JSON-lines file, flushed per line."""
-
-    def __init__(self, path: Path) -> None:
-        self._f = open(path, "a")  # noqa: SIM115 - closed in close()
-
-    def write(self, row: dict[str, Any]) -> None:
-        self._f.write(json.dumps(row, sort_keys=True, allow_nan=True) + "\n")
-        self._f.flush()
-        os.fsync(self._f.fileno())
-
-    def close(self) -> None:
-        self._f.close()
-
-
 def _map(fn: Callable[[Any], dict[str, Any]], jobs: list[Any], workers: int) -> Any:
     if workers <= 1 or len(jobs) <= 1:
         for j in jobs:
@@ -218,14 +202,10 @@ def run_campaign(campaign: Campaign, out: Path, budget: int, workers: int = 1, m
     baseline = {(r["scenario"], r["jitter_seed"]): r for r in read_jsonl(base_path)}
     jobs = [(campaign, s, j) for s in campaign.config.scenarios for j in campaign.jitter_seeds()
             if (s, j) not in baseline]
-    app = _Appender(base_path)
-    try:
-        for row in _map(_run_baseline, jobs, workers):
-            app.write(row)
-            baseline[(row["scenario"], row["jitter_seed"])] = row
-            report("baseline", len(baseline), len(campaign.config.scenarios) * len(campaign.jitter_seeds()), {})
-    finally:
-        app.close()
+    for row in _map(_run_baseline, jobs, workers):
+        append_jsonl(base_path, row, fsync=True)
+        baseline[(row["scenario"], row["jitter_seed"])] = row
+        report("baseline", len(baseline), len(campaign.config.scenarios) * len(campaign.jitter_seeds()), {})
     nominal = {k: set(v["result"]["signatures"]) for k, v in baseline.items()}
 
     # 2. tests
@@ -236,26 +216,21 @@ def run_campaign(campaign: Campaign, out: Path, budget: int, workers: int = 1, m
     attribution = _Attribution(campaign, out / "attribution.jsonl")
     for i in sorted(rows):
         attribution.check(rows[i])
-    app = _Appender(runs_path)
-    try:
-        if not (until_found and attribution.done):
-            for res in _map(_run_one, [(campaign, i) for i in todo], workers):
-                row = _row(res, nominal)
-                app.write(row)
-                rows[row["index"]] = row
-                if row["findings"]:
-                    case = TestCase.model_validate(res["case"])
-                    r = res["result"]
-                    save_case(case.model_copy(update={"expect": Expect(
-                        signature=row["findings"][0], fingerprint=r["fingerprint"], foundation=foundation)}),
-                              out / "cases" / f"{case.id}.json")
-                attribution.check(row)
-                report("tests", len(rows), budget, _counts(rows.values()))
-                if until_found and attribution.done:
-                    break
-    finally:
-        app.close()
-        attribution.close()
+    if not (until_found and attribution.done):
+        for res in _map(_run_one, [(campaign, i) for i in todo], workers):
+            row = _row(res, nominal)
+            append_jsonl(runs_path, row, fsync=True)
+            rows[row["index"]] = row
+            if row["findings"]:
+                case = TestCase.model_validate(res["case"])
+                r = res["result"]
+                save_case(case.model_copy(update={"expect": Expect(
+                    signature=row["findings"][0], fingerprint=r["fingerprint"], foundation=foundation)}),
+                          out / "cases" / f"{case.id}.json")
+            attribution.check(row)
+            report("tests", len(rows), budget, _counts(rows.values()))
+            if until_found and attribution.done:
+                break
 
     ordered = [rows[i] for i in sorted(rows)]
     planted = attribution.result()
@@ -311,7 +286,7 @@ class _Attribution:
         self.found: dict[str, dict[str, Any]] = {f: {"found": False, "module": m} for f, m in self.faults.items()}
         self.replays = 0
         self._memo = {(r["index"], r["fault"]): r for r in read_jsonl(path)}
-        self._app = _Appender(path) if self.faults else None
+        self._path = path
 
     @property
     def done(self) -> bool:
@@ -332,8 +307,7 @@ class _Attribution:
                     continue
                 memo = {"index": row["index"], "fault": fault, "gone": [s for s in row["findings"]
                                                                          if s not in r.signatures]}
-                if self._app is not None:
-                    self._app.write(memo)
+                append_jsonl(self._path, memo, fsync=True)
                 self.replays += 1
             own = SIGNATURES[fault]
             if own in memo["gone"]:
@@ -343,10 +317,6 @@ class _Attribution:
                                      "masked_before": info.get("masked_before", 0)}
             else:  # the built-in modules show the same finding: not evidence of the fault
                 info["masked_before"] = info.get("masked_before", 0) + 1
-
-    def close(self) -> None:
-        if self._app is not None:
-            self._app.close()
 
     def result(self) -> dict[str, dict[str, Any]]:
         for info in self.found.values():
