@@ -27,7 +27,7 @@ import shapely
 from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.envs.trace import Trace
-from deft_gym.nods import EGO_LENGTH, EGO_WIDTH, box_corners
+from deft_gym.nods import EGO_LENGTH, EGO_WIDTH, box_corners, box_polygon
 from deft_gym.roadmap import RoadMap
 
 
@@ -311,8 +311,7 @@ class Layout:
 
     def static_footprint(self, x: float, y: float, h: float, length: float, width: float) -> shapely.Geometry:
         pm = self.cfg.participant_margin
-        g = shapely.Polygon(box_corners(np.array([x]), np.array([y]), np.array([h]), length + 2 * pm,
-                                        width + 2 * pm)[0])
+        g = box_polygon(x, y, h, length + 2 * pm, width + 2 * pm)
         shapely.prepare(g)
         return g
 

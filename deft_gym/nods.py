@@ -29,7 +29,9 @@ import numpy as np
 import shapely
 
 from deft_gym.envs.trace import Trace
+from deft_gym.geometry import box_corners, box_gap
 from deft_gym.roadmap import RoadMap
+from deft_gym.world import EgoVehicle
 
 GRID = 2.0  # [m] cell size
 THRESHOLD = 0.6  # IoU <= threshold: non-optimal
@@ -126,23 +128,7 @@ def mmd_linear(x: np.ndarray, y: np.ndarray) -> float:
 
 
 # -- validity -----------------------------------------------------------------------------------
-def box_gap(ax: np.ndarray, ay: np.ndarray, ah: np.ndarray, al: float | np.ndarray, aw: float | np.ndarray,
-            bx: np.ndarray, by: np.ndarray, bh: np.ndarray, bl: np.ndarray, bw: np.ndarray) -> np.ndarray:
-    """Separating-axis gap [m] between oriented boxes (centre, heading, length, width),
-    vectorised: > 0 apart, <= 0 overlapping. A lower bound of the true distance."""
-    dx, dy = bx - ax, by - ay
-    ca, sa, cb, sb = np.cos(ah), np.sin(ah), np.cos(bh), np.sin(bh)
-    crel = np.abs(ca * cb + sa * sb)
-    srel = np.abs(sa * cb - ca * sb)
-    hal, haw, hbl, hbw = np.asarray(al) / 2, np.asarray(aw) / 2, np.asarray(bl) / 2, np.asarray(bw) / 2
-    g1 = np.abs(dx * ca + dy * sa) - hal - (hbl * crel + hbw * srel)
-    g2 = np.abs(-dx * sa + dy * ca) - haw - (hbl * srel + hbw * crel)
-    g3 = np.abs(dx * cb + dy * sb) - hbl - (hal * crel + haw * srel)
-    g4 = np.abs(-dx * sb + dy * cb) - hbw - (hal * srel + haw * crel)
-    return np.maximum(np.maximum(g1, g2), np.maximum(g3, g4))
-
-
-EGO_LENGTH, EGO_WIDTH = 4.8, 2.0
+EGO_LENGTH, EGO_WIDTH = EgoVehicle.LENGTH, EgoVehicle.WIDTH
 
 
 def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None) -> list[str]:
@@ -185,27 +171,16 @@ def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None) -> 
         aid = trace.actors[i].id
         if aid in bad:
             continue
-        pa = _box_polygon(e[k, 0], e[k, 1], e[k, 2], EGO_LENGTH, EGO_WIDTH)
-        pb = _box_polygon(rows[k, 2], rows[k, 3], rows[k, 4], dims[i, 0], dims[i, 1])
+        pa = box_polygon(e[k, 0], e[k, 1], e[k, 2], EGO_LENGTH, EGO_WIDTH)
+        pb = box_polygon(rows[k, 2], rows[k, 3], rows[k, 4], dims[i, 0], dims[i, 1])
         if pa.intersects(pb):
             bad.append(aid)
     return bad
 
 
-def _box_polygon(x: float, y: float, h: float, length: float, width: float) -> shapely.Polygon:
+def box_polygon(x: float, y: float, h: float, length: float, width: float) -> shapely.Polygon:
+    """One oriented box as a shapely polygon."""
     return shapely.Polygon(box_corners(np.array([x]), np.array([y]), np.array([h]), length, width)[0])
-
-
-def box_corners(x: np.ndarray, y: np.ndarray, h: np.ndarray, length: float | np.ndarray,
-                width: float | np.ndarray) -> np.ndarray:
-    """Corners (n, 4, 2) of oriented boxes."""
-    c, s = np.cos(h), np.sin(h)
-    hl, hw = np.asarray(length) / 2, np.asarray(width) / 2
-    ux, uy = c * hl, s * hl
-    vx, vy = -s * hw, c * hw
-    xs = np.stack([x + ux + vx, x + ux - vx, x - ux - vx, x - ux + vx], axis=-1)
-    ys = np.stack([y + uy + vy, y + uy - vy, y - uy - vy, y - uy + vy], axis=-1)
-    return np.stack([xs, ys], axis=-1)
 
 
 # -- verdict ------------------------------------------------------------------------------------

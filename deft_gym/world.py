@@ -15,6 +15,7 @@ import numpy as np
 import shapely
 from highway_env.vehicle.kinematics import Vehicle
 
+from deft_gym.geometry import box_gap
 from deft_gym.participants import ReactiveVehicle, ScriptedVehicle, StaticObstacle, bicycle_step
 from deft_gym.road import FastRoad
 from deft_gym.roadmap import RoadMap
@@ -172,7 +173,9 @@ class World:
         for gap, i in gaps:
             if gap >= self.min_distance:
                 break
-            if box_gap(ego, present[i].obj) >= self.min_distance + 1e-9:
+            o = present[i].obj
+            if box_gap(ex, ey, ego.heading, ego.LENGTH, ego.WIDTH, o.position[0], o.position[1], o.heading,
+                       o.LENGTH, o.WIDTH) >= self.min_distance + 1e-9:
                 continue  # a tighter lower bound: the polygons cannot be closer than the minimum
             if ego_poly is None:
                 ego_poly = shapely.Polygon(ego.polygon())
@@ -215,21 +218,6 @@ class World:
             return []
         t = self.clock[0]
         return [{"id": lid, "color": self.lights.color(lid, t)} for lid in self.lights.ids]
-
-
-def box_gap(a: Any, b: Any) -> float:
-    """Largest gap [m] between the oriented boxes (``position``, ``heading``, ``LENGTH``,
-    ``WIDTH``) of ``a`` and ``b`` along their four axes: a lower bound of the distance between
-    the boxes (separating-axis theorem; negative when they overlap)."""
-    ha, hb = a.heading, b.heading
-    ca, sa, cb, sb = math.cos(ha), math.sin(ha), math.cos(hb), math.sin(hb)
-    dx, dy = b.position[0] - a.position[0], b.position[1] - a.position[1]
-    c, s = abs(ca * cb + sa * sb), abs(sa * cb - ca * sb)  # |cos|, |sin| of the relative heading
-    al, aw, bl, bw = a.LENGTH / 2, a.WIDTH / 2, b.LENGTH / 2, b.WIDTH / 2
-    return max(abs(dx * ca + dy * sa) - al - (bl * c + bw * s),
-               abs(dy * ca - dx * sa) - aw - (bl * s + bw * c),
-               abs(dx * cb + dy * sb) - bl - (al * c + aw * s),
-               abs(dy * cb - dx * sb) - bw - (al * s + aw * c))
 
 
 __all__ = ["Collision", "EgoVehicle", "Participant", "ReactiveVehicle", "ScriptedVehicle",

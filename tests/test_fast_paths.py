@@ -55,7 +55,7 @@ def test_box_gap_is_a_lower_bound_of_the_polygon_distance() -> None:
 
     import shapely
 
-    from deft_gym.world import box_gap
+    from deft_gym.geometry import box_gap
 
     rng = np.random.default_rng(3)
     for _ in range(3000):
@@ -69,7 +69,7 @@ def test_box_gap_is_a_lower_bound_of_the_polygon_distance() -> None:
             boxes.append((o, shapely.Polygon(corners @ np.array([[c, s], [-s, c]]) + o.position)))
         (a, pa), (b, pb) = boxes
         exact = pa.distance(pb)
-        gap = box_gap(a, b)
+        gap = float(box_gap(*a.position, a.heading, a.LENGTH, a.WIDTH, *b.position, b.heading, b.LENGTH, b.WIDTH))
         assert gap <= exact + 1e-9
         assert (gap > 0) == (exact > 0)
 
