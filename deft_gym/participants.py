@@ -38,6 +38,21 @@ class StaticObstacle(Obstacle):
         self.check_collisions = False
 
 
+def motion_headings(x: np.ndarray, y: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Heading at each sample as a :class:`ScriptedVehicle` has it: the direction of the segment
+    to the next sample (standing still keeps the previous heading, the first sample's
+    ``fallback``; the last sample keeps the last segment's)."""
+    dx, dy = np.diff(x), np.diff(y)
+    moving = np.hypot(dx, dy) > 1e-6
+    h = np.array(fallback, dtype=float)
+    seg = np.where(moving, np.arctan2(dy, dx), np.nan)
+    for i in range(len(seg)):
+        h[i] = seg[i] if moving[i] else (h[i - 1] if i > 0 else h[i])
+    if len(seg):
+        h[-1] = h[-2]
+    return h
+
+
 class ScriptedVehicle(Vehicle):
     """A vehicle that replays timed waypoints ``(t [s], x [m], y [m])`` exactly.
 
@@ -68,10 +83,7 @@ class ScriptedVehicle(Vehicle):
         seg = np.diff(self.wp_xy, axis=0)
         dt = np.diff(wp[:, 0])
         self.seg_v = (seg / dt[:, None]) if len(wp) > 1 else np.zeros((0, 2))
-        heads = [heading0]
-        for d in seg:
-            heads.append(math.atan2(d[1], d[0]) if np.hypot(*d) > 1e-6 else heads[-1])
-        self.seg_heading = heads[1:]
+        self.seg_heading = motion_headings(wp[:, 1], wp[:, 2], np.full(len(wp), float(heading0)))[:-1].tolist()
 
     def place(self, t: float) -> None:
         """Set the state at time ``t`` [s] (kinematic replay)."""

@@ -24,9 +24,10 @@ from typing import Any
 import numpy as np
 
 from deft_gym.feasible import Layout
+from deft_gym.participants import SIZES, motion_headings
 from deft_gym.roadmap import LaneId, RoadMap
 
-LENGTH, WIDTH = 4.8, 2.0
+LENGTH, WIDTH = SIZES["VEHICLE"]
 
 
 @dataclass(frozen=True)
@@ -92,21 +93,6 @@ class Trajectory:
         wps = [{"t": round(float(a), 6), "x": float(b), "y": float(c)} for a, b, c in zip(t[keep], x[keep], y[keep])]
         wps[0]["heading"] = float(self.h[0])  # the heading while it stands still before moving
         return wps
-
-
-def motion_headings(x: np.ndarray, y: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-    """Heading at each sample as a scripted participant has it: the direction of the segment to
-    the next sample (standing still keeps the previous heading; the last sample keeps the last
-    segment's), so planned footprints are the ones the world replays."""
-    dx, dy = np.diff(x), np.diff(y)
-    moving = np.hypot(dx, dy) > 1e-6
-    h = np.array(fallback, dtype=float)
-    seg = np.where(moving, np.arctan2(dy, dx), np.nan)
-    for i in range(len(seg)):
-        h[i] = seg[i] if moving[i] else (h[i - 1] if i > 0 else h[i])
-    if len(seg):
-        h[-1] = h[-2]
-    return h
 
 
 class LaneDriver:
