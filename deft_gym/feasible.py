@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.envs.trace import Trace
 from deft_gym.nods import EGO_LENGTH, EGO_WIDTH, box_corners, box_polygon
-from deft_gym.roadmap import RoadMap
+from deft_gym.roadmap import RoadMap, lane_surface
 
 
 class FeasibleConfig(BaseModel):
@@ -140,9 +140,7 @@ def _lane_strip(roadmap: RoadMap, lane: tuple[str, str, int], s0: float) -> shap
         geom = roadmap.geom(lane)
         a = min(max(math.floor(s0), 0.0), geom.length)
         ss = np.linspace(a, geom.length, max(2, int((geom.length - a) / 2.0) + 2))
-        half = geom.width / 2 + 1.0
-        left, right = geom.xy(ss, -half), geom.xy(ss, half)
-        g = shapely.Polygon(np.concatenate([left, right[::-1]]))
+        g = lane_surface(geom, ss, geom.width / 2 + 1.0)
         if len(_STRIPS) > 20000:
             _STRIPS.clear()
         _STRIPS[key] = g
@@ -330,6 +328,5 @@ def reachable_area(roadmap: RoadMap, lane: tuple[str, str, int], s: float, v: fl
         ss = np.linspace(max(0.0, min(lo, g.length)), max(0.0, min(hi, g.length)), 8)
         if ss[-1] - ss[0] < 1e-3:
             continue
-        left, right = g.xy(ss, -g.width / 2), g.xy(ss, g.width / 2)
-        polys.append(shapely.Polygon(np.concatenate([left, right[::-1]])))
+        polys.append(lane_surface(g, ss, g.width / 2))
     return shapely.union_all(polys) if polys else shapely.Polygon()

@@ -328,13 +328,14 @@ class RoadMap:
     @cached_property
     def drivable_area(self) -> shapely.Geometry:
         """Union of all lane surfaces (shapely), for feasibility checks and plots."""
-        polys = []
-        for g in self.geoms.values():
-            s = np.linspace(0.0, g.length, max(2, int(g.length / 2.0) + 1))
-            left = g.xy(s, -g.width / 2)
-            right = g.xy(s, g.width / 2)
-            polys.append(shapely.Polygon(np.concatenate([left, right[::-1]])))
-        return shapely.union_all(polys)
+        return shapely.union_all([lane_surface(g, np.linspace(0.0, g.length, max(2, int(g.length / 2.0) + 1)),
+                                               g.width / 2) for g in self.geoms.values()])
+
+
+def lane_surface(g: LaneGeom, s: np.ndarray, half_width: float) -> shapely.Polygon:
+    """The surface of a lane between its edges at ``half_width`` [m] from the centre line,
+    sampled at arc lengths ``s`` [m]."""
+    return shapely.Polygon(np.concatenate([g.xy(s, -half_width), g.xy(s, half_width)[::-1]]))
 
 
 _SHARED: dict[str, RoadMap] = {}
