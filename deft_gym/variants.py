@@ -98,10 +98,7 @@ def inject_cut_in(sc: Scenario, path: np.ndarray, seed: int) -> Scenario:
                                           (t_h, lead, 0.0), (t_h + 4.0, lead + 4.0 * v_npc, 0.0)]):
         px, py = at(ahead, lat)
         wps.append({"t": float(tt + 1e-3 * k), "x": px, "y": py})
-    data = copy.deepcopy(scenario_to_dict(sc))
-    data["name"] = f"{sc.name}~cut{seed}"
-    data.setdefault("participants", []).append({"id": f"cut_in_{seed}", "type": "scripted", "waypoints": wps})
-    return scenario_from_dict(data, source=f"{sc.source or sc.name} (cut-in {seed})")
+    return _with_scripted(sc, f"cut{seed}", f"cut_in_{seed}", wps, f"cut-in {seed}")
 
 
 def inject_hard_brake(sc: Scenario, path: np.ndarray, seed: int) -> Scenario:
@@ -109,12 +106,12 @@ def inject_hard_brake(sc: Scenario, path: np.ndarray, seed: int) -> Scenario:
     at the ego's speed and then brakes hard to a stop. Gap (6-25 m), braking moment and
     deceleration (4-9 m/s^2) are drawn from ``seed``."""
     rng = np.random.default_rng(seed)
-    moving = path[path[:, 4] > 3.0]
+    moving = np.flatnonzero(path[:, 4] > 3.0)
     if len(moving) < 20:
         return sc
     xy = path[:, 1:3]
     arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
-    i = int(np.flatnonzero(path[:, 4] > 3.0)[rng.integers(len(moving) // 5, len(moving) * 3 // 5)])
+    i = int(moving[rng.integers(len(moving) // 5, len(moving) * 3 // 5)])
     t0, v = float(path[i, 0]), float(path[i, 4])
     gap = rng.uniform(6.0, 25.0) + 4.8
     t_brake = t0 + rng.uniform(0.5, 3.0)
@@ -135,7 +132,12 @@ def inject_hard_brake(sc: Scenario, path: np.ndarray, seed: int) -> Scenario:
         wps.append({"t": float(t), "x": float(np.interp(s_v, arc, xy[:, 0])), "y": float(np.interp(s_v, arc, xy[:, 1]))})
     if len(wps) < 3:
         return sc
+    return _with_scripted(sc, f"brake{seed}", f"brake_{seed}", wps, f"hard brake {seed}")
+
+
+def _with_scripted(sc: Scenario, suffix: str, pid: str, waypoints: list[dict[str, float]], what: str) -> Scenario:
+    """``sc`` named ``<name>~<suffix>`` with one more scripted participant ``pid``."""
     data = copy.deepcopy(scenario_to_dict(sc))
-    data["name"] = f"{sc.name}~brake{seed}"
-    data.setdefault("participants", []).append({"id": f"brake_{seed}", "type": "scripted", "waypoints": wps})
-    return scenario_from_dict(data, source=f"{sc.source or sc.name} (hard brake {seed})")
+    data["name"] = f"{sc.name}~{suffix}"
+    data.setdefault("participants", []).append({"id": pid, "type": "scripted", "waypoints": waypoints})
+    return scenario_from_dict(data, source=f"{sc.source or sc.name} ({what})")
