@@ -137,12 +137,12 @@ def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
         return {"collision_scenarios": len(coll), "flaky": flaky,
                 "share": flaky / len(coll) if coll else None}
 
-    s0 = [s["collided"] for s in scenarios if s["collided"][0]]
-    n_reruns = min((len(c) for c in s0), default=0)
+    s0 = [s for s in scenarios if s["collided"][0]]  # the paper's collision scenarios
+    n_reruns = min((len(s["collided"]) for s in s0), default=0)
     return {"scenarios": scenarios,
-            "paper": share([s for s in scenarios if s["collided"][0]]),
+            "paper": share(s0),
             # of the collisions in S0, how many each rerun reproduces (the paper's Figure 7)
-            "reproduced_per_rerun": [sum(c[k] for c in s0) for k in range(1, n_reruns)],
+            "reproduced_per_rerun": [sum(s["collided"][k] for s in s0) for k in range(1, n_reruns)],
             "any_rerun": share([s for s in scenarios if any(s["collided"])]),
             "outcome_flaky_scenarios": sum(len(s["outcomes"]) > 1 for s in scenarios),
             "total_scenarios": len(scenarios),

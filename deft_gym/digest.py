@@ -26,11 +26,11 @@ from rich.progress import track
 
 from deft_gym.config import ConfigError
 from deft_gym.recorder import write_atomic
-from deft_gym.scenario import SCENARIO_DIR, list_scenarios
+from deft_gym.scenario import Scenario, list_scenarios, load_scenario
 from deft_gym.simulation import run_episode
 
 
-def run_digest(scenario: str | Path, jitter_seed: int) -> dict[str, str]:
+def run_digest(scenario: Scenario | str | Path, jitter_seed: int) -> dict[str, str]:
     """Per topic, the digest of one recorded run (plus its outcome and sim time)."""
     with tempfile.TemporaryDirectory() as tmp:
         r = run_episode(scenario, jitter_seed=jitter_seed, out_dir=tmp, keep_planning=False)
@@ -45,11 +45,12 @@ def run_digest(scenario: str | Path, jitter_seed: int) -> dict[str, str]:
     return out
 
 
-def compute(scenarios: list[Path], seeds: list[int], progress: bool = True) -> dict[str, dict[str, str]]:
-    """Digests of every (scenario, seed), keyed ``<scenario>/<seed>``."""
-    jobs = [(p, s) for p in scenarios for s in seeds]
+def compute(scenarios: list[str | Path], seeds: list[int], progress: bool = True) -> dict[str, dict[str, str]]:
+    """Digests of every (scenario, seed), keyed ``<scenario name>/<seed>``; scenarios are names
+    or YAML paths (as :func:`deft_gym.scenario.load_scenario` takes them)."""
+    jobs = [(sc, s) for sc in sorted((load_scenario(p) for p in scenarios), key=lambda sc: sc.name) for s in seeds]
     it = track(jobs, description="digests", transient=True) if progress else jobs
-    return {f"{p.stem}/{s}": run_digest(p, s) for p, s in it}
+    return {f"{sc.name}/{s}": run_digest(sc, s) for sc, s in it}
 
 
 def differences(old: dict[str, dict[str, str]], new: dict[str, dict[str, str]]) -> list[str]:
@@ -76,10 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.check is not None and not args.check.exists():
         console.print(f"error: {args.check}: no such digest file")
         return 2
-    paths = ([Path(s) if Path(s).exists() else SCENARIO_DIR / f"{s}.yaml" for s in args.scenarios]
-             if args.scenarios else list_scenarios())
     try:
-        digests = compute(sorted(paths), args.seeds, progress=sys.stderr.isatty())
+        digests = compute(args.scenarios or list_scenarios(), args.seeds, progress=sys.stderr.isatty())
     except (ConfigError, OSError) as err:
         console.print(f"error: {err}")
         return 2

@@ -31,9 +31,9 @@ class PredictionNode(Node):
         self.dt = float(cfg.params.get("dt", 0.2))
         self.static_speed = float(cfg.params.get("static_speed", 0.3))
         self.t = np.arange(round(self.horizon / self.dt) + 1) * self.dt
-        self._chains: dict[Any, Any] = {}
+        # (lane, length bucket) -> (reference line, its wrapped heading if it is one straight lane)
+        self._chains: dict[Any, tuple[Any, float | None]] = {}
         self._lane_of: dict[int, Any] = {}  # obstacle id -> its lane last cycle (tracking)
-        self._const_heading: dict[int, float] = {}  # id(reference line) -> its wrapped heading
 
     def compute(self, now_ns: int) -> list[tuple[str, dict[str, Any]]]:
         msg = self.latest[self.in_topic]
@@ -60,11 +60,10 @@ class PredictionNode(Node):
             hs = np.full(self.t.shape, h)
         else:
             lane, s, d = loc
-            ref = self._chain(lane, s + dist[-1] + 5.0)
+            ref, const = self._chain(lane, s + dist[-1] + 5.0)
             ss = s + dist
             pts = ref.xy(ss, d)
             xs, ys = pts[:, 0], pts[:, 1]
-            const = self._const_heading.get(id(ref))
             if const is not None:  # one straight lane: the heading is the same everywhere
                 return {**base, "is_static": False, "x": xs.tolist(), "y": ys.tolist(), "heading": [const] * len(ss)}
             hs = ref.heading(ss)
@@ -89,12 +88,15 @@ class PredictionNode(Node):
             self._lane_of[ob["id"]] = loc[0]
         return loc
 
-    def _chain(self, lane: Any, length: float) -> Any:
+    def _chain(self, lane: Any, length: float) -> tuple[Any, float | None]:
+        """The reference line along ``lane`` and its straight successors covering ``length`` [m],
+        with its constant (wrapped) heading when it is a single straight lane."""
         key = (lane, int(length // 25))
-        ref = self._chains.get(key)
-        if ref is None:
+        out = self._chains.get(key)
+        if out is None:
             ref = self.roadmap.reference_line(self.roadmap.default_chain(lane, length))
-            self._chains[key] = ref
-            if len(ref.geoms) == 1 and ref.geoms[0].kind == "straight":
-                self._const_heading[id(ref)] = float(wrap_angle(np.full(1, ref.geoms[0].heading0))[0])
-        return ref
+            g = ref.geoms[0]
+            const = (float(wrap_angle(np.full(1, g.heading0))[0])
+                     if len(ref.geoms) == 1 and g.kind == "straight" else None)
+            out = self._chains[key] = (ref, const)
+        return out
