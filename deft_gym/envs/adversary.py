@@ -59,6 +59,7 @@ from deft_gym.envs.vehicles import (
     lateral_shifts,
     start_state,
     vehicle_spec,
+    window_feasible,
 )
 from deft_gym.feasible import FeasibleConfig, Layout, Placed
 from deft_gym.nods import EGO_LENGTH, EGO_WIDTH, box_gap
@@ -346,12 +347,11 @@ class AdversaryEnv(gym.Env):
             shift = choice[0]
         return self.driver.window(st, t0, Controls(v, shift, 0.0 if shift else st.d, turn))
 
-    def _vehicle_ok(self, first: Trajectory, t0: float, skip: str | None) -> bool:
+    def _vehicle_ok(self, first: Trajectory, skip: str | None) -> bool:
         ex, ey, _, _ = self._ego()
         if math.hypot(first.x[0] - ex, first.y[0] - ey) < self.ctx.feasible.spawn_distance and skip is None:
             return False
-        k = self.layout.areas.window(t0 + 1e-6)
-        return not self.layout.first_conflict(first.t, first.x, first.y, first.h, LENGTH, WIDTH, skip, k, k + 1) >= 0
+        return window_feasible(self.layout, first, skip)
 
     def _plan_ok(self, traj: Trajectory) -> bool:
         if not self.cfg.respect_plan:
@@ -392,7 +392,7 @@ class AdversaryEnv(gym.Env):
                 v = speed * self.driver.v_max(st.lane) / self.driver.v_max_factor
                 st = type(st)(st.lane, st.s, st.d, v)
                 first = self._first_window(st, t0, v, man)
-                if first is None or not self._vehicle_ok(first, t0, None) or not self._plan_ok(first):
+                if first is None or not self._vehicle_ok(first, None) or not self._plan_ok(first):
                     continue
                 tries += 1
                 traj = complete(self.driver, self.layout, first, ctx.scenario.duration, ctx.path.xy)
@@ -423,7 +423,7 @@ class AdversaryEnv(gym.Env):
             return None
         v = speed * self.driver.v_max(st.lane) / self.driver.v_max_factor
         first = self._first_window(st, t0, v, man)
-        if first is None or not self._vehicle_ok(first, t0, p.id) or not self._plan_ok(first):
+        if first is None or not self._vehicle_ok(first, p.id) or not self._plan_ok(first):
             return None
         new = complete(self.driver, self.layout, first, ctx.scenario.duration, ctx.path.xy, skip=p.id)
         if new is None or not self._plan_ok(new):

@@ -251,6 +251,13 @@ def options(driver: LaneDriver, st: VState, turn: str, ref_xy: np.ndarray,
     return opts
 
 
+def window_feasible(layout: Layout, w: Trajectory, skip: str | None = None) -> bool:
+    """One window of motion (starting at ``w.t[0]``) invades no motion area of its time window
+    (``skip``: an added participant to ignore, the one being changed)."""
+    k = layout.areas.window(float(w.t[0]) + 1e-6)
+    return layout.first_conflict(w.t, w.x, w.y, w.h, LENGTH, WIDTH, skip, k, k + 1) < 0
+
+
 def complete(driver: LaneDriver, layout: Layout, traj: Trajectory, horizon: float, ref_xy: np.ndarray,
              skip: str | None = None, rng: np.random.Generator | None = None,
              budget: int = 60) -> Trajectory | None:
@@ -259,7 +266,6 @@ def complete(driver: LaneDriver, layout: Layout, traj: Trajectory, horizon: floa
     search that backtracks when a window has no feasible continuation (at most ``budget``
     window checks). None when there is none. Options are tried in order of preference, or in
     random order with ``rng`` (the search baselines)."""
-    areas = layout.areas
     stack: list[tuple[Trajectory, list[Controls]]] = []
     cur: Trajectory = traj
     checks = 0
@@ -270,13 +276,12 @@ def complete(driver: LaneDriver, layout: Layout, traj: Trajectory, horizon: floa
         while stack and nxt is None:
             base, opts = stack[-1]
             t0 = float(base.t[-1])
-            k = areas.window(t0 + 1e-6)
             while opts:
                 w = driver.window(base.states[-1], t0, opts.pop(0))
                 if w is None:
                     continue
                 checks += 1
-                if layout.first_conflict(w.t, w.x, w.y, w.h, LENGTH, WIDTH, skip, k, k + 1) < 0:
+                if window_feasible(layout, w, skip):
                     nxt = base.extend(w)
                     break
                 if checks >= budget:
@@ -293,11 +298,10 @@ def sample_window(driver: LaneDriver, layout: Layout, st: VState, t0: float, tur
                   skip: str | None, rng: np.random.Generator, tries: int = 12) -> Trajectory | None:
     """A random feasible first window from ``st`` (Algorithm 2, line 9: y_{t+dt} sampled in the
     non-invasive area reachable from y_t), or None after ``tries`` refusals."""
-    k = layout.areas.window(t0 + 1e-6)
     opts = options(driver, st, turn, ref_xy, rng)[:tries]
     for c in opts:
         w = driver.window(st, t0, c)
-        if w is not None and layout.first_conflict(w.t, w.x, w.y, w.h, LENGTH, WIDTH, skip, k, k + 1) < 0:
+        if w is not None and window_feasible(layout, w, skip):
             return w
     return None
 
