@@ -8,9 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
-from deft_gym.config import ConfigError, format_validation_error, load_yaml
+from deft_gym.config import load_mapping, validate
 from deft_gym.envs.adversary import AdversaryConfig
 
 ALGOS = ("ppo", "a2c")  # SB3 algorithms that take MultiDiscrete actions
@@ -37,18 +37,8 @@ class TrainConfig(BaseModel):
 
 def load_train_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None) -> TrainConfig:
     """Load ``path`` (or the defaults) with ``overrides`` on top; errors name file and field."""
-    data: dict[str, Any] = {}
-    name = "<defaults>"
-    if path is not None:
-        name = str(path)
-        raw = load_yaml(path)
-        if raw is not None and not isinstance(raw, dict):
-            raise ConfigError(f"{path}: expected a mapping at the top level")
-        data = dict(raw or {})
+    data = dict(load_mapping(path)) if path is not None else {}
     for key, value in (overrides or {}).items():
         if value is not None:
             data[key] = value
-    try:
-        return TrainConfig.model_validate(data)
-    except ValidationError as err:
-        raise ConfigError(format_validation_error(name, err)) from None
+    return validate(TrainConfig, data, path if path is not None else "<defaults>")

@@ -36,9 +36,9 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
-from deft_gym.config import ConfigError, format_validation_error, load_yaml
+from deft_gym.config import ConfigError, load_yaml, validate
 from deft_gym.envs.context import SEED_SCENARIOS
 from deft_gym.envs.sink import write_json_atomic
 from deft_gym.recorder import append_jsonl, write_atomic
@@ -98,10 +98,7 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
     for key in ("methods", "scenarios"):
         if getattr(args, key) is not None:
             data[key] = [s.strip() for s in getattr(args, key).split(",") if s.strip()]
-    try:
-        cfg = EvalConfig.model_validate(data)
-    except ValidationError as err:
-        raise ConfigError(format_validation_error(name, err)) from None
+    cfg = validate(EvalConfig, data, name)
     bad = [m for m in cfg.methods if m not in METHODS]
     if bad:
         raise ConfigError(f"{name}: methods: unknown {bad}; expected some of {list(METHODS)}")

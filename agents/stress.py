@@ -27,7 +27,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, load_yaml
+from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, load_mapping
 
 SUBCOMMANDS = ("replay", "check", "spec", "compare", "subsystem")
 console = Console(stderr=True, width=None if sys.stderr.isatty() else 160)
@@ -93,10 +93,7 @@ def run_campaign_cli(argv: list[str]) -> int:
     cfg = load_campaign_config(args.config, overrides)
     ads_overrides: dict[str, Any] = {}
     for path in args.ads_overlay:
-        data = load_yaml(path) or {}
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: expected a mapping at the top level")
-        ads_overrides = deep_merge(ads_overrides, data)
+        ads_overrides = deep_merge(ads_overrides, load_mapping(path))
     campaign = Campaign(cfg, args.seed, args.ads_config, ads_overrides, args.hardening == "on")
     # validate the ADS configuration once, up front (a bad file is one clear line, not N failed runs)
     from deft_gym.robustness.runner import build_ads

@@ -8,7 +8,7 @@ not code.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -141,18 +141,35 @@ def load_yaml(path: Path | str) -> Any:
         raise ConfigError(f"{path}: invalid YAML{where}: {getattr(exc, 'problem', exc)}") from None
 
 
+def load_mapping(path: Path | str) -> dict[str, Any]:
+    """A YAML file holding a mapping (an empty file is an empty mapping)."""
+    data = load_yaml(path)
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return data
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def validate(model: type[M], data: Any, source: Path | str) -> M:
+    """``model.model_validate(data)``, with a validation error turned into a
+    :class:`ConfigError` of one line per problem naming ``source`` and the field."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(format_validation_error(source, err)) from None
+
+
 def load_ads_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None) -> AdsConfig:
     """Load and validate an ADS config; ``overrides`` is deep-merged on top of the file."""
     path = Path(path) if path else DEFAULT_ADS_CONFIG
-    data = load_yaml(path) or {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level")
+    data = load_mapping(path)
     if overrides:
         data = deep_merge(data, overrides)
-    try:
-        return AdsConfig.model_validate(data)
-    except ValidationError as err:
-        raise ConfigError(format_validation_error(path, err)) from None
+    return validate(AdsConfig, data, path)
 
 
 def deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:

@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
 
-from deft_gym.config import CONFIG_DIR, ConfigError, format_validation_error, load_yaml
+from deft_gym.config import CONFIG_DIR, ConfigError, format_validation_error, load_yaml, validate
 from deft_gym.participants import SIZES, ReactiveVehicle, ScriptedVehicle, StaticObstacle
 from deft_gym.roadmap import MapSpec, RoadMap, shared_roadmap
 from deft_gym.traffic_lights import LightPlan, TrafficLights
@@ -141,10 +141,7 @@ def load_scenario(path: Path | str) -> Scenario:
 
 def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>") -> Scenario:
     """Validate a scenario given as a dict (``source`` names it in errors)."""
-    try:
-        sc = Scenario.model_validate(data)
-    except ValidationError as err:
-        raise ConfigError(format_validation_error(source, err)) from None
+    sc = validate(Scenario, data, source)
     sc.source = source
     errors = check_against_map(sc, shared_roadmap(sc.map))
     if errors:

@@ -43,9 +43,9 @@ import gymnasium as gym
 import numpy as np
 import shapely
 from gymnasium import spaces
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
-from deft_gym.config import ConfigError, format_validation_error, load_yaml
+from deft_gym.config import load_yaml, validate
 from deft_gym.envs.context import SEED_SCENARIOS, SeedContext, robust, seed_context
 from deft_gym.envs.sink import EpisodeSink
 from deft_gym.envs.trace import TraceRecorder
@@ -127,10 +127,7 @@ def load_env_config(source: dict[str, Any] | str | Path | AdversaryConfig | None
     else:
         data = dict(source or {})
     data.update({k: v for k, v in overrides.items() if v is not None})
-    try:
-        return AdversaryConfig.model_validate(data)
-    except ValidationError as err:
-        raise ConfigError(format_validation_error(name, err)) from None
+    return validate(AdversaryConfig, data, name)
 
 
 class AdversaryEnv(gym.Env):

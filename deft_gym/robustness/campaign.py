@@ -26,9 +26,9 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
-from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, format_validation_error, load_yaml
+from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, load_mapping, validate
 from deft_gym.recorder import append_jsonl, read_jsonl, write_atomic
 from deft_gym.robustness.faults import PLANTED_FAULTS, SIGNATURES
 from deft_gym.robustness.generate import GenerationConfig, case_rng, describe, generate_policies
@@ -67,13 +67,7 @@ class CampaignConfig(BaseModel):
 def load_campaign_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None) -> CampaignConfig:
     """Load a campaign config; errors name the file and the field."""
     path = Path(path) if path else DEFAULT_CAMPAIGN
-    data = load_yaml(path) or {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping at the top level")
-    try:
-        return CampaignConfig.model_validate(deep_merge(data, overrides or {}))
-    except ValidationError as err:
-        raise ConfigError(format_validation_error(path, err)) from None
+    return validate(CampaignConfig, deep_merge(load_mapping(path), overrides or {}), path)
 
 
 @dataclass

@@ -38,9 +38,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from deft_gym.config import CONFIG_DIR, ConfigError, format_validation_error, load_yaml
+from deft_gym.config import CONFIG_DIR, ConfigError, load_yaml, validate
 from deft_gym.messages import NS_PER_S, ROLES
 from deft_gym.robustness.expr import BUILTINS, Expr, ExprError, View, wrap
 from deft_gym.robustness.mapquery import MapQuery
@@ -120,10 +120,7 @@ def load_invariants(path: Path | str | None = None) -> InvariantSet:
         # YAML 1.1 reads the key `on` as the boolean True; take it back
         data["invariants"] = [{("on" if k is True else k): v for k, v in d.items()} if isinstance(d, dict) else d
                               for d in data["invariants"]]
-    try:
-        spec = InvariantFile.model_validate(data)
-    except ValidationError as err:
-        raise ConfigError(format_validation_error(path, err)) from None
+    spec = validate(InvariantFile, data, path)
     out = []
     names = set()
     for i, inv in enumerate(spec.invariants):

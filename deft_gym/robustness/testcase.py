@@ -19,9 +19,9 @@ import json
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from deft_gym.config import ConfigError, format_validation_error
+from deft_gym.config import ConfigError, validate
 from deft_gym.messages import ROLES
 from deft_gym.recorder import write_atomic
 from deft_gym.robustness.dictionary import lookup
@@ -133,10 +133,7 @@ def load_case(path: Path | str) -> TestCase:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{path}: invalid JSON (line {exc.lineno}): {exc.msg}") from None
-    try:
-        return TestCase.model_validate(data)
-    except ValidationError as err:
-        raise ConfigError(format_validation_error(path, err)) from None
+    return validate(TestCase, data, path)
 
 
 def save_case(case: TestCase, path: Path | str) -> Path:
