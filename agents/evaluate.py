@@ -41,7 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from deft_gym.config import ConfigError, load_yaml, validate
 from deft_gym.envs.context import SEED_SCENARIOS
 from deft_gym.envs.sink import write_json_atomic
-from deft_gym.recorder import append_jsonl, write_atomic
+from deft_gym.recorder import append_jsonl, read_jsonl, write_atomic
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
 DEFAULT_METHODS = ("rl", "decictor", "random_delta", "random")
@@ -374,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
         from deft_gym.envs.trace import code_fingerprint
 
         code, names = code_fingerprint(), set(seeds + held_out)
-        records = [json.loads(x) for x in rec_path.read_text().splitlines() if x.strip()]
+        records = read_jsonl(rec_path)
         stale = sum(1 for r in records if r.get("code") != code)
         records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code and r["scenario"] in names]
         if stale:

@@ -28,7 +28,7 @@ import yaml
 from agents.config import TrainConfig, load_train_config
 from deft_gym.config import ConfigError
 from deft_gym.envs.sink import write_json_atomic
-from deft_gym.recorder import append_jsonl, write_atomic
+from deft_gym.recorder import append_jsonl, read_jsonl, write_atomic
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -115,9 +115,7 @@ def failure_callback(out: Path | None) -> Any:
 # -- summary --------------------------------------------------------------------------------------
 def summarize_run(out: Path) -> dict[str, Any]:
     """Aggregate the episode journals of a run folder into ``summary.json``."""
-    recs = []
-    for f in sorted(out.glob("episodes-*.jsonl")):
-        recs += [json.loads(line) for line in f.read_text().splitlines() if line.strip()]
+    recs = [r for f in sorted(out.glob("episodes-*.jsonl")) for r in read_jsonl(f)]
     by_scn: dict[str, Counter[str]] = {}
     tests, extraction = [], Counter()
     for r in recs:
