@@ -8,6 +8,7 @@ as ``file: field.path: what was expected``.
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
 from pathlib import Path
@@ -152,6 +153,15 @@ def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>") -> Scen
 def scenario_to_dict(sc: Scenario) -> dict[str, Any]:
     """Plain-data form of a scenario (what goes into logs and generated tests)."""
     return sc.model_dump(mode="json", exclude_none=True)
+
+
+def with_participants(sc: Scenario, name: str, specs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Plain data of ``sc`` renamed ``name``, with (copies of) ``specs`` appended to its
+    participants - a mutated or injected variant, ready for :func:`scenario_from_dict`."""
+    data = scenario_to_dict(sc)
+    data["name"] = name
+    data.setdefault("participants", []).extend(copy.deepcopy(specs))
+    return data
 
 
 def _lane_problem(roadmap: RoadMap, lane: tuple[str, str, int] | None, s: float | None) -> str | None:

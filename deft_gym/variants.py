@@ -6,13 +6,12 @@ and as held-out scenarios for the adversary. Every draw comes from the given see
 
 from __future__ import annotations
 
-import copy
 from typing import Any
 
 import numpy as np
 
 from deft_gym.roadmap import shared_roadmap
-from deft_gym.scenario import Scenario, scenario_from_dict, scenario_to_dict
+from deft_gym.scenario import Scenario, scenario_from_dict, scenario_to_dict, with_participants
 
 
 def perturb(sc: Scenario, seed: int, strength: float = 1.0) -> Scenario:
@@ -20,7 +19,7 @@ def perturb(sc: Scenario, seed: int, strength: float = 1.0) -> Scenario:
     ``strength`` (1.0: up to ~10 m, ~20 % speed, 2 s of light offset)."""
     rng = np.random.default_rng(seed)
     roadmap = shared_roadmap(sc.map)
-    data = copy.deepcopy(scenario_to_dict(sc))
+    data = scenario_to_dict(sc)  # a fresh copy
     data["name"] = f"{sc.name}~v{seed}"
 
     def shift_s(item: dict[str, Any], amount: float) -> None:
@@ -137,7 +136,5 @@ def inject_hard_brake(sc: Scenario, path: np.ndarray, seed: int) -> Scenario:
 
 def _with_scripted(sc: Scenario, suffix: str, pid: str, waypoints: list[dict[str, float]], what: str) -> Scenario:
     """``sc`` named ``<name>~<suffix>`` with one more scripted participant ``pid``."""
-    data = copy.deepcopy(scenario_to_dict(sc))
-    data["name"] = f"{sc.name}~{suffix}"
-    data.setdefault("participants", []).append({"id": pid, "type": "scripted", "waypoints": waypoints})
+    data = with_participants(sc, f"{sc.name}~{suffix}", [{"id": pid, "type": "scripted", "waypoints": waypoints}])
     return scenario_from_dict(data, source=f"{sc.source or sc.name} ({what})")

@@ -64,7 +64,7 @@ from deft_gym.envs.vehicles import (
 from deft_gym.feasible import FeasibleConfig, Layout, Placed
 from deft_gym.nods import EGO_LENGTH, EGO_WIDTH, box_gap
 from deft_gym.participants import SIZES
-from deft_gym.scenario import scenario_to_dict
+from deft_gym.scenario import with_participants
 from deft_gym.simulation import Simulation
 
 OPS = ("noop", "cone", "static_vehicle", "vehicle", "change")
@@ -512,9 +512,7 @@ class AdversaryEnv(gym.Env):
         """``{"scenario", "added_at", "jitter_seed"}``: the seed scenario plus every added
         participant with its final motion, and when each was added.
         ``deft_gym.envs.episode.run_scenario`` with these replays this episode exactly."""
-        data = scenario_to_dict(self.ctx.scenario)
-        data["name"] = f"{self.ctx.name}+adv"
-        data.setdefault("participants", []).extend(p.spec for p in self.layout.placed)
+        data = with_participants(self.ctx.scenario, f"{self.ctx.name}+adv", [p.spec for p in self.layout.placed])
         return {"scenario": data, "added_at": dict(self.added_at), "jitter_seed": self.jitter_seed}
 
     # -- observation --------------------------------------------------------------------------

@@ -3,7 +3,6 @@ budget, and the replay of an adversary episode from its equivalent scenario)."""
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,7 +11,7 @@ from typing import Any
 from deft_gym.envs.context import SeedContext
 from deft_gym.envs.trace import Trace, TraceRecorder
 from deft_gym.nods import Verdict
-from deft_gym.scenario import scenario_from_dict, scenario_to_dict
+from deft_gym.scenario import scenario_from_dict, with_participants
 from deft_gym.simulation import EpisodeResult, Simulation
 
 
@@ -27,14 +26,6 @@ class EpisodeRun:
     seconds: float  # wall time: building, simulating and judging
 
 
-def mutated_scenario(ctx: SeedContext, specs: list[dict[str, Any]], suffix: str = "mut") -> dict[str, Any]:
-    """The seed scenario's data with ``specs`` appended to its participants."""
-    data = copy.deepcopy(scenario_to_dict(ctx.scenario))
-    data["name"] = f"{ctx.name}+{suffix}"
-    data.setdefault("participants", []).extend(copy.deepcopy(specs))
-    return data
-
-
 def run_scenario(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int,
                  out_dir: Path | str | None = None, added_at: dict[str, float] | None = None) -> EpisodeRun:
     """Simulate the seed plus ``specs`` with ``jitter_seed`` and judge it against the reference.
@@ -45,7 +36,7 @@ def run_scenario(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int
     t0 = time.perf_counter()
     added_at = added_at or {}
     later = [s for s in specs if s["id"] in added_at]
-    data = mutated_scenario(ctx, [s for s in specs if s["id"] not in added_at])
+    data = with_participants(ctx.scenario, f"{ctx.name}+mut", [s for s in specs if s["id"] not in added_at])
     sc = scenario_from_dict(data, source=f"{ctx.name} (mutated)")
     sim = Simulation(sc, ctx.ads, jitter_seed=jitter_seed, out_dir=out_dir, keep_planning=False)
     rec = TraceRecorder(sim, {s["id"] for s in specs})
