@@ -68,8 +68,7 @@ class NonInvasiveMutator:
         self.max_added, self.max_tries, self.p_static = max_added, max_tries, p_static
         self.driver = LaneDriver(ctx.roadmap, ctx.feasible.dt, ctx.feasible.sample_dt)
         self.roi = ctx.areas.roi
-        x0, y0, x1, y1 = self.roi.bounds
-        self.bounds = (x0, y0, x1, y1)
+        self.bounds = self.roi.bounds
         self.t_end = float(ctx.ref.t[-1])
 
     # -- Algorithm 2 ------------------------------------------------------------------------
@@ -205,9 +204,6 @@ class RandomMutator(NonInvasiveMutator):
             self.remove(child)
         child.history.append("add" if add else "remove")
         return child
-
-    def m_static_ok(self, m: Mutant, x: float, y: float, h: float, length: float, width: float) -> bool:
-        return True
 
     def _drive(self, m: Mutant, st: VState, t0: float, turn: str) -> Trajectory | None:
         traj: Trajectory | None = None

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import shapely
 
-from deft_gym.nods import box_corners
+from deft_gym.geometry import box_corners
 from deft_gym.render import draw_map
 
 
@@ -52,7 +52,7 @@ def render_state(env: Any, size: tuple[float, float] = (8.0, 6.0), dpi: int = 80
         color = "darkred" if p.id in env.added_ids else "tab:gray"
         ax.fill(c[:, 0], c[:, 1], color=color, alpha=0.9, zorder=4)
     e = w.ego
-    c = box_corners(np.array([e.position[0]]), np.array([e.position[1]]), np.array([e.heading]), 4.8, 2.0)[0]
+    c = box_corners(np.array([e.position[0]]), np.array([e.position[1]]), np.array([e.heading]), e.LENGTH, e.WIDTH)[0]
     ax.fill(c[:, 0], c[:, 1], color="tab:blue", zorder=5)
     ax.set_xlim(e.position[0] - span, e.position[0] + span)
     ax.set_ylim(e.position[1] + span * size[1] / size[0], e.position[1] - span * size[1] / size[0])

@@ -186,18 +186,14 @@ class _Lateral:
     target: list[LaneId]
     centre: np.ndarray
     offset: np.ndarray
-    T: np.ndarray
-    compat: np.ndarray
-    change: np.ndarray
     static_cost: np.ndarray
     band: tuple[float, float]
     basis: list[np.ndarray] = field(default_factory=list)  # (3, n, K) for d0, d0', d0'', targets
-    needed: np.ndarray = field(default_factory=lambda: np.zeros(0))  # lane changes still needed
     centres: list[float] = field(default_factory=list)  # distinct target lane centres
     target_d: np.ndarray = field(default_factory=lambda: np.zeros(0))  # centre + offset
     band_lo: float = 0.0  # band[0] - edge margin + half the ego width
     w_lat: float = 0.0  # weight of the squared lateral offset (per sample, per lane width^2)
-    route_cost: tuple[np.ndarray, ...] = ()  # needed lane changes x (urgent, far) weight
+    route_cost: tuple[np.ndarray, ...] = ()  # lane changes still needed x (urgent, far) weight
     route_dist: tuple[np.ndarray, ...] = ()  # needed lane changes x (destination, fork) distance
     dead_end: list[int] = field(default_factory=list)  # options stopped by the end of a leaving lane
     _hyst: dict[tuple[LaneId, float], np.ndarray] = field(default_factory=dict)
@@ -557,9 +553,7 @@ class LatticePlanner(Planner):
         static_cost = p.w_nudge * np.abs(offset) + p.w_lane_change * change
         band = (-w / 2 - w * sum(1 for b in nbs if b[2] < lane[2]),
                 w / 2 + w * sum(1 for b in nbs if b[2] > lane[2]))
-        lat = _Lateral([t[0] for t in targets], np.array([t[1] for t in targets]), offset,
-                       np.array([t[3] for t in targets]), compat, change, static_cost, band)
-        lat.needed = needed
+        lat = _Lateral([t[0] for t in targets], np.array([t[1] for t in targets]), offset, static_cost, band)
         lat.centres = np.unique(lat.centre).tolist()
         lat.target_d = lat.centre + lat.offset
         lat.band_lo = band[0] - p.edge_margin + p.ego_width / 2
