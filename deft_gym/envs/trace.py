@@ -13,8 +13,8 @@ path tau(s*) and its observation O(s*) in Decictor's terms - and caches it on di
 from __future__ import annotations
 
 import hashlib
+import io
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from deft_gym.config import ROOT, AdsConfig, load_ads_config
+from deft_gym.recorder import write_atomic
 from deft_gym.scenario import Scenario, scenario_to_dict
 
 CACHE_DIR = ROOT / "runs" / "cache" / "reference"
@@ -78,15 +79,12 @@ class Trace:
     def save(self, path: Path) -> Path:
         """Write ``<path>.npz`` + ``<path>.json`` atomically."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez(tmp, ticks=self.ticks, ego=self.ego, parts=self.parts)
-        os.replace(tmp, path.with_suffix(".npz"))
+        buf = io.BytesIO()
+        np.savez(buf, ticks=self.ticks, ego=self.ego, parts=self.parts)
+        write_atomic(path.with_suffix(".npz"), buf.getvalue())
         meta = {"world_dt": self.world_dt, "outcome": self.outcome, "sim_time": self.sim_time,
                 "actors": [a.__dict__ for a in self.actors], "meta": self.meta}
-        tmpj = path.with_name(path.name + ".tmp.json")
-        tmpj.write_text(json.dumps(meta))
-        os.replace(tmpj, path.with_suffix(".json"))
+        write_atomic(path.with_suffix(".json"), json.dumps(meta))
         return path
 
     @classmethod
