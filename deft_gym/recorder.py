@@ -32,7 +32,14 @@ def _meta(values: dict[str, Any]) -> dict[str, str]:
 
 
 class McapRecorder:
-    """A bus tap writing every message to an MCAP file."""
+    """A bus tap writing every message to an MCAP file.
+
+    Each message is encoded when it is published (so the log holds the payload as it was
+    then) and handed to the MCAP writer in batches of :attr:`BATCH`: the writer's per-message
+    Python code costs less than half as much in a tight loop as interleaved with the modules.
+    """
+
+    BATCH = 256
 
     def __init__(self, path: Path | str, topics: dict[str, str], metadata: dict[str, Any],
                  compress: bool = False) -> None:
@@ -55,15 +62,18 @@ class McapRecorder:
         self.writer.add_metadata(EPISODE_METADATA, _meta(metadata))
         self.count = 0
         self.closed = False
+        self._pending: list[tuple[int, int, bytes, int]] = []
 
     def add_metadata(self, name: str, values: dict[str, Any]) -> None:
         """Add a metadata record (values that are not strings are JSON-encoded)."""
+        self.flush()
         self.writer.add_metadata(name, _meta(values))
 
     def channel(self, topic: str) -> int:
         """Channel id of a topic; topics outside the schema set get a schemaless channel."""
         cid = self._channels.get(topic)
         if cid is None:
+            self.flush()  # the log keeps publish order around the new channel record
             cid = self.writer.register_channel(topic, "json", 0, {})
             self._channels[topic] = cid
         return cid
@@ -72,13 +82,24 @@ class McapRecorder:
         cid = self._channels.get(msg.topic)
         if cid is None:
             cid = self.channel(msg.topic)
-        self.writer.add_message(cid, msg.publish_ns, encode(msg.payload), msg.publish_ns, msg.seq)
+        pending = self._pending
+        pending.append((cid, msg.publish_ns, encode(msg.payload), msg.seq))
         self.count += 1
+        if len(pending) >= self.BATCH:
+            self.flush()
+
+    def flush(self) -> None:
+        """Hand the encoded messages held back to the MCAP writer (in publish order)."""
+        add = self.writer.add_message
+        for cid, ns, data, seq in self._pending:
+            add(cid, ns, data, ns, seq)
+        self._pending.clear()
 
     def close(self, outcome: dict[str, Any] | None = None) -> Path:
         """Write the outcome record, finish the file and move it into place."""
         if self.closed:
             return self.path
+        self.flush()
         if outcome is not None:
             self.writer.add_metadata(OUTCOME_METADATA, _meta(outcome))
         self.writer.finish()

@@ -51,3 +51,27 @@ def test_truth_file_names_logged_messages(lane_follow_log) -> None:
         for topic, seq in rec["inputs"].items():
             if seq is not None:  # consumed messages were published before the frame time
                 assert logged[(topic, seq)] <= rec["frame_ns"] <= rec["publish_ns"]
+
+
+def test_recorder_keeps_publish_order_across_batches(tmp_path: Path, monkeypatch) -> None:
+    """Messages handed to the writer in batches keep publish order around metadata and a
+    channel registered mid-run, and hold the payload as it was when published."""
+    from deft_gym.messages import Message
+    from deft_gym.recorder import McapRecorder
+
+    monkeypatch.setattr(McapRecorder, "BATCH", 3)
+    rec = McapRecorder(tmp_path / "x.mcap", {"control": DEFAULT_TOPICS["control"]}, {"k": 1})
+    sent = []
+    for i in range(8):
+        topic = DEFAULT_TOPICS["control"] if i % 3 else "/extra/topic"
+        payload = {"header": {"seq": i}, "v": i + 0.1}
+        rec(Message(topic, i, 1000 * i, payload))
+        payload["v"] = -1.0  # a later change does not reach the log
+        sent.append((topic, 1000 * i, i, json.dumps({"header": {"seq": i}, "v": i + 0.1}, separators=(",", ":")).encode()))
+        if i == 4:
+            rec.add_metadata("mid", {"at": i})
+    rec.close({"done": True})
+    assert _messages(str(tmp_path / "x.mcap")) == sent
+    with open(tmp_path / "x.mcap", "rb") as fh:
+        names = [m.name for m in make_reader(fh).iter_metadata()]
+    assert names == ["deft_gym.episode", "mid", "deft_gym.outcome"]
