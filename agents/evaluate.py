@@ -38,7 +38,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from deft_gym.config import ConfigError, load_yaml, validate
+from deft_gym.config import ConfigError, load_mapping, validate
 from deft_gym.envs.context import SEED_SCENARIOS
 from deft_gym.envs.sink import write_json_atomic
 from deft_gym.recorder import append_jsonl, read_jsonl, write_atomic
@@ -91,7 +91,7 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
     name = "<command line>"
     if args.config is not None:
         name = str(args.config)
-        data = dict(load_yaml(args.config) or {})
+        data = load_mapping(args.config)
     for key in ("budget", "repeats", "variants", "model", "deterministic", "workers", "seed", "log_failures"):
         if getattr(args, key) is not None:
             data[key] = getattr(args, key)
@@ -116,7 +116,7 @@ def model_env_config(model: str | None) -> dict[str, Any]:
     p = Path(model)
     for d in (p.parent, p.parent.parent):
         if (d / "config.yaml").exists():
-            return dict((load_yaml(d / "config.yaml") or {}).get("env", {}))
+            return dict(load_mapping(d / "config.yaml").get("env") or {})
     return {}
 
 

@@ -8,10 +8,10 @@ not code.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, TypeVar, overload
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator
 
 from deft_gym.messages import DEFAULT_TOPICS, ROLES
 
@@ -154,10 +154,17 @@ def load_mapping(path: Path | str) -> dict[str, Any]:
 M = TypeVar("M", bound=BaseModel)
 
 
-def validate(model: type[M], data: Any, source: Path | str) -> M:
-    """``model.model_validate(data)``, with a validation error turned into a
-    :class:`ConfigError` of one line per problem naming ``source`` and the field."""
+@overload
+def validate(model: type[M], data: Any, source: Path | str) -> M: ...
+@overload
+def validate(model: TypeAdapter[Any], data: Any, source: Path | str) -> Any: ...
+def validate(model: type[M] | TypeAdapter[Any], data: Any, source: Path | str) -> Any:
+    """``model.model_validate(data)`` (or a type adapter's ``validate_python``), with a
+    validation error turned into a :class:`ConfigError` of one line per problem naming
+    ``source`` and the field."""
     try:
+        if isinstance(model, TypeAdapter):
+            return model.validate_python(data)
         return model.model_validate(data)
     except ValidationError as err:
         raise ConfigError(format_validation_error(source, err)) from None

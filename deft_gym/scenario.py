@@ -15,9 +15,9 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
-from deft_gym.config import CONFIG_DIR, ConfigError, format_validation_error, load_yaml, validate
+from deft_gym.config import CONFIG_DIR, ConfigError, load_yaml, validate
 from deft_gym.participants import SIZES, ReactiveVehicle, ScriptedVehicle, StaticObstacle
 from deft_gym.roadmap import MapSpec, RoadMap, shared_roadmap
 from deft_gym.traffic_lights import LightPlan, TrafficLights
@@ -289,10 +289,7 @@ def parse_participant(spec: dict[str, Any] | StaticSpec | ScriptedSpec | Reactiv
     """Validate one participant description (the scenario's schema) against the map."""
     if not isinstance(spec, dict):
         return spec
-    try:
-        p = _PARTICIPANT.validate_python(spec)
-    except ValidationError as err:
-        raise ConfigError(format_validation_error(source, err)) from None
+    p = validate(_PARTICIPANT, spec, source)
     probe = Scenario.model_construct(participants=[p], lights=None)
     errs = [e for e in _participant_errors(probe, roadmap)]
     if errs:

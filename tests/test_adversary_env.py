@@ -86,6 +86,9 @@ def test_bad_config_is_one_clear_line(tmp_path):
     bad.write_text("max_added: 0\n")
     with pytest.raises(ConfigError, match=r"bad\.yaml: max_added"):
         AdversaryEnv(config=bad)
+    bad.write_text("- max_added\n")
+    with pytest.raises(ConfigError, match=r"bad\.yaml: expected a mapping"):
+        AdversaryEnv(config=bad)
 
 
 def test_tiny_ppo_learns_without_error(tmp_path):
@@ -111,3 +114,17 @@ def test_training_refuses_to_mix_a_new_run_into_an_old_one(tmp_path, capsys):
     assert train.main(["--config", "configs/train/demo.yaml", "--out", str(tmp_path), "--timesteps", "8"]) == 2
     assert "--resume" in capsys.readouterr().err
     assert (tmp_path / "episodes-0.jsonl").read_text().count("\n") == 1  # untouched
+
+
+def test_evaluation_config_errors_name_the_file_and_field(tmp_path):
+    from agents.evaluate import load_eval_config, parse_args
+    from deft_gym.config import ConfigError
+
+    cfg = tmp_path / "eval.yaml"
+    cfg.write_text("- random\n")
+    with pytest.raises(ConfigError, match=r"eval\.yaml: expected a mapping"):
+        load_eval_config(parse_args(["--config", str(cfg), "--out", str(tmp_path)]))
+    cfg.write_text("methods: [random, genetic]\n")
+    with pytest.raises(ConfigError, match=r"eval\.yaml: methods: unknown \['genetic'\]"):
+        load_eval_config(parse_args(["--config", str(cfg), "--out", str(tmp_path)]))
+    assert load_eval_config(parse_args(["--methods", "random", "--budget", "3", "--out", str(tmp_path)])).budget == 3

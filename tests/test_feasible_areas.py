@@ -96,6 +96,21 @@ def test_lane_driver_changes_lanes_and_follows_successors(ctx):
     assert w2.states[-1].lane[:2] == ("b", "c")
 
 
+def test_lane_driver_does_not_cross_a_solid_line(ctx):
+    """Adversary vehicles change lanes only where the map allows it (a striped line)."""
+    from highway_env.road.lane import LineType
+
+    from deft_gym.roadmap import RoadMap
+
+    rm = RoadMap(ctx.roadmap.spec)  # a private copy: the shared map stays as it is
+    lane = rm.lanes[("a", "b", 1)]
+    assert LaneDriver(rm).neighbour(("a", "b", 0), 1) == ("a", "b", 1)
+    lane.line_types = (LineType.CONTINUOUS, lane.line_types[1])
+    drv = LaneDriver(rm)
+    assert drv.neighbour(("a", "b", 0), 1) is None and drv.neighbour(("a", "b", 1), -1) is None
+    assert drv.window(VState(("a", "b", 0), 10.0, 0.0, 8.0), 0.0, Controls(8.0, shift=1)) is None
+
+
 def test_reachable_area_covers_the_next_waypoint(ctx):
     st = VState(("a", "b", 1), 30.0, 0.0, 8.0)
     area = reachable_area(ctx.roadmap, st.lane, st.s, st.v, 2.0, v_max=12.0)

@@ -45,7 +45,7 @@ import shapely
 from gymnasium import spaces
 from pydantic import BaseModel, ConfigDict, Field
 
-from deft_gym.config import load_yaml, validate
+from deft_gym.config import load_mapping, validate
 from deft_gym.envs.context import SEED_SCENARIOS, SeedContext, robust, seed_context
 from deft_gym.envs.sink import EpisodeSink
 from deft_gym.envs.trace import TraceRecorder
@@ -123,7 +123,7 @@ def load_env_config(source: dict[str, Any] | str | Path | AdversaryConfig | None
         data = source.model_dump()
     elif isinstance(source, str | Path):
         name = str(source)
-        data = load_yaml(source) or {}
+        data = load_mapping(source)
     else:
         data = dict(source or {})
     data.update({k: v for k, v in overrides.items() if v is not None})

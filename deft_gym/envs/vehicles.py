@@ -111,14 +111,13 @@ class LaneDriver:
         return self.v_max_factor * float(self.map.lanes[lane].speed_limit or 12.0)
 
     def neighbour(self, lane: LaneId, shift: int) -> LaneId | None:
-        """The parallel lane ``shift`` (+-1) to the side on the same road (not in a junction)."""
+        """The parallel lane ``shift`` (+-1) to the side on the same road that a lane change may
+        reach (a striped line between them, not in a junction)."""
         if shift == 0:
             return lane
         a, b, k = lane
-        if (a, b) in self.map.junction_roads:
-            return None
         nb = (a, b, k + shift)
-        return nb if nb in self.map.lanes else None
+        return nb if nb in self.map.changeable_neighbours(lane) else None
 
     def successor(self, lane: LaneId, turn: str) -> LaneId | None:
         succ = self.map.successors.get(lane, [])
