@@ -25,7 +25,7 @@ from typing import Any
 
 import yaml
 
-from agents.config import TrainConfig, load_train_config
+from agents.config import ALGOS, TrainConfig, load_train_config
 from deft_gym.config import ConfigError
 from deft_gym.envs.sink import write_json_atomic
 from deft_gym.recorder import append_jsonl, read_jsonl, write_atomic
@@ -40,7 +40,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--resume", type=Path, default=None, help="checkpoint .zip to continue from")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: config, 2)")
-    p.add_argument("--algo", choices=("ppo", "a2c"), default=None)
+    p.add_argument("--algo", choices=ALGOS, default=None)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p.parse_args(argv)
 

@@ -242,25 +242,6 @@ class Layout:
             ok &= shapely.contains_xy(self.areas.roadmap.drivable_area, x, y)
         return ok
 
-    def static_area(self, length: float, width: float) -> shapely.Geometry:
-        """Where the centre of a box of this size may go (approximate: the drivable area minus
-        the forbidden areas grown by the box's half diagonal) - for rendering and features."""
-        r = 0.5 * math.hypot(length, width)
-        bad = self.areas.static_forbidden
-        other = self._added_any()
-        if other is not None:
-            bad = shapely.union(bad, other)
-        return shapely.difference(self.areas.roi, shapely.buffer(bad, r))
-
-    def window_area(self, k: int) -> shapely.Geometry:
-        """Eq. 4 without the reachability term: the region of interest minus every motion area
-        of window ``k`` (for rendering and features)."""
-        bad = self.areas.forbidden[k]
-        other = self._added_in_window(k, None)
-        if other is not None:
-            bad = shapely.union(bad, other)
-        return shapely.difference(self.areas.roi, bad)
-
     def first_conflict(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, h: np.ndarray, length: float,
                        width: float, skip: str | None = None, k_from: int = 0,
                        k_to: int | None = None) -> int:

@@ -97,19 +97,6 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 # -- feedback -----------------------------------------------------------------------------------
-def path_distance(ref_xy: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Distance [m] of each point to the reference polyline."""
-    line = shapely.LineString(np.asarray(ref_xy, dtype=float))
-    return shapely.distance(shapely.points(np.asarray(xy, dtype=float).reshape(-1, 2)), line)
-
-
-def f_path(ref_xy: np.ndarray, xy: np.ndarray) -> float:
-    """Eq. 7: mean over the mutated path's points of the distance to the reference path [m]."""
-    if len(xy) == 0:
-        return 0.0
-    return float(path_distance(ref_xy, xy).mean())
-
-
 BEHAVIOUR_WEIGHTS = (1.0, 0.5, 0.5)  # heading, speed, acceleration (as Decictor's code)
 SPEED_RANGE, ACCEL_RANGE = 12.0, 10.0  # normalisation [m/s], [m/s^2] (as Decictor's code)
 
@@ -246,6 +233,7 @@ class DecisionOracle:
         return iou(self.ref_cells, self.cells(xy))
 
     def f_p(self, xy: np.ndarray) -> float:
+        """Eq. 7: mean over the path's points of the exact distance to the reference path [m]."""
         if len(xy) == 0:
             return 0.0
         return float(shapely.distance(shapely.points(np.asarray(xy).reshape(-1, 2)), self.ref_line).mean())

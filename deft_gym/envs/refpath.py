@@ -31,7 +31,6 @@ class RefPath:
         h = np.arctan2(seg[:, 1], seg[:, 0])
         self.heading = np.unwrap(np.concatenate([h, h[-1:]]))
         self.roadmap = roadmap
-        self._last = 0
 
     def at(self, sigma: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """Points (n, 2) and headings (n,) at arc lengths (clipped to the path; beyond its ends

@@ -18,7 +18,7 @@ baselines), backtracking when a window has no feasible continuation.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -309,6 +309,3 @@ def vehicle_spec(pid: str, traj: Trajectory) -> dict[str, Any]:
     """The scripted-participant spec of a trajectory."""
     return {"id": pid, "type": "scripted", "waypoints": traj.waypoints(), "length": LENGTH, "width": WIDTH}
 
-
-def with_turn(traj: Trajectory, turn: str) -> Trajectory:
-    return replace(traj, turn=turn)
