@@ -84,10 +84,10 @@ def main(argv: list[str] | None = None) -> int:
     n_part = len(sc.participants)
     console.print(f"scenario {sc.name}: {n_part} participants, world {ads.world_hz:g} Hz, "
                   f"{sc.duration:g} s simulated per run, {args.repeats} runs each")
-    # interleaved (one of each per repeat), so drifting machine load biases no measurement
     # the per-module breakdown times every callback, which costs time itself: it is a run of
     # its own (also warming up caches), not one of the timed runs
     first = stack_speed(sc, True, seed=0, breakdown=True)
+    # interleaved (one of each per repeat), so drifting machine load biases no measurement
     rec, norec, hw = [], [], []
     for i in track(range(args.repeats), description="benchmark", console=console, transient=True):
         rec.append(stack_speed(sc, True, seed=i))

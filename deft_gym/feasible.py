@@ -27,7 +27,8 @@ import shapely
 from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.envs.trace import Trace
-from deft_gym.nods import EGO_LENGTH, EGO_WIDTH, box_corners, box_polygon
+from deft_gym.geometry import box_corners, box_polygon
+from deft_gym.nods import EGO_LENGTH, EGO_WIDTH
 from deft_gym.roadmap import RoadMap, lane_surface
 
 

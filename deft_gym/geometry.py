@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import shapely
 from highway_env.road.lane import AbstractLane, CircularLane, StraightLane
 
 TWO_PI = 2.0 * np.pi
@@ -244,6 +245,11 @@ def box_corners(x: np.ndarray, y: np.ndarray, h: np.ndarray, length: float | np.
     xs = np.stack([x + ux + vx, x + ux - vx, x - ux - vx, x - ux + vx], axis=-1)
     ys = np.stack([y + uy + vy, y + uy - vy, y - uy - vy, y - uy + vy], axis=-1)
     return np.stack([xs, ys], axis=-1)
+
+
+def box_polygon(x: float, y: float, h: float, length: float, width: float) -> shapely.Polygon:
+    """One oriented box as a shapely polygon."""
+    return shapely.Polygon(box_corners(np.array([x]), np.array([y]), np.array([h]), length, width)[0])
 
 
 def box_gap(ax: np.ndarray, ay: np.ndarray, ah: np.ndarray, al: float | np.ndarray, aw: float | np.ndarray,

@@ -29,7 +29,7 @@ import numpy as np
 import shapely
 
 from deft_gym.envs.trace import Trace
-from deft_gym.geometry import box_corners, box_gap
+from deft_gym.geometry import box_gap, box_polygon
 from deft_gym.roadmap import RoadMap
 from deft_gym.world import EgoVehicle
 
@@ -163,11 +163,6 @@ def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None) -> 
         if pa.intersects(pb):
             bad.append(aid)
     return bad
-
-
-def box_polygon(x: float, y: float, h: float, length: float, width: float) -> shapely.Polygon:
-    """One oriented box as a shapely polygon."""
-    return shapely.Polygon(box_corners(np.array([x]), np.array([y]), np.array([h]), length, width)[0])
 
 
 # -- verdict ------------------------------------------------------------------------------------

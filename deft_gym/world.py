@@ -173,13 +173,13 @@ class World:
         for gap, i in gaps:
             if gap >= self.min_distance:
                 break
-            o = present[i].obj
+            p = present[i]
+            o = p.obj
             if box_gap(ex, ey, ego.heading, ego.LENGTH, ego.WIDTH, o.position[0], o.position[1], o.heading,
                        o.LENGTH, o.WIDTH) >= self.min_distance + 1e-9:
                 continue  # a tighter lower bound: the polygons cannot be closer than the minimum
             if ego_poly is None:
                 ego_poly = shapely.Polygon(ego.polygon())
-            p = present[i]
             dist = ego_poly.distance(self._polygon(p))
             self.min_distance = min(self.min_distance, dist)
             if dist <= 0.0 and self.collision is None:

@@ -9,7 +9,8 @@ import shapely
 from deft_gym.envs.context import seed_context
 from deft_gym.envs.vehicles import LENGTH, WIDTH, Controls, LaneDriver, VState, complete
 from deft_gym.feasible import FeasibleConfig, Layout, Placed, reachable_area
-from deft_gym.nods import EGO_LENGTH, EGO_WIDTH, box_gap
+from deft_gym.geometry import box_gap
+from deft_gym.nods import EGO_LENGTH, EGO_WIDTH
 
 
 @pytest.fixture(scope="module")

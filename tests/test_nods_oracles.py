@@ -9,7 +9,8 @@ import pytest
 
 from deft_gym.envs.context import seed_context
 from deft_gym.envs.trace import Actor, Trace
-from deft_gym.nods import LaneCells, box_gap, iou, mmd_linear, world_cells
+from deft_gym.geometry import box_gap
+from deft_gym.nods import LaneCells, iou, mmd_linear, world_cells
 
 
 @pytest.fixture(scope="module")

@@ -62,7 +62,8 @@ from deft_gym.envs.vehicles import (
     window_feasible,
 )
 from deft_gym.feasible import FeasibleConfig, Layout, Placed
-from deft_gym.nods import EGO_LENGTH, EGO_WIDTH, box_gap
+from deft_gym.geometry import box_gap
+from deft_gym.nods import EGO_LENGTH, EGO_WIDTH
 from deft_gym.participants import SIZES
 from deft_gym.scenario import with_participants
 from deft_gym.simulation import Simulation
