@@ -127,12 +127,10 @@ _POLICIES: dict[str, Any] = {}
 def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
     """``budget`` simulated scenarios of one method on one scenario (in a worker process)."""
     from deft_gym.envs.adversary import load_env_config
-    from deft_gym.envs.context import seed_context
 
     env_cfg = load_env_config(job["env"])
     method, scenario, budget = job["method"], job["scenario"], job["budget"]
     seed = job["seed"]
-    out = Path(job["out"])
     recs: list[dict[str, Any]] = []
     base = {"method": method, "scenario": scenario, "repeat": job["repeat"]}
     if method in ("rl", "random_online"):
@@ -140,9 +138,8 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
     else:
         from agents.search import search
 
-        ctx = seed_context(scenario, env_cfg.feasible, reference_seed=env_cfg.reference_seed, grid=env_cfg.grid,
-                           threshold=env_cfg.threshold)
-        log_root = out / "logs" / method / scenario.replace("~", "_") / f"r{job['repeat']}"
+        ctx = env_cfg.context(scenario)
+        log_root = _log_root(job)
 
         def log_dir(i: int) -> Path | None:
             return (log_root / f"{i:05d}") if job["log_failures"] else None
@@ -159,6 +156,11 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
     return [{**base, **r, "code": code} for r in recs]
 
 
+def _log_root(job: dict[str, Any]) -> Path:
+    """Where one job's episode logs go: ``OUT/logs/<method>/<scenario>/r<repeat>``."""
+    return Path(job["out"]) / "logs" / job["method"] / job["scenario"].replace("~", "_") / f"r{job['repeat']}"
+
+
 def _keep_or_drop(d: Path | None, rec: dict[str, Any]) -> None:
     import shutil
 
@@ -167,18 +169,11 @@ def _keep_or_drop(d: Path | None, rec: dict[str, Any]) -> None:
     if not rec.get("failure"):
         shutil.rmtree(d, ignore_errors=True)
         return
-    from deft_gym.envs.sink import extractor
+    from deft_gym.envs.sink import extract_log
 
     write_json_atomic(d / "episode.json", rec)
-    fn = extractor()
-    if fn is not None:
-        try:
-            res = fn(d / "episode.mcap", d / "extracted", test_suffix="_".join(d.parts[-4:]))
-            rec["extraction"] = {"status": "ok", "test": str(getattr(res, "test_path", "") or "")}
-        except Exception as exc:  # keep evaluating
-            rec["extraction"] = {"status": f"error: {type(exc).__name__}: {exc}"}
-    else:
-        rec["extraction"] = {"status": "extractor unavailable"}
+    done = extract_log(d, test_suffix="_".join(d.parts[-4:]))
+    rec["extraction"] = {k: done[k] for k in ("status", "test") if k in done}
     rec["log"] = str(d)
 
 
@@ -205,7 +200,7 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
         _POLICIES[key] = model
     log_dir = None
     if job["log_failures"]:
-        log_dir = str(Path(job["out"]) / "logs" / job["method"] / job["scenario"].replace("~", "_") / f"r{job['repeat']}")
+        log_dir = str(_log_root(job))
     cfg = env_cfg.model_copy(update={"scenarios": [job["scenario"]], "variant_prob": 0.0, "log_dir": log_dir,
                                      "keep_passing": 0.0, "extract": True})
     env = AdversaryEnv(config=cfg)

@@ -115,6 +115,12 @@ class AdversaryConfig(BaseModel):
     extract: bool = True
     worker: int = 0
 
+    def context(self, scenario: str | Path) -> SeedContext:
+        """The :class:`SeedContext` of a scenario under this config's feasible areas, reference
+        seed and decision oracle."""
+        return seed_context(scenario, self.feasible, reference_seed=self.reference_seed, grid=self.grid,
+                            threshold=self.threshold)
+
 
 def load_env_config(source: dict[str, Any] | str | Path | AdversaryConfig | None = None,
                     **overrides: Any) -> AdversaryConfig:
@@ -169,8 +175,7 @@ class AdversaryEnv(gym.Env):
             if name in self._bad:
                 continue
             try:
-                ctx = seed_context(name, cfg.feasible, reference_seed=cfg.reference_seed, grid=cfg.grid,
-                                   threshold=cfg.threshold)
+                ctx = cfg.context(name)
             except ValueError:  # a variant whose reference run fails is no optimal seed
                 if "~v" not in name:
                     raise
@@ -187,8 +192,7 @@ class AdversaryEnv(gym.Env):
         self._close_sim()
         options = options or {}
         if "scenario" in options:
-            self.ctx = seed_context(options["scenario"], self.cfg.feasible, reference_seed=self.cfg.reference_seed,
-                                    grid=self.cfg.grid, threshold=self.cfg.threshold)
+            self.ctx = self.cfg.context(options["scenario"])
         else:
             self.ctx = self._context()
         ctx = self.ctx

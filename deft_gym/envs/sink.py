@@ -77,14 +77,20 @@ class EpisodeSink:
         return done
 
     def _extract(self, episode_dir: Path) -> dict[str, Any]:
-        fn = extractor()
-        if fn is None:
-            return {"status": "extractor unavailable (extract.extract_episode not importable)"}
-        kwargs = {"test_suffix": episode_dir.name, **self.extract_kwargs}  # unique module names
-        try:
-            res = fn(episode_dir / "episode.mcap", episode_dir / "extracted", **kwargs)
-        except Exception as exc:  # an extractor bug must not kill a training run
-            return {"status": f"error: {type(exc).__name__}: {exc}"}
-        return {"status": "ok", "test": str(getattr(res, "test_path", None) or ""),
-                "frames": str(getattr(res, "frames_path", None) or ""),
-                "faulty": getattr(res, "faulty", None), "summary": getattr(res, "summary", None)}
+        return extract_log(episode_dir, **{"test_suffix": episode_dir.name, **self.extract_kwargs})
+
+
+def extract_log(episode_dir: Path, **kwargs: Any) -> dict[str, Any]:
+    """Run the DeFT extractor on ``<episode_dir>/episode.mcap`` into ``<episode_dir>/extracted``
+    (``kwargs``: the extractor's, e.g. a ``test_suffix`` that keeps module names unique). Never
+    raises: what happened is the returned ``status`` (``ok``, ``error: ...``, unavailable)."""
+    fn = extractor()
+    if fn is None:
+        return {"status": "extractor unavailable (extract.extract_episode not importable)"}
+    try:
+        res = fn(episode_dir / "episode.mcap", episode_dir / "extracted", **kwargs)
+    except Exception as exc:  # an extractor bug must not kill a training or evaluation run
+        return {"status": f"error: {type(exc).__name__}: {exc}"}
+    return {"status": "ok", "test": str(getattr(res, "test_path", None) or ""),
+            "frames": str(getattr(res, "frames_path", None) or ""),
+            "faulty": getattr(res, "faulty", None), "summary": getattr(res, "summary", None)}
