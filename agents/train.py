@@ -114,7 +114,8 @@ def failure_callback(out: Path | None) -> Any:
 
 # -- summary --------------------------------------------------------------------------------------
 def summarize_run(out: Path) -> dict[str, Any]:
-    """Aggregate the episode journals of a run folder into ``summary.json``."""
+    """Aggregate the episode journals of a run folder (what ``summary.json`` holds, besides the
+    training figures)."""
     recs = [r for f in sorted(out.glob("episodes-*.jsonl")) for r in read_jsonl(f)]
     by_scn: dict[str, Counter[str]] = {}
     tests, extraction = [], Counter()
@@ -138,7 +139,6 @@ def summarize_run(out: Path) -> dict[str, Any]:
                "per_scenario": {k: dict(v) for k, v in sorted(by_scn.items())},
                "extraction": dict(extraction), "extracted_tests": tests,
                "kept_logs": sum(1 for r in recs if r.get("kept"))}
-    write_json_atomic(out / "summary.json", summary)
     return summary
 
 

@@ -61,9 +61,14 @@ def swept_area(x: np.ndarray, y: np.ndarray, h: np.ndarray, length: float, width
     return shapely.union_all(swept_hulls(box_corners(x, y, h, length, width)))
 
 
+def _in_window(t: np.ndarray, t0: float, t1: float) -> np.ndarray:
+    """Indices of the samples of ``t`` in [t0, t1] (1 ns tolerance at both ends)."""
+    return np.flatnonzero((t >= t0 - 1e-9) & (t <= t1 + 1e-9))
+
+
 def _window_samples(t: np.ndarray, t0: float, t1: float, step: float) -> np.ndarray:
     """Indices of samples of ``t`` in [t0, t1], thinned to about ``step`` apart (ends kept)."""
-    idx = np.flatnonzero((t >= t0 - 1e-9) & (t <= t1 + 1e-9))
+    idx = _in_window(t, t0, t1)
     if len(idx) <= 2:
         return idx
     span = t[idx[-1]] - t[idx[0]]
@@ -258,7 +263,7 @@ class Layout:
             if t[0] > t1 + 1e-9:
                 continue
             parked = t[-1] < t0 - 1e-9  # after its last pose it stays there
-            idx = np.array([len(t) - 1]) if parked else np.flatnonzero((t >= t0 - 1e-9) & (t <= t1 + 1e-9))
+            idx = np.array([len(t) - 1]) if parked else _in_window(t, t0, t1)
             hulls = swept_hulls(corners[idx])
             if self._hits(hulls, k, skip):
                 return k
@@ -281,7 +286,7 @@ class Layout:
         out: dict[int, shapely.Geometry] = {}
         for k in range(areas.window(float(t[0])), areas.n_windows):
             t0, t1 = k * dt, (k + 1) * dt
-            idx = np.flatnonzero((t >= t0 - 1e-9) & (t <= t1 + 1e-9))
+            idx = _in_window(t, t0, t1)
             if len(idx) == 0:
                 idx = np.array([len(t) - 1])
             g = shapely.union_all(swept_hulls(corners[idx]))
