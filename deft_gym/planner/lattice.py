@@ -24,6 +24,7 @@ boundaries), and predictions (constant velocity along the lane) miss cut-ins and
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,6 +41,14 @@ try:  # the C function behind np.interp: the same results without the Python wra
     _interp(0.5, np.array([0.0, 1.0]), np.array([0.0, 1.0]))
 except (ImportError, TypeError):  # pragma: no cover - other numpy layouts
     _interp = np.interp
+
+try:  # the evaluation step compiled (setup.py); bit-identical to _evaluate_numpy, which is
+    # used without it or when DEFT_GYM_PURE_PYTHON is set
+    from deft_gym.planner import _lattice_c
+except ImportError:  # pragma: no cover - the build is optional
+    _lattice_c = None
+if os.environ.get("DEFT_GYM_PURE_PYTHON"):
+    _lattice_c = None
 
 _FLIP = np.array([[1.0], [-1.0]])  # see _perp
 
@@ -236,6 +245,12 @@ class LatticePlanner(Planner):
         # bounding-circle radius of the ego grown by the hard buffers, plus the soft buffer
         self._reach_ego = math.hypot(la + p.lon_buffer_hard, wa + p.lat_buffer_hard) + p.lat_buffer_soft
         self._penalty = {"BRAKE": p.w_brake, "BLOCKED": p.w_blocked}
+        #: the compiled evaluation step (None: numpy); its parameters, per call (7) then constant
+        self.kernel = _lattice_c
+        self._kernel_params = np.array(
+            [0.0] * 7 + [p.w_speed * self._inv_k, self._w_acc, self._w_jerk, p.ego_width / 2, p.edge_margin,
+                         p.hard_lat_accel, p.w_lat_accel, self._w_obs, p.lat_buffer_soft, la, wa,
+                         p.lon_buffer_hard, p.lat_buffer_hard, self.BATCH])
         # Profiles with a fixed duration are linear in their start/end values, so their shapes
         # are computed once: cruise rows (speed factor x duration) and lateral durations.
         t = self.tk[None, :]
@@ -695,7 +710,30 @@ class LatticePlanner(Planner):
     def _evaluate(self, ref: _Ref, lat: _Lateral, lat_d: np.ndarray, lon: dict[str, Any],
                   obs: dict[str, Any] | None, walls: np.ndarray | float, v_des: float,
                   c_route: np.ndarray) -> tuple[tuple[int, int] | None, float, _Poses | None]:
-        """Cheapest feasible (lateral, longitudinal) pair, its cost, and the ego poses along it.
+        """Cheapest feasible (lateral, longitudinal) pair, its cost, and the ego poses along it:
+        the compiled step when it is built, :meth:`_evaluate_numpy` otherwise (the same results,
+        bit for bit)."""
+        kernel = self.kernel
+        if kernel is None:
+            return self._evaluate_numpy(ref, lat, lat_d, lon, obs, walls, v_des, c_route)
+        p, st = self.p, self.state
+        hyst = None if st.target_lane is None else lat.hysteresis(st.target_lane, st.offset, p.w_hysteresis)
+        prm = self._kernel_params
+        prm[:7] = v_des, ref.s_first, ref.vlim_min, ref.vlim_max, lat.band_lo, lat.band[1], lat.w_lat
+        li, pi, cost = kernel.evaluate(
+            ref.s, ref.x, ref.y, ref.h, ref.k, ref.vlim, lon["sva"], lon["penalty"], lat_d, lat.target_d,
+            lat.static_cost, c_route, hyst, walls if isinstance(walls, np.ndarray) else float(walls),
+            *((obs["xy"], obs["cs"], obs["lw"], obs["reach2"]) if obs is not None else (None,) * 4),
+            self.tk, prm)
+        if li < 0:
+            return None, math.inf, None
+        s, v = lon["sva"][0, pi], lon["sva"][1, pi]
+        return (li, pi), cost, _Poses.along(ref, lat_d[0, li], lat_d[1, li], s, v, _interp(s, ref.s, ref.k))
+
+    def _evaluate_numpy(self, ref: _Ref, lat: _Lateral, lat_d: np.ndarray, lon: dict[str, Any],
+                        obs: dict[str, Any] | None, walls: np.ndarray | float, v_des: float,
+                        c_route: np.ndarray) -> tuple[tuple[int, int] | None, float, _Poses | None]:
+        """:meth:`_evaluate` in numpy: the specification of the compiled step.
 
         Costs and constraints that do not involve obstacles are separable and evaluated for all
         pairs at once; the obstacle check (hard buffer -> infeasible, soft buffer -> extra cost)

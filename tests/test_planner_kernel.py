@@ -1,0 +1,124 @@
+"""The compiled evaluation step of the lattice planner gives bit-identical results to numpy.
+
+``deft_gym/planner/_lattice_c.c`` (built by ``pip install -e .``) replaces
+``LatticePlanner._evaluate_numpy`` when it is available. Every seed scenario's live frames, and
+the same frames with exceptional values planted in them, are planned by two planners - one
+with the compiled step, one without - and must give the same bytes (or the same error).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deft_gym.codec import encode
+from deft_gym.planner import lattice
+from deft_gym.planner.base import Frame, load_planner
+from deft_gym.scenario import list_scenarios, load_scenario
+from deft_gym.simulation import Simulation
+
+pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")  # odd values overflow on purpose
+LATTICE = "deft_gym.planner.lattice:LatticePlanner"
+ODD = [math.nan, math.inf, -math.inf, 1e300, -1e300, 0.0, -0.0, 5e-324, -3.0]
+
+
+def _frames(path: Path, seed: int, duration: float) -> tuple[dict, list[Frame]]:
+    scenario = load_scenario(path)
+    scenario = scenario.model_copy(update={"duration": min(scenario.duration, duration)})
+    sim = Simulation(scenario, jitter_seed=seed)
+    frames: list[Frame] = []
+    plan = sim.planner.plan
+
+    def spy(frame: Frame) -> dict | None:
+        frames.append(frame)
+        return plan(frame)
+
+    sim.planner.plan = spy  # type: ignore[method-assign]
+    sim.run()
+    return sim.scenario.map.model_dump(), frames
+
+
+def _pair(map_spec: dict) -> tuple[lattice.LatticePlanner, lattice.LatticePlanner]:
+    compiled = load_planner(LATTICE, map_spec, {})
+    numpy_only = load_planner(LATTICE, map_spec, {})
+    numpy_only.kernel = None
+    return compiled, numpy_only
+
+
+def _outcome(planner: lattice.LatticePlanner, frame: Frame) -> bytes | str:
+    try:
+        out = planner.plan(frame)
+    except Exception as exc:  # the same error from both is a match too
+        return f"{type(exc).__name__}: {exc}"
+    return encode(out) if out is not None else b"None"
+
+
+def _kernel():
+    if lattice._lattice_c is None:
+        pytest.fail("the compiled planner step is not built (pip install -e . needs a C compiler) "
+                    "or DEFT_GYM_PURE_PYTHON is set")
+    return lattice._lattice_c
+
+
+@pytest.fixture(scope="module")
+def recorded() -> list[tuple[str, dict, list[Frame]]]:
+    _kernel()
+    return [(p.stem, *_frames(p, seed=11, duration=25.0)) for p in list_scenarios()]
+
+
+def test_compiled_step_matches_numpy_on_every_seed_scenario(recorded) -> None:
+    checked = 0
+    for name, map_spec, frames in recorded:
+        compiled, numpy_only = _pair(map_spec)
+        for i, frame in enumerate(frames):
+            a, b = _outcome(compiled, frame), _outcome(numpy_only, frame)
+            assert a == b, f"{name}: frame {i} at t={frame.time}"
+            checked += isinstance(a, bytes) and a != b"None"
+    assert checked > 1000
+
+
+def _corrupt(frame: Frame, rng: np.random.Generator) -> Frame:
+    """The frame with one to three numbers of localization or prediction replaced by odd values."""
+    inputs = copy.deepcopy(dict(frame.inputs))
+    slots: list[tuple[dict | list, str | int]] = []
+    loc = inputs.get("localization")
+    if loc:
+        slots += [(loc, k) for k in ("x", "y", "heading", "v", "a") if k in loc]
+    for ob in (inputs.get("prediction") or {}).get("obstacles", []):
+        slots += [(ob, k) for k in ("length", "width", "v", "t0", "dt") if k in ob]
+        for key in ("x", "y", "heading"):
+            slots += [(ob[key], j) for j in range(len(ob[key]))]
+    for j in rng.choice(len(slots), size=min(len(slots), int(rng.integers(1, 4))), replace=False):
+        holder, key = slots[j]
+        holder[key] = ODD[int(rng.integers(len(ODD)))]
+    return Frame(frame.time, inputs)
+
+
+def test_compiled_step_matches_numpy_on_exceptional_values(recorded) -> None:
+    rng = np.random.default_rng(3)
+    outcomes = {"planned": 0, "error": 0}
+    for name, map_spec, frames in recorded:
+        compiled, numpy_only = _pair(map_spec)
+        for i, frame in enumerate(frames):
+            if i % 3 == 0:
+                frame = _corrupt(frame, rng)
+            a, b = _outcome(compiled, frame), _outcome(numpy_only, frame)
+            assert a == b, f"{name}: frame {i} at t={frame.time}"
+            outcomes["planned" if isinstance(a, bytes) else "error"] += 1
+    assert outcomes["planned"] > 500 and outcomes["error"] > 0, outcomes
+
+
+def test_compiled_step_rejects_arrays_of_the_wrong_shape() -> None:
+    kernel = _kernel()
+    with pytest.raises(TypeError, match="takes 20 arguments"):
+        kernel.evaluate()
+    z = np.zeros(4)
+    args = [z] * 6 + [np.zeros((3, 2, 3)), np.zeros(2), np.zeros((3, 2, 4))]
+    with pytest.raises(ValueError, match="lat_d: dimension 2 is 4, expected 3"):
+        kernel.evaluate(*args, *([None] * 11))
+    with pytest.raises(TypeError, match="ref_x: expected a C-contiguous float64 array"):
+        kernel.evaluate(z, z.astype(np.float32), *([None] * 18))
