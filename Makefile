@@ -28,7 +28,7 @@ test-slow: $(STAMP)
 	$(PY) -m pytest -q -n 2 -m slow
 
 bench: $(STAMP)
-	$(PY) -m deft_gym.bench --repeats 9 --out runs/bench.json
+	$(PY) -m deft_gym.bench --repeats 15 --out runs/bench.json
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -30,6 +30,7 @@ from rich.table import Table
 
 from deft_gym.bus import TimingSupervisor
 from deft_gym.config import load_ads_config
+from deft_gym.planner import lattice
 from deft_gym.recorder import write_atomic
 from deft_gym.scenario import SCENARIO_DIR, load_scenario
 from deft_gym.simulation import Simulation
@@ -82,8 +83,10 @@ def main(argv: list[str] | None = None) -> int:
     sc = load_scenario(args.scenario)
     ads = load_ads_config()
     n_part = len(sc.participants)
+    evaluation = "numpy" if lattice._lattice_c is None else "compiled (C)"
     console.print(f"scenario {sc.name}: {n_part} participants, world {ads.world_hz:g} Hz, "
-                  f"{sc.duration:g} s simulated per run, {args.repeats} runs each")
+                  f"{sc.duration:g} s simulated per run, {args.repeats} runs each; "
+                  f"lattice planner evaluation step: {evaluation}")
     # the per-module breakdown times every callback, which costs time itself: it is a run of
     # its own (also warming up caches), not one of the timed runs
     first = stack_speed(sc, True, seed=0, breakdown=True)
@@ -120,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     console.print(bt)
     if args.out:
         write_atomic(Path(args.out), json.dumps({"median_speed": med, "ratio_vs_highway": ratio,
-                                                 "recording_overhead": overhead, "runs": {
+                                                 "recording_overhead": overhead,
+                                                 "planner_evaluation": evaluation, "runs": {
                                                      "recording": rec, "no_recording": norec, "highway_v0": hw,
                                                  "breakdown": first}},
                                                 indent=2))
