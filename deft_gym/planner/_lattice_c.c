@@ -28,7 +28,8 @@
 #include <stdlib.h>
 #include <string.h>
 
-enum { /* per call: desired speed, reference line and lateral options; then planner constants */
+enum { /* per call: desired speed, reference line and lateral options; then planner constants
+        * (LatticePlanner._kernel_params fills them in this order) */
     P_V_DES, P_S_FIRST, P_VLIM_MIN, P_VLIM_MAX, P_BAND_LO, P_BAND_HI, P_W_LAT,
     P_W_SPEED_K, P_W_ACC, P_W_JERK, P_EGO_W2, P_EDGE, P_HARD_LAT, P_W_LAT_ACC, P_W_OBS, P_SOFT,
     P_LA, P_WA, P_LH, P_WH, P_BATCH, N_PARAMS
@@ -200,6 +201,10 @@ typedef struct {
 static const double *get_array(Buffers *bs, PyObject *o, int ndim, Py_ssize_t *shape,
                                const char *name)
 {
+    if (bs->n >= MAX_BUF) {
+        PyErr_SetString(PyExc_RuntimeError, "evaluate: more arrays than MAX_BUF");
+        return NULL;
+    }
     Py_buffer *v = &bs->b[bs->n];
     if (PyObject_GetBuffer(o, v, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return NULL;
     bs->n++;

@@ -245,7 +245,8 @@ class LatticePlanner(Planner):
         # bounding-circle radius of the ego grown by the hard buffers, plus the soft buffer
         self._reach_ego = math.hypot(la + p.lon_buffer_hard, wa + p.lat_buffer_hard) + p.lat_buffer_soft
         self._penalty = {"BRAKE": p.w_brake, "BLOCKED": p.w_blocked}
-        #: the compiled evaluation step (None: numpy); its parameters, per call (7) then constant
+        #: the compiled evaluation step (None: numpy); its parameters, per call (7) then constant,
+        #: in the order of the P_* enum in _lattice_c.c
         self.kernel = _lattice_c
         self._kernel_params = np.array(
             [0.0] * 7 + [p.w_speed * self._inv_k, self._w_acc, self._w_jerk, p.ego_width / 2, p.edge_margin,
