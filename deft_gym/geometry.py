@@ -116,12 +116,27 @@ class LaneGeom:
         s, d = self.frenet(np.array([x, y]))
         return float(s), float(d)
 
+    def frenet_list(self, xy: list[list[float]]) -> tuple[list[float], list[float]]:
+        """:meth:`frenet` of a few points ``[[x, y], ...]``, as lists: scalar math on a straight
+        lane (the same operations, without numpy's per-call overhead), numpy otherwise."""
+        if self.kind == "straight":
+            (sx, sy), (ux, uy), (lx, ly) = self._s0, self._dir, self._lat
+            delta = [(x - sx, y - sy) for x, y in xy]
+            return [dx * ux + dy * uy for dx, dy in delta], [dx * lx + dy * ly for dx, dy in delta]
+        if not xy:
+            return [], []
+        s, d = self.frenet(np.array(xy, dtype=float))
+        return s.tolist(), d.tolist()
+
     def frenet(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Lane coordinates ``(s, d)`` [m] of world positions ``xy`` (shape ``(..., 2)``)."""
         xy = np.asarray(xy, dtype=float)
         if self.kind == "straight":
-            delta = xy - self.start
-            return delta @ self.dir, delta @ self.lat
+            # written out, not ``delta @ self.dir``: a matrix product goes to BLAS, whose kernel
+            # (chosen per CPU) may fuse multiply-adds, so its last bit would depend on the machine
+            dx, dy = xy[..., 0] - self._s0[0], xy[..., 1] - self._s0[1]
+            (ux, uy), (lx, ly) = self._dir, self._lat
+            return dx * ux + dy * uy, dx * lx + dy * ly
         if self.kind == "circular":
             delta = xy - self.center
             phi = np.arctan2(delta[..., 1], delta[..., 0])
@@ -266,3 +281,18 @@ def box_gap(ax: np.ndarray, ay: np.ndarray, ah: np.ndarray, al: float | np.ndarr
     g3 = np.abs(dx * cb + dy * sb) - hbl - (hal * crel + haw * srel)
     g4 = np.abs(-dx * sb + dy * cb) - hbw - (hal * srel + haw * crel)
     return np.maximum(np.maximum(g1, g2), np.maximum(g3, g4))
+
+
+def box_gap_point(ax: float, ay: float, ah: float, al: float, aw: float,
+                  bx: float, by: float, bh: float, bl: float, bw: float) -> float:
+    """:func:`box_gap` of one pair of boxes in scalar math (no array overhead) [m]."""
+    dx, dy = bx - ax, by - ay
+    ca, sa, cb, sb = math.cos(ah), math.sin(ah), math.cos(bh), math.sin(bh)
+    crel = abs(ca * cb + sa * sb)
+    srel = abs(sa * cb - ca * sb)
+    hal, haw, hbl, hbw = al / 2, aw / 2, bl / 2, bw / 2
+    g1 = abs(dx * ca + dy * sa) - hal - (hbl * crel + hbw * srel)
+    g2 = abs(-dx * sa + dy * ca) - haw - (hbl * srel + hbw * crel)
+    g3 = abs(dx * cb + dy * sb) - hbl - (hal * crel + haw * srel)
+    g4 = abs(-dx * sb + dy * cb) - hbw - (hal * srel + haw * crel)
+    return max(g1, g2, g3, g4)

@@ -34,23 +34,32 @@ class JitterModel:
         self.config = config
         self.seed = os_seed() if seed is None else int(seed)
         self._rng = random.Random(self.seed)
-        self._lognormal_params: dict[Duration, tuple[float, float]] = {}
+        self._lognormal_params: dict[int, tuple[Duration, float, float | None]] = {}
         self.drops = 0
 
     def duration_ns(self, dist: Duration) -> int:
         """A processing (or dispatch) time [ns] drawn from ``dist``."""
-        if not self.config.enabled or dist.std_ms == 0.0:
+        # per distribution object, its lognormal parameters (looked up by identity: hashing a
+        # pydantic model hashes every field, on every draw)
+        params = self._lognormal_params.get(id(dist))
+        if params is None or params[0] is not dist:
+            params = self._lognormal_params[id(dist)] = (dist, *self._lognormal(dist))
+        _, mu, sigma = params
+        if sigma is None:
             return round(dist.mean_ms * _NS_PER_MS)
-        params = self._lognormal_params.get(dist)
-        if params is None:
-            var = math.log1p((dist.std_ms / dist.mean_ms) ** 2) if dist.mean_ms > 0 else 0.0
-            params = (math.log(max(dist.mean_ms, 1e-9)) - var / 2, math.sqrt(var))
-            self._lognormal_params[dist] = params
         rng = self._rng
-        ms = math.exp(rng.gauss(*params))  # lognormal (gauss caches its second Box-Muller draw)
+        ms = math.exp(rng.gauss(mu, sigma))  # lognormal (gauss caches its second Box-Muller draw)
         if dist.spike_prob and rng.random() < dist.spike_prob:
             ms *= dist.spike_factor
         return round(max(ms, dist.min_ms) * _NS_PER_MS)
+
+    def _lognormal(self, dist: Duration) -> tuple[float, float | None]:
+        """``(mu, sigma)`` of the lognormal with ``dist``'s mean and std; sigma None when the
+        duration is constant (jitter off, or no spread)."""
+        if not self.config.enabled or dist.std_ms == 0.0:
+            return 0.0, None
+        var = math.log1p((dist.std_ms / dist.mean_ms) ** 2) if dist.mean_ms > 0 else 0.0
+        return math.log(max(dist.mean_ms, 1e-9)) - var / 2, math.sqrt(var)
 
     def delivery_ns(self) -> int | None:
         """Delivery delay [ns] of one message to one subscriber, or None if it is dropped."""

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
 from highway_env.road.lane import AbstractLane
 from highway_env.road.road import LaneIndex, Road
 from highway_env.vehicle.objects import Landmark
@@ -28,7 +27,7 @@ class FastRoad(Road):
         self.tick = 0
         self._cache_tick = -1
         self._members: list[Any] = []
-        self._xy: np.ndarray = np.zeros((0, 2))
+        self._xy: list[list[float]] = []  # members' positions [m]
         self._index: dict[int, int] = {}
         self._lane_cache: dict[LaneIndex, tuple[list[float], list[bool]]] = {}
 
@@ -41,7 +40,7 @@ class FastRoad(Road):
             return
         self._members = [v for v in self.vehicles + self.objects if not isinstance(v, Landmark)]
         self._index = {id(m): i for i, m in enumerate(self._members)}
-        self._xy = np.array([v.position for v in self._members]) if self._members else np.zeros((0, 2))
+        self._xy = [[float(v.position[0]), float(v.position[1])] for v in self._members]
         self._lane_cache.clear()
         self._cache_tick = self.tick
 
@@ -52,11 +51,7 @@ class FastRoad(Road):
         out = self._lane_cache.get(lane_index)
         if out is None:
             geom = self.geoms[lane_index]
-            if len(self._xy):
-                s_a, lat_a = geom.frenet(self._xy)
-                s, lat = s_a.tolist(), lat_a.tolist()
-            else:
-                s, lat = [], []
+            s, lat = geom.frenet_list(self._xy)
             L = AbstractLane.VEHICLE_LENGTH
             half, end = geom.width / 2 + 1.0, geom.length + L
             on = [abs(d) <= half and -L <= s_v < end for s_v, d in zip(s, lat, strict=True)]

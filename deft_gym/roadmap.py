@@ -16,6 +16,7 @@ intersection env.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any, Literal
@@ -65,9 +66,11 @@ class MapInfo:
     junction_roads: set[tuple[str, str]] = field(default_factory=set)
 
 
-def _rot(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s], [s, c]])
+def _rot(angle: float) -> Callable[[list[float]], np.ndarray]:
+    """Rotation by ``angle`` [rad] about the origin, written out (a matrix product would go to
+    BLAS, whose CPU-specific kernels may fuse multiply-adds)."""
+    c, s = float(np.cos(angle)), float(np.sin(angle))
+    return lambda p: np.array([c * p[0] - s * p[1], s * p[0] + c * p[1]])
 
 
 def build_intersection(spec: MapSpec) -> MapInfo:
@@ -78,33 +81,33 @@ def build_intersection(spec: MapSpec) -> MapInfo:
     net = RoadNetwork()
     info = MapInfo(net)
     for c in range(4):
-        R = _rot(np.pi / 2 * c)
+        rotate = _rot(np.pi / 2 * c)
         for k in range(n_l):
             x = w / 2 + k * w
             left = CL if k == 0 else S
             right = CL if k == n_l - 1 else N
-            net.add_lane(f"o{c}", f"ir{c}", StraightLane(R @ [x, outer + L], R @ [x, outer],
+            net.add_lane(f"o{c}", f"ir{c}", StraightLane(rotate([x, outer + L]), rotate([x, outer]),
                                                           line_types=[left, right], speed_limit=v, width=w))
         for k in range(n_l):
             x = -(w / 2 + k * w)
             left = CL if k == 0 else S
             right = CL if k == n_l - 1 else N
-            net.add_lane(f"il{c}", f"o{c}", StraightLane(R @ [x, outer], R @ [x, outer + L],
+            net.add_lane(f"il{c}", f"o{c}", StraightLane(rotate([x, outer]), rotate([x, outer + L]),
                                                           line_types=[left, right], speed_limit=v, width=w))
         # straight through, lane k -> lane k of the opposite exit
         for k in range(n_l):
             x = w / 2 + k * w
-            net.add_lane(f"ir{c}", f"il{(c + 2) % 4}", StraightLane(R @ [x, outer], R @ [x, -outer],
+            net.add_lane(f"ir{c}", f"il{(c + 2) % 4}", StraightLane(rotate([x, outer]), rotate([x, -outer]),
                                                                     line_types=[N, N], speed_limit=v, width=w))
         # right turn from the outer lane into the outer exit lane
         xo = w / 2 + (n_l - 1) * w
         net.add_lane(f"ir{c}", f"il{(c - 1) % 4}",
-                     CircularLane(R @ [outer, outer], outer - xo, np.pi / 2 * c + np.pi,
+                     CircularLane(rotate([outer, outer]), outer - xo, np.pi / 2 * c + np.pi,
                                   np.pi / 2 * c + 1.5 * np.pi, clockwise=True,
                                   line_types=[N, N], speed_limit=v, width=w))
         # left turn from the inner lane into the inner exit lane
         net.add_lane(f"ir{c}", f"il{(c + 1) % 4}",
-                     CircularLane(R @ [-outer, outer], outer + w / 2, np.pi / 2 * c,
+                     CircularLane(rotate([-outer, outer]), outer + w / 2, np.pi / 2 * c,
                                   np.pi / 2 * c - np.pi / 2, clockwise=False,
                                   line_types=[N, N], speed_limit=v, width=w))
         for k in range(n_l):

@@ -15,7 +15,7 @@ import numpy as np
 import shapely
 from highway_env.vehicle.kinematics import Vehicle
 
-from deft_gym.geometry import box_gap
+from deft_gym.geometry import box_gap_point
 from deft_gym.participants import ReactiveVehicle, ScriptedVehicle, StaticObstacle, bicycle_step
 from deft_gym.road import FastRoad
 from deft_gym.roadmap import RoadMap
@@ -160,14 +160,16 @@ class World:
         present = self.present_participants()
         if not present:
             return
-        ex, ey = ego.position
+        ex, ey = float(ego.position[0]), float(ego.position[1])
+        eh = float(ego.heading)
         half_ego = ego.diagonal / 2
         # exact polygon distances only where they can lower the minimum (or be a collision):
-        # the bounding-circle gap is a lower bound of the polygon distance
+        # the bounding-circle gap, then the separating-axis gap, are lower bounds of the
+        # polygon distance (scalar math: they only decide which pairs get the exact distance)
         gaps = []
         for i, p in enumerate(present):
             px, py = p.obj.position
-            gaps.append((float(np.hypot(px - ex, py - ey)) - p.obj.diagonal / 2 - half_ego, i))
+            gaps.append((math.hypot(float(px) - ex, float(py) - ey) - p.obj.diagonal / 2 - half_ego, i))
         gaps.sort()
         ego_poly = None
         for gap, i in gaps:
@@ -175,9 +177,9 @@ class World:
                 break
             p = present[i]
             o = p.obj
-            if box_gap(ex, ey, ego.heading, ego.LENGTH, ego.WIDTH, o.position[0], o.position[1], o.heading,
-                       o.LENGTH, o.WIDTH) >= self.min_distance + 1e-9:
-                continue  # a tighter lower bound: the polygons cannot be closer than the minimum
+            if box_gap_point(ex, ey, eh, ego.LENGTH, ego.WIDTH, float(o.position[0]), float(o.position[1]),
+                             float(o.heading), o.LENGTH, o.WIDTH) >= self.min_distance + 1e-9:
+                continue  # the polygons cannot be closer than the minimum
             if ego_poly is None:
                 ego_poly = shapely.Polygon(ego.polygon())
             dist = ego_poly.distance(self._polygon(p))

@@ -476,7 +476,7 @@ class AdversaryEnv(gym.Env):
             dist = max(float(np.hypot(*rel)), 1e-3)
             vrel = np.array([o.speed * math.cos(o.heading) - ev * math.cos(eh),
                              o.speed * math.sin(o.heading) - ev * math.sin(eh)])
-            closing = -float(rel @ vrel) / dist
+            closing = -float(rel[0] * vrel[0] + rel[1] * vrel[1]) / dist
             ttc = max(gap, 0.0) / closing if closing > 0.1 else math.inf
             best = max(best, math.exp(-max(gap, 0.0) / 2.0), math.exp(-ttc / 2.0))
         return best
