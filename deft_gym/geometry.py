@@ -169,6 +169,7 @@ class ReferenceLine:
         self.geoms = geoms
         lengths = np.array([g.length for g in geoms])
         self.offsets = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
+        self._offsets: list[float] = self.offsets.tolist()
         self.length = float(lengths.sum())
         self.widths = np.array([g.width for g in geoms])
 
@@ -225,6 +226,28 @@ class ReferenceLine:
             if score < best[0]:
                 best = (score, s + float(self.offsets[k]), d)
         return best[1], best[2]
+
+    def frenet_list(self, xy: list[list[float]]) -> tuple[list[float], list[float]]:
+        """:meth:`frenet` of a few points ``[[x, y], ...]``, as lists: per lane
+        :meth:`LaneGeom.frenet_list`, then the same choice in scalar math (NaN handled as numpy
+        does: a NaN score never wins, ``np.maximum`` passes a NaN on)."""
+        if len(self.geoms) == 1:
+            return self.geoms[0].frenet_list(xy)
+        n = len(xy)
+        best_s, best_d, best_score = [0.0] * n, [0.0] * n, [math.inf] * n
+        last = len(self.geoms) - 1
+        for k, g in enumerate(self.geoms):
+            s_k, d_k = g.frenet_list(xy)
+            off = self._offsets[k]
+            length = g.length
+            for i in range(n):
+                s, d = s_k[i], d_k[i]
+                before = (-s if (-s > 0.0 or s != s) else 0.0) if k > 0 else 0.0
+                after = (s - length if (s - length > 0.0 or s != s) else 0.0) if k < last else 0.0
+                score = abs(d) + 2.0 * (before + after)
+                if score < best_score[i]:
+                    best_score[i], best_s[i], best_d[i] = score, s + off, d
+        return best_s, best_d
 
     def frenet(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(s, d)`` of world positions; each point goes to the piece that contains it

@@ -55,7 +55,7 @@ def test_box_gap_is_a_lower_bound_of_the_polygon_distance() -> None:
 
     import shapely
 
-    from deft_gym.geometry import box_gap
+    from deft_gym.geometry import box_gap, box_gap_point
 
     rng = np.random.default_rng(3)
     for _ in range(3000):
@@ -72,6 +72,9 @@ def test_box_gap_is_a_lower_bound_of_the_polygon_distance() -> None:
         gap = float(box_gap(*a.position, a.heading, a.LENGTH, a.WIDTH, *b.position, b.heading, b.LENGTH, b.WIDTH))
         assert gap <= exact + 1e-9
         assert (gap > 0) == (exact > 0)
+        scalar = box_gap_point(*a.position.tolist(), a.heading, a.LENGTH, a.WIDTH, *b.position.tolist(), b.heading,
+                               b.LENGTH, b.WIDTH)
+        assert scalar == pytest.approx(gap, abs=1e-12)
 
 
 def test_unwrap_shortcut_matches_np_unwrap_bitwise() -> None:
@@ -87,3 +90,72 @@ def test_unwrap_shortcut_matches_np_unwrap_bitwise() -> None:
             h[int(rng.integers(len(h)))] = np.nan
         want, got = np.unwrap(h), _unwrap(h)
         assert np.array_equal(want.view(np.int64), got.view(np.int64))  # identical bits, signed zeros too
+
+
+def _bits(a: object) -> bytes:
+    return np.asarray(a, dtype=float).tobytes()
+
+
+def test_control_trajectory_lists_match_the_numpy_path_bitwise() -> None:
+    """Control converts a plan with plain-float lists itself; it must give numpy's values."""
+    from deft_gym.modules.control import _float_lists, _numpy_trajectory, _well_formed
+
+    rng = np.random.default_rng(13)
+    taken = 0
+    for _ in range(1500):
+        n = int(rng.integers(1, 40))
+        tr = {k: (rng.normal(size=n) * 20).tolist() for k in ("x", "y", "v", "a")}
+        tr["t"] = np.cumsum(rng.uniform(0.0, 0.2, size=n)).tolist()
+        h = np.cumsum(rng.normal(size=n) * rng.choice([0.05, 1.0, 4.0]))
+        tr["heading"] = ((h + np.pi) % (2 * np.pi) - np.pi).tolist()
+        if rng.random() < 0.2:
+            tr["heading"][int(rng.integers(n))] = -0.0
+        if rng.random() < 0.1:
+            tr[str(rng.choice(["x", "heading", "t"]))][int(rng.integers(n))] = float("nan")
+        if rng.random() < 0.05 and n > 1:
+            tr["t"][-1] = tr["t"][0] - 1.0  # time going backwards
+        want, fast = _numpy_trajectory(tr)
+        got = _float_lists(tr)
+        assert got is not None
+        assert _well_formed(got) == fast
+        if fast:
+            taken += 1
+            assert set(got) == set(want)
+            for k in want:
+                assert _bits(got[k]) == _bits(want[k]), k
+    assert taken > 1000
+    # anything but equal-length lists of plain floats is left to numpy
+    assert _float_lists({"t": [0, 1], "x": [0.0, 1.0], "y": [0.0, 1.0], "v": [1.0, 1.0], "a": [0.0, 0.0],
+                         "heading": [0.0, 0.0]}) is None
+    assert _float_lists({"t": [0.0, 1.0], "x": [0.0], "y": [0.0, 1.0], "v": [1.0, 1.0], "a": [0.0, 0.0],
+                         "heading": [0.0, 0.0]}) is None
+
+
+def test_scalar_frenet_matches_numpy_bitwise() -> None:
+    """``frenet_list`` (scalar on straight lanes) gives ``frenet``'s bits, NaN and all, on single
+    lanes and on reference lines mixing straight and circular pieces."""
+    from highway_env.road.lane import CircularLane, StraightLane
+
+    from deft_gym.geometry import LaneGeom, ReferenceLine
+
+    rng = np.random.default_rng(21)
+    a = StraightLane([0.0, 0.0], [37.3, 21.9])  # diagonal: products are not exact
+    end = a.position(a.length, 0.0)
+    b = CircularLane(end + np.array([-30.0 * math.sin(a.heading), 30.0 * math.cos(a.heading)]), 30.0,
+                     a.heading - math.pi / 2, a.heading, clockwise=True)
+    c = StraightLane(b.position(b.length, 0.0), b.position(b.length, 0.0) + np.array([3.0, 55.0]))
+    geoms = [LaneGeom(lane) for lane in (a, b, c)]
+    lines = [ReferenceLine([("a", "b", 0)], geoms[:1]),
+             ReferenceLine([("a", "b", 0), ("b", "c", 0), ("c", "d", 0)], geoms)]
+    for _ in range(300):
+        pts = rng.normal(size=(int(rng.integers(0, 12)), 2)) * 40 + [30.0, 30.0]
+        if len(pts) and rng.random() < 0.2:
+            pts[int(rng.integers(len(pts))), int(rng.integers(2))] = np.nan
+        for g in geoms[:1]:
+            s, d = g.frenet(pts)
+            s_l, d_l = g.frenet_list(pts.tolist())
+            assert _bits(s_l) == _bits(s) and _bits(d_l) == _bits(d)
+        for line in lines:
+            s, d = line.frenet(pts)
+            s_l, d_l = line.frenet_list(pts.tolist())
+            assert _bits(s_l) == _bits(s) and _bits(d_l) == _bits(d)

@@ -8,6 +8,7 @@ answered with braking.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any
 
@@ -48,15 +49,11 @@ class ControlNode(Node):
         for the scalar look-ups; anything else takes numpy's path, with numpy's errors."""
         if msg.seq != self._cache_seq:
             tr = msg.payload["trajectory"]
-            arr = {k: np.asarray(tr[k], dtype=float) for k in ("t", "x", "y", "v", "a")}
-            arr["heading"] = _unwrap(np.asarray(tr["heading"], dtype=float))
-            seg = np.hypot(np.diff(arr["x"]), np.diff(arr["y"]))
-            arr["s"] = np.concatenate([[0.0], np.cumsum(seg)])
-            n = arr["t"].shape
-            self._fast = (all(a.ndim == 1 and a.shape == n for a in arr.values())
-                          and bool(np.isfinite(arr["t"]).all() and np.isfinite(arr["s"]).all())
-                          and bool((np.diff(arr["t"]) >= 0.0).all()))
-            self._tr = {k: a.tolist() for k, a in arr.items()} if self._fast else arr
+            lists = _float_lists(tr)  # the usual case, in plain floats (the same operations)
+            if lists is not None and _well_formed(lists):
+                self._tr, self._fast = lists, True
+            else:
+                self._tr, self._fast = _numpy_trajectory(tr)
             self._cache_seq = msg.seq
         return self._tr
 
@@ -114,6 +111,45 @@ def _unwrap(h: np.ndarray) -> np.ndarray:
         up[1:] += 0.0
         return up
     return np.unwrap(h)
+
+
+def _numpy_trajectory(tr: dict[str, Any]) -> tuple[dict[str, Any], bool]:
+    """The trajectory's columns as arrays, heading unwrapped, plus ``s`` (arc length); as plain
+    lists, and True, when they are well formed (see :func:`_well_formed`)."""
+    arr = {k: np.asarray(tr[k], dtype=float) for k in ("t", "x", "y", "v", "a")}
+    arr["heading"] = _unwrap(np.asarray(tr["heading"], dtype=float))
+    seg = np.hypot(np.diff(arr["x"]), np.diff(arr["y"]))
+    arr["s"] = np.concatenate([[0.0], np.cumsum(seg)])
+    n = arr["t"].shape
+    fast = (all(a.ndim == 1 and a.shape == n for a in arr.values())
+            and bool(np.isfinite(arr["t"]).all() and np.isfinite(arr["s"]).all())
+            and bool((np.diff(arr["t"]) >= 0.0).all()))
+    return ({k: a.tolist() for k, a in arr.items()} if fast else arr), fast
+
+
+def _float_lists(tr: dict[str, Any]) -> dict[str, list[float]] | None:
+    """The trajectory's columns as :func:`_numpy_trajectory` makes them, when every
+    column is a list of the same number of plain floats (else None): heading unwrapped, ``s`` the
+    running sum of ``np.hypot`` of the steps (``np.cumsum`` adds in order)."""
+    cols = {k: tr[k] for k in ("t", "x", "y", "v", "a", "heading")}
+    n = len(cols["t"]) if type(cols["t"]) is list else -1
+    if n < 1 or any(type(c) is not list or len(c) != n or set(map(type, c)) != {float} for c in cols.values()):
+        return None
+    h = cols["heading"]
+    if all(abs(b - a) < math.pi for a, b in itertools.pairwise(h)):
+        cols["heading"] = [h[0], *(v + 0.0 for v in h[1:])]  # as _unwrap: -0.0 becomes 0.0
+    else:
+        cols["heading"] = np.unwrap(np.array(h)).tolist()
+    seg = np.hypot(np.diff(cols["x"]), np.diff(cols["y"])).tolist()
+    cols["s"] = [0.0, *itertools.accumulate(seg)]
+    return cols
+
+
+def _well_formed(tr: dict[str, list[float]]) -> bool:
+    """Finite, non-decreasing times and finite arc lengths (what the scalar look-ups need)."""
+    t = tr["t"]
+    return (all(map(math.isfinite, t)) and all(map(math.isfinite, tr["s"]))
+            and all(b - a >= 0.0 for a, b in itertools.pairwise(t)))
 
 
 def _np_interp(x: float, xp: np.ndarray, fp: np.ndarray) -> float:

@@ -510,8 +510,9 @@ class LatticePlanner(Planner):
         if not any(near):
             return None
         # Frenet now and at the horizon (leaders, gaps, followers)
-        ends = np.ascontiguousarray(oxy[:, :, ::K - 1].transpose(1, 2, 0))  # (n, now/end, x/y)
-        sf, df = ref.line.frenet(ends)
+        ends = oxy[:, :, ::K - 1].transpose(1, 2, 0).reshape(-1, 2).tolist()  # (obstacle, now/end) x/y
+        sf_l, df_l = ref.line.frenet_list(ends)
+        sf, df = np.array(sf_l).reshape(n, 2), np.array(df_l).reshape(n, 2)
         phi = oh[:, ::K - 1] - _interp(sf, ref.s, ref.h)
         c, sn = np.abs(np.cos(phi)), np.abs(np.sin(phi))
         hl, hw = dims[:, :1], dims[:, 1:2]
