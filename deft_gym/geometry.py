@@ -73,6 +73,16 @@ class LaneGeom:
         h = np.interp(s, self.poly_s, self.poly_h)
         return np.stack([x - d * np.sin(h), y + d * np.cos(h)], axis=-1)
 
+    def xy_list(self, s: list[float], d: float) -> tuple[list[float], list[float]]:
+        """:meth:`xy` of a few stations ``s`` at one lateral offset ``d``, as lists ``(x, y)``:
+        scalar math on a straight lane (the same operations, in the same order), numpy otherwise."""
+        if self.kind == "straight":
+            (sx, sy), (ux, uy), (lx, ly) = self._s0, self._dir, self._lat
+            dx, dy = d * lx, d * ly
+            return [sx + v * ux + dx for v in s], [sy + v * uy + dy for v in s]
+        pts = self.xy(np.array(s, dtype=float), d)
+        return pts[:, 0].tolist(), pts[:, 1].tolist()
+
     def heading(self, s: np.ndarray) -> np.ndarray:
         """Lane heading [rad] at ``s``."""
         s = np.asarray(s, dtype=float)

@@ -132,8 +132,8 @@ def test_control_trajectory_lists_match_the_numpy_path_bitwise() -> None:
 
 
 def test_scalar_frenet_matches_numpy_bitwise() -> None:
-    """``frenet_list`` (scalar on straight lanes) gives ``frenet``'s bits, NaN and all, on single
-    lanes and on reference lines mixing straight and circular pieces."""
+    """``frenet_list`` and ``xy_list`` (scalar on straight lanes) give ``frenet``'s and ``xy``'s
+    bits, NaN and all, on single lanes and on reference lines mixing straight and circular pieces."""
     from highway_env.road.lane import CircularLane, StraightLane
 
     from deft_gym.geometry import LaneGeom, ReferenceLine
@@ -151,10 +151,14 @@ def test_scalar_frenet_matches_numpy_bitwise() -> None:
         pts = rng.normal(size=(int(rng.integers(0, 12)), 2)) * 40 + [30.0, 30.0]
         if len(pts) and rng.random() < 0.2:
             pts[int(rng.integers(len(pts))), int(rng.integers(2))] = np.nan
-        for g in geoms[:1]:
+        for g in geoms:
             s, d = g.frenet(pts)
             s_l, d_l = g.frenet_list(pts.tolist())
             assert _bits(s_l) == _bits(s) and _bits(d_l) == _bits(d)
+            st, off = (pts[:, 0] * 3.0).tolist(), float(rng.normal() * 2)
+            x_l, y_l = g.xy_list(st, off)
+            xy = g.xy(np.array(st), off).reshape(-1, 2)
+            assert _bits(x_l) == _bits(xy[:, 0]) and _bits(y_l) == _bits(xy[:, 1])
         for line in lines:
             s, d = line.frenet(pts)
             s_l, d_l = line.frenet_list(pts.tolist())

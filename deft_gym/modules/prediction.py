@@ -61,11 +61,12 @@ class PredictionNode(Node):
         else:
             lane, s, d = loc
             ref, const = self._chain(lane, s + dist[-1] + 5.0)
+            if const is not None:  # one straight lane: the heading is the same everywhere
+                xs, ys = ref.geoms[0].xy_list([s + v for v in dist.tolist()], d)
+                return {**base, "is_static": False, "x": xs, "y": ys, "heading": [const] * len(xs)}
             ss = s + dist
             pts = ref.xy(ss, d)
             xs, ys = pts[:, 0], pts[:, 1]
-            if const is not None:  # one straight lane: the heading is the same everywhere
-                return {**base, "is_static": False, "x": xs.tolist(), "y": ys.tolist(), "heading": [const] * len(ss)}
             hs = ref.heading(ss)
         return {**base, "is_static": False, "x": xs.tolist(), "y": ys.tolist(), "heading": wrap_angle(hs).tolist()}
 
