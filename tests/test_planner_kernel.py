@@ -122,3 +122,18 @@ def test_compiled_step_rejects_arrays_of_the_wrong_shape() -> None:
         kernel.evaluate(*args, *([None] * 11))
     with pytest.raises(TypeError, match="ref_x: expected a C-contiguous float64 array"):
         kernel.evaluate(z, z.astype(np.float32), *([None] * 18))
+
+
+@pytest.mark.parametrize("batch", [1, 64])
+def test_judging_batch_size_changes_no_result(recorded, monkeypatch, batch: int) -> None:
+    """Pairs are judged lazily in batches; the batch size (read per call by both paths) may
+    change the speed only, never the plan."""
+    for name, map_spec, frames in recorded[:4]:
+        compiled, numpy_only = _pair(map_spec)
+        default = load_planner(LATTICE, map_spec, {})
+        reference = [_outcome(default, f) for f in frames]
+        monkeypatch.setattr(lattice.LatticePlanner, "BATCH", batch)
+        for planner in (compiled, numpy_only):
+            got = [_outcome(planner, f) for f in frames]
+            assert got == reference, f"{name}: batch {batch}, {'numpy' if planner.kernel is None else 'C'}"
+        monkeypatch.undo()

@@ -245,8 +245,8 @@ class LatticePlanner(Planner):
         # bounding-circle radius of the ego grown by the hard buffers, plus the soft buffer
         self._reach_ego = math.hypot(la + p.lon_buffer_hard, wa + p.lat_buffer_hard) + p.lat_buffer_soft
         self._penalty = {"BRAKE": p.w_brake, "BLOCKED": p.w_blocked}
-        #: the compiled evaluation step (None: numpy); its parameters, per call (7) then constant,
-        #: in the order of the P_* enum in _lattice_c.c
+        #: the compiled evaluation step (None: numpy); its parameters, per call (7), constant, then
+        #: the batch size (set per call), in the order of the P_* enum in _lattice_c.c
         self.kernel = _lattice_c
         self._kernel_params = np.array(
             [0.0] * 7 + [p.w_speed * self._inv_k, self._w_acc, self._w_jerk, p.ego_width / 2, p.edge_margin,
@@ -722,6 +722,7 @@ class LatticePlanner(Planner):
         hyst = None if st.target_lane is None else lat.hysteresis(st.target_lane, st.offset, p.w_hysteresis)
         prm = self._kernel_params
         prm[:7] = v_des, ref.s_first, ref.vlim_min, ref.vlim_max, lat.band_lo, lat.band[1], lat.w_lat
+        prm[-1] = self.BATCH  # read per call, as the numpy path does
         li, pi, cost = kernel.evaluate(
             ref.s, ref.x, ref.y, ref.h, ref.k, ref.vlim, lon["sva"], lon["penalty"], lat_d, lat.target_d,
             lat.static_cost, c_route, hyst, walls if isinstance(walls, np.ndarray) else float(walls),
