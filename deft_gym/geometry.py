@@ -13,6 +13,7 @@ points down the screen), headings [rad] are measured from +x towards +y.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import shapely
@@ -300,32 +301,29 @@ def box_polygon(x: float, y: float, h: float, length: float, width: float) -> sh
     return shapely.Polygon(box_corners(np.array([x]), np.array([y]), np.array([h]), length, width)[0])
 
 
+def _axis_gaps(dx: Any, dy: Any, ca: Any, sa: Any, cb: Any, sb: Any, hal: Any, haw: Any, hbl: Any,
+               hbw: Any) -> tuple[Any, Any, Any, Any]:
+    """The separating-axis gaps [m] along both boxes' axes, from the centre offset ``(dx, dy)``,
+    each box's heading cos/sin and half length/width (plain operators: floats or arrays)."""
+    crel = abs(ca * cb + sa * sb)
+    srel = abs(sa * cb - ca * sb)
+    return (abs(dx * ca + dy * sa) - hal - (hbl * crel + hbw * srel),
+            abs(-dx * sa + dy * ca) - haw - (hbl * srel + hbw * crel),
+            abs(dx * cb + dy * sb) - hbl - (hal * crel + haw * srel),
+            abs(-dx * sb + dy * cb) - hbw - (hal * srel + haw * crel))
+
+
 def box_gap(ax: np.ndarray, ay: np.ndarray, ah: np.ndarray, al: float | np.ndarray, aw: float | np.ndarray,
             bx: np.ndarray, by: np.ndarray, bh: np.ndarray, bl: np.ndarray, bw: np.ndarray) -> np.ndarray:
     """Separating-axis gap [m] between oriented boxes (centre, heading, length, width),
     vectorised: > 0 apart, <= 0 overlapping. A lower bound of the true distance."""
-    dx, dy = bx - ax, by - ay
-    ca, sa, cb, sb = np.cos(ah), np.sin(ah), np.cos(bh), np.sin(bh)
-    crel = np.abs(ca * cb + sa * sb)
-    srel = np.abs(sa * cb - ca * sb)
-    hal, haw, hbl, hbw = np.asarray(al) / 2, np.asarray(aw) / 2, np.asarray(bl) / 2, np.asarray(bw) / 2
-    g1 = np.abs(dx * ca + dy * sa) - hal - (hbl * crel + hbw * srel)
-    g2 = np.abs(-dx * sa + dy * ca) - haw - (hbl * srel + hbw * crel)
-    g3 = np.abs(dx * cb + dy * sb) - hbl - (hal * crel + haw * srel)
-    g4 = np.abs(-dx * sb + dy * cb) - hbw - (hal * srel + haw * crel)
+    g1, g2, g3, g4 = _axis_gaps(bx - ax, by - ay, np.cos(ah), np.sin(ah), np.cos(bh), np.sin(bh),
+                                np.asarray(al) / 2, np.asarray(aw) / 2, np.asarray(bl) / 2, np.asarray(bw) / 2)
     return np.maximum(np.maximum(g1, g2), np.maximum(g3, g4))
 
 
 def box_gap_point(ax: float, ay: float, ah: float, al: float, aw: float,
                   bx: float, by: float, bh: float, bl: float, bw: float) -> float:
     """:func:`box_gap` of one pair of boxes in scalar math (no array overhead) [m]."""
-    dx, dy = bx - ax, by - ay
-    ca, sa, cb, sb = math.cos(ah), math.sin(ah), math.cos(bh), math.sin(bh)
-    crel = abs(ca * cb + sa * sb)
-    srel = abs(sa * cb - ca * sb)
-    hal, haw, hbl, hbw = al / 2, aw / 2, bl / 2, bw / 2
-    g1 = abs(dx * ca + dy * sa) - hal - (hbl * crel + hbw * srel)
-    g2 = abs(-dx * sa + dy * ca) - haw - (hbl * srel + hbw * crel)
-    g3 = abs(dx * cb + dy * sb) - hbl - (hal * crel + haw * srel)
-    g4 = abs(-dx * sb + dy * cb) - hbw - (hal * srel + haw * crel)
-    return max(g1, g2, g3, g4)
+    return max(_axis_gaps(bx - ax, by - ay, math.cos(ah), math.sin(ah), math.cos(bh), math.sin(bh),
+                          al / 2, aw / 2, bl / 2, bw / 2))

@@ -62,7 +62,7 @@ from deft_gym.envs.vehicles import (
     window_feasible,
 )
 from deft_gym.feasible import FeasibleConfig, Layout, Placed
-from deft_gym.geometry import box_gap
+from deft_gym.geometry import box_gap, box_gap_point
 from deft_gym.nods import EGO_LENGTH, EGO_WIDTH
 from deft_gym.participants import SIZES
 from deft_gym.scenario import with_participants
@@ -469,9 +469,8 @@ class AdversaryEnv(gym.Env):
             if p.id not in self.added_ids:
                 continue
             o = p.obj
-            gap = float(box_gap(np.array(ex), np.array(ey), np.array(eh), EGO_LENGTH, EGO_WIDTH,
-                                np.array(o.position[0]), np.array(o.position[1]), np.array(o.heading),
-                                np.array(o.LENGTH), np.array(o.WIDTH)))
+            gap = box_gap_point(ex, ey, eh, EGO_LENGTH, EGO_WIDTH, float(o.position[0]), float(o.position[1]),
+                                float(o.heading), o.LENGTH, o.WIDTH)
             rel = np.array([o.position[0] - ex, o.position[1] - ey])
             dist = max(float(np.hypot(*rel)), 1e-3)
             vrel = np.array([o.speed * math.cos(o.heading) - ev * math.cos(eh),
