@@ -512,13 +512,13 @@ class LatticePlanner(Planner):
         # Frenet now and at the horizon (leaders, gaps, followers)
         ends = oxy[:, :, ::K - 1].transpose(1, 2, 0).reshape(-1, 2).tolist()  # (obstacle, now/end) x/y
         sf_l, df_l = ref.line.frenet_list(ends)
-        sf, df = np.array(sf_l).reshape(n, 2), np.array(df_l).reshape(n, 2)
+        sf = np.array(sf_l).reshape(n, 2)
         phi = oh[:, ::K - 1] - _interp(sf, ref.s, ref.h)
         c, sn = np.abs(np.cos(phi)), np.abs(np.sin(phi))
         hl, hw = dims[:, :1], dims[:, 1:2]
         fes = hl * c + hw * sn
         fed0 = hl[:, 0] * sn[:, 0] + hw[:, 0] * c[:, 0]
-        fs_l, fes_l, fd0_l = sf.tolist(), fes.tolist(), df[:, 0].tolist()
+        fs_l, fes_l, fd0_l = sf.tolist(), fes.tolist(), df_l[0::2]  # d now: the even points
         # a follower in the ego's own lane is responsible for keeping its distance
         behind = s0 - self.p.ego_length / 2
         keep = [o for o in range(n) if near[o] and not (fs_l[o][0] + fes_l[o][0] < behind
