@@ -5,6 +5,12 @@ records ``deft_gym.episode`` (scenario, seeds, configuration; written first) and
 ``deft_gym.outcome`` (written last). It is written to ``<name>.tmp`` and renamed when complete,
 so a finished log is never partial; a crashed run leaves the ``.tmp`` for inspection.
 
+Messages are encoded when published and written by a recorder process of their own
+(:mod:`deft_gym.recorder_worker`), as Apollo's ``cyber_recorder`` is a process of its own: the
+MCAP writer's per-message Python then runs beside the simulation instead of inside it. Set
+``DEFT_GYM_RECORDER=inline`` (or pass ``background=False``) to write in the simulation's
+process; both write the same bytes.
+
 The truth file (``truth.jsonl``) lists, per planning output, the sequence numbers of the
 messages the planner actually consumed and its frame time. It is for measuring extraction
 accuracy only.
@@ -12,18 +18,25 @@ accuracy only.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import itertools
 import json
 import os
+import subprocess
+import sys
+import threading
 from pathlib import Path
 from typing import Any
 
-from mcap.writer import CompressionType, Writer
-
+from deft_gym import recorder_worker
 from deft_gym.codec import encode
 from deft_gym.messages import SCHEMAS, Message
+from deft_gym.recorder_worker import Entry, EpisodeLog, read_frame, write_frame
 
 EPISODE_METADATA = "deft_gym.episode"
 OUTCOME_METADATA = "deft_gym.outcome"
+RECORDER_ENV = "DEFT_GYM_RECORDER"
 
 
 def _meta(values: dict[str, Any]) -> dict[str, str]:
@@ -31,81 +44,154 @@ def _meta(values: dict[str, Any]) -> dict[str, str]:
     return {k: v if isinstance(v, str) else json.dumps(v, sort_keys=True) for k, v in values.items()}
 
 
+class RecorderError(RuntimeError):
+    """The recorder process could not write a log (or is gone)."""
+
+
+class RecorderProcess:
+    """This process's recorder process: started on first use, shared by all its logs, replaced
+    after a fork (a forked child never writes to its parent's pipe) or after it died."""
+
+    _current: RecorderProcess | None = None
+
+    @classmethod
+    def get(cls) -> RecorderProcess:
+        """The running recorder process of this process (started if needed)."""
+        cur = cls._current
+        if cur is None or cur.pid != os.getpid() or cur.proc.poll() is not None:
+            if cur is not None:
+                cur.stop()
+            cur = cls._current = cls()
+        return cur
+
+    def __init__(self) -> None:
+        self.pid = os.getpid()
+        self.proc = subprocess.Popen([sys.executable, recorder_worker.__file__], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, close_fds=True)
+        self._ids = itertools.count(1)
+        self._lock = threading.Lock()
+        atexit.register(self.stop)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """End the recorder process (its open logs stay ``.tmp``), wait for it, close the pipes."""
+        if self.pid != os.getpid():
+            return
+        for pipe in (self.proc.stdin, self.proc.stdout):
+            with contextlib.suppress(OSError):  # unsent data of a process that is gone
+                pipe.close()
+        try:
+            self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+    def new_id(self) -> int:
+        """A log id not used before in this recorder process."""
+        return next(self._ids)
+
+    def send(self, *cmd: Any) -> None:
+        """Send a command without waiting."""
+        with self._lock:
+            self._send(cmd)
+
+    def request(self, *cmd: Any) -> tuple[Any, ...]:
+        """Send a command and wait for its answer; an ``error`` answer raises :class:`RecorderError`."""
+        with self._lock:
+            self._send(cmd)
+            reply = read_frame(self.proc.stdout)
+        if reply is None:
+            raise RecorderError(f"the recorder process exited (code {self.proc.wait()}) before answering {cmd[0]!r}")
+        if reply[0] == "error":
+            raise RecorderError(reply[1])
+        return reply
+
+    def _send(self, cmd: tuple[Any, ...]) -> None:
+        try:
+            write_frame(self.proc.stdin, cmd)
+        except (BrokenPipeError, ValueError) as exc:
+            raise RecorderError(f"the recorder process is gone (code {self.proc.poll()})") from exc
+
+
 class McapRecorder:
-    """A bus tap writing every message to an MCAP file.
+    """A bus tap writing every message to an MCAP episode log.
 
     Each message is encoded when it is published (so the log holds the payload as it was
-    then) and handed to the MCAP writer in batches of :attr:`BATCH`: the writer's per-message
-    Python code costs less than half as much in a tight loop as interleaved with the modules.
+    then) and handed on in batches of :attr:`BATCH` to the log: in the recorder process
+    (``background``, the default unless ``DEFT_GYM_RECORDER=inline``) or in this one.
+    :meth:`close` returns once the log is complete and in place, and raises
+    :class:`RecorderError` if it could not be written.
     """
 
     BATCH = 256
 
     def __init__(self, path: Path | str, topics: dict[str, str], metadata: dict[str, Any],
-                 compress: bool = False) -> None:
+                 compress: bool = False, background: bool | None = None) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.path.with_name(self.path.name + ".tmp")
-        self._file = open(self._tmp, "wb", buffering=1 << 20)  # noqa: SIM115 - closed in close()
-        # Unchunked by default: ~3 us per message instead of ~10 us for indexed zstd chunks
-        # (readers scan such files linearly); ``compress`` trades speed for ~5x smaller files.
-        if compress:
-            self.writer = Writer(self._file, compression=CompressionType.ZSTD)
+        if background is None:
+            background = os.environ.get(RECORDER_ENV, "process") != "inline"
+        channels = [(topic, role, SCHEMAS[role]["title"], json.dumps(SCHEMAS[role]).encode())
+                    for role, topic in topics.items()]
+        args = (str(self.path), channels, EPISODE_METADATA, _meta(metadata), compress)
+        self._log: EpisodeLog | None = None
+        self._proc: RecorderProcess | None = None
+        if background:
+            self._proc = RecorderProcess.get()
+            self._id = self._proc.new_id()
+            self._request("open", *args)
         else:
-            self.writer = Writer(self._file, use_chunking=False, compression=CompressionType.NONE)
-        self.writer.start(profile="", library="deft_gym")
-        self._channels: dict[str, int] = {}
-        for role, topic in topics.items():
-            schema = SCHEMAS[role]
-            sid = self.writer.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
-            self._channels[topic] = self.writer.register_channel(topic, "json", sid, {"role": role})
-        self.writer.add_metadata(EPISODE_METADATA, _meta(metadata))
+            self._log = EpisodeLog(*args)
         self.count = 0
         self.closed = False
-        self._pending: list[tuple[int, int, bytes, int]] = []
+        self.process_seconds = 0.0  # CPU time the recorder process spent on this log (after close)
+        self._pending: list[Entry] = []
 
-    def add_metadata(self, name: str, values: dict[str, Any]) -> None:
-        """Add a metadata record (values that are not strings are JSON-encoded)."""
-        self.flush()
-        self.writer.add_metadata(name, _meta(values))
-
-    def channel(self, topic: str) -> int:
-        """Channel id of a topic; topics outside the schema set get a schemaless channel."""
-        cid = self._channels.get(topic)
-        if cid is None:
-            self.flush()  # the log keeps publish order around the new channel record
-            cid = self.writer.register_channel(topic, "json", 0, {})
-            self._channels[topic] = cid
-        return cid
+    def _request(self, op: str, *args: Any, wait: bool = True) -> tuple[Any, ...] | None:
+        """A command about this log to the recorder process; its errors name the log."""
+        try:
+            if wait:
+                return self._proc.request(op, self._id, *args)
+            self._proc.send(op, self._id, *args)
+            return None
+        except RecorderError as exc:
+            raise RecorderError(f"MCAP log {self.path}: {exc}") from None
 
     def __call__(self, msg: Message) -> None:
-        cid = self._channels.get(msg.topic)
-        if cid is None:
-            cid = self.channel(msg.topic)
         pending = self._pending
-        pending.append((cid, msg.publish_ns, encode(msg.payload), msg.seq))
+        pending.append((msg.topic, msg.publish_ns, encode(msg.payload), msg.seq))
         self.count += 1
         if len(pending) >= self.BATCH:
             self.flush()
 
     def flush(self) -> None:
-        """Hand the encoded messages held back to the MCAP writer (in publish order)."""
-        add = self.writer.add_message
-        for cid, ns, data, seq in self._pending:
-            add(cid, ns, data, ns, seq)
-        self._pending.clear()
+        """Hand the encoded messages held back to the log (in publish order)."""
+        if not self._pending:
+            return
+        if self._proc is not None:
+            self._request("write", self._pending, wait=False)
+        else:
+            self._log.write(self._pending)
+        self._pending = []
+
+    def add_metadata(self, name: str, values: dict[str, Any]) -> None:
+        """Add a metadata record (values that are not strings are JSON-encoded)."""
+        self.flush()
+        if self._proc is not None:
+            self._request("meta", name, _meta(values), wait=False)
+        else:
+            self._log.add_metadata(name, _meta(values))
 
     def close(self, outcome: dict[str, Any] | None = None) -> Path:
         """Write the outcome record, finish the file and move it into place."""
         if self.closed:
             return self.path
-        self.flush()
-        if outcome is not None:
-            self.writer.add_metadata(OUTCOME_METADATA, _meta(outcome))
-        self.writer.finish()
-        self._file.close()
-        os.replace(self._tmp, self.path)
         self.closed = True
+        self.flush()
+        args = (OUTCOME_METADATA, _meta(outcome)) if outcome is not None else (None, None)
+        if self._proc is not None:
+            _, _, self.process_seconds = self._request("close", *args)
+        else:
+            self._log.close(*args)
         return self.path
 
 

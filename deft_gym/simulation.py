@@ -107,7 +107,8 @@ class Simulation:
 
     def __init__(self, scenario: Scenario | str | Path, ads: AdsConfig | None = None,
                  jitter_seed: int | None = None, out_dir: Path | str | None = None,
-                 keep_planning: bool = True, compress: bool = False) -> None:
+                 keep_planning: bool = True, compress: bool = False,
+                 recorder_process: bool | None = None) -> None:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.ads = ads or load_ads_config()
         sc, ads = self.scenario, self.ads
@@ -145,7 +146,8 @@ class Simulation:
         self.out_dir = Path(out_dir) if out_dir else None
         self.recorder: McapRecorder | None = None
         if self.out_dir is not None:
-            self.recorder = McapRecorder(self.out_dir / "episode.mcap", topics, self.metadata(), compress=compress)
+            self.recorder = McapRecorder(self.out_dir / "episode.mcap", topics, self.metadata(), compress=compress,
+                                         background=recorder_process)
             self.bus.taps.append(self.recorder)
         self.added: list[dict[str, Any]] = []
         self._wall = 0.0

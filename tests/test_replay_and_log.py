@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from mcap.reader import make_reader
 
 from deft_gym.messages import DEFAULT_TOPICS
@@ -53,14 +54,16 @@ def test_truth_file_names_logged_messages(lane_follow_log) -> None:
                 assert logged[(topic, seq)] <= rec["frame_ns"] <= rec["publish_ns"]
 
 
-def test_recorder_keeps_publish_order_across_batches(tmp_path: Path, monkeypatch) -> None:
+@pytest.mark.parametrize("background", [True, False], ids=["recorder-process", "inline"])
+def test_recorder_keeps_publish_order_across_batches(tmp_path: Path, monkeypatch, background: bool) -> None:
     """Messages handed to the writer in batches keep publish order around metadata and a
-    channel registered mid-run, and hold the payload as it was when published."""
+    channel registered mid-run, and hold the payload as it was when published (in the
+    recorder process and in this one)."""
     from deft_gym.messages import Message
     from deft_gym.recorder import McapRecorder
 
     monkeypatch.setattr(McapRecorder, "BATCH", 3)
-    rec = McapRecorder(tmp_path / "x.mcap", {"control": DEFAULT_TOPICS["control"]}, {"k": 1})
+    rec = McapRecorder(tmp_path / "x.mcap", {"control": DEFAULT_TOPICS["control"]}, {"k": 1}, background=background)
     sent = []
     for i in range(8):
         topic = DEFAULT_TOPICS["control"] if i % 3 else "/extra/topic"

@@ -79,9 +79,10 @@ def planner_fingerprint(cls_path: str) -> str:
     that the planner it was extracted for has changed."""
     import hashlib
     import inspect
+    from pathlib import Path
 
     src = inspect.getsourcefile(import_object(cls_path))
-    return hashlib.sha256(open(src, "rb").read()).hexdigest() if src else ""
+    return hashlib.sha256(Path(src).read_bytes()).hexdigest() if src else ""
 
 
 def load_planner(cls_path: str, map_spec: Mapping[str, Any], params: Mapping[str, Any] | None = None) -> Planner:
