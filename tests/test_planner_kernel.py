@@ -137,3 +137,86 @@ def test_judging_batch_size_changes_no_result(recorded, monkeypatch, batch: int)
             got = [_outcome(planner, f) for f in frames]
             assert got == reference, f"{name}: batch {batch}, {'numpy' if planner.kernel is None else 'C'}"
         monkeypatch.undo()
+
+
+ODD_TYPES = [1, True, None, "1.0", [1.0], (1.0, 2.0)]
+
+
+def _odd_type(frame: Frame, rng: np.random.Generator) -> Frame | None:
+    """The frame with one prediction value of another type than a float (or a point list of
+    another length, or a key gone), or None without moving obstacles."""
+    inputs = copy.deepcopy(dict(frame.inputs))
+    moving = [ob for ob in (inputs.get("prediction") or {}).get("obstacles", []) if len(ob["x"]) > 1]
+    if not moving:
+        return None
+    ob = moving[int(rng.integers(len(moving)))]
+    key = ("x", "y", "heading", "length", "width", "v", "t0")[int(rng.integers(7))]
+    kind = int(rng.integers(4))
+    if kind == 0 and key in ("x", "y", "heading"):
+        ob[key] = ob[key][:-1] if rng.integers(2) else tuple(ob[key])  # shorter, or a tuple
+    elif kind == 1:
+        ob.pop(key, None)
+    elif key in ("x", "y", "heading"):
+        ob[key][int(rng.integers(len(ob[key])))] = ODD_TYPES[int(rng.integers(len(ODD_TYPES)))]
+    else:
+        ob[key] = ODD_TYPES[int(rng.integers(len(ODD_TYPES)))]
+    return Frame(frame.time, inputs)
+
+
+def test_obstacle_resampling_matches_numpy_on_odd_types(recorded) -> None:
+    """The compiled resampling takes only lists of Python floats; anything else goes to the
+    numpy lines, so both planners give the same plan or the same error."""
+    rng = np.random.default_rng(5)
+    outcomes = {"planned": 0, "error": 0}
+    taken = []
+
+    class Counting:  # the compiled module, counting the groups it resampled
+        evaluate = staticmethod(_kernel().evaluate)
+
+        @staticmethod
+        def resample(*args):
+            taken.append(_kernel().resample(*args))
+            return taken[-1]
+
+    for name, map_spec, frames in recorded:
+        compiled, numpy_only = _pair(map_spec)
+        compiled.kernel = Counting
+        for i, frame in enumerate(frames):
+            odd = _odd_type(frame, rng) if i % 2 == 0 else None
+            frame = odd or frame
+            a, b = _outcome(compiled, frame), _outcome(numpy_only, frame)
+            assert a == b, f"{name}: frame {i} at t={frame.time}"
+            outcomes["planned" if isinstance(a, bytes) else "error"] += 1
+    assert outcomes["planned"] > 500 and outcomes["error"] > 0, outcomes
+    assert taken.count(True) > 500 and taken.count(False) > 50  # both ways were taken
+
+
+def test_resample_takes_only_well_formed_obstacles() -> None:
+    kernel = _kernel()
+    tq = np.array([0.0, 0.05, 0.25, 0.5, 10.0])
+    ob = {"x": [0.0, 1.0, 2.0], "y": [5.0, 5.5, 6.0], "heading": [0.0, 0.25, 0.5], "length": 4.0, "width": 2.0,
+          "v": 3.0}
+
+    def run(o: dict) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray]:
+        oxy, oh, dims = np.zeros((2, 2, 5)), np.zeros((2, 5)), np.zeros((2, 3))
+        ok = kernel.resample([o], tq, 0.0, 1.0 / 0.2, 3, 1, oxy, oh, dims)
+        return ok, oxy[:, 1], oh[1], dims[1]
+
+    ok, xy, h, d = run(ob)
+    assert ok
+    f = np.minimum(np.maximum(tq / 0.2, 0.0), 2.0)  # 0, 0.25, 1.25, 2, 2
+    np.testing.assert_array_equal(xy[0], [0.0, 0.25, 1.25, 2.0, 2.0])
+    np.testing.assert_array_equal(xy[1], [5.0, 5.125, 5.625, 6.0, 6.0])
+    np.testing.assert_array_equal(h, np.array([0.0, 0.25, 0.5])[np.rint(f).astype(int)])  # 1.25 -> 1, 2.5 -> 2
+    np.testing.assert_array_equal(d, [2.0, 1.0, 3.0])
+    ok, _, _, d = run({k: v for k, v in ob.items() if k != "v"})
+    assert ok and d[2] == 0.0  # no speed: 0, as ob.get("v", 0.0)
+    for odd in ({**ob, "x": [0, 1.0, 2.0]}, {**ob, "y": [5.0, 5.5]}, {**ob, "heading": (0.0, 0.25, 0.5)},
+                {**ob, "length": 4}, {**ob, "v": None}, {k: v for k, v in ob.items() if k != "width"}):
+        assert not run(odd)[0], odd
+    oxy, oh, dims = np.zeros((2, 2, 5)), np.zeros((2, 5)), np.zeros((2, 3))
+    assert not kernel.resample([ob], tq, math.nan, 5.0, 3, 0, oxy, oh, dims)  # NaN time: the numpy lines decide
+    with pytest.raises(ValueError, match="rows out of range"):
+        kernel.resample([ob, ob], tq, 0.0, 5.0, 3, 1, oxy, oh, dims)
+    with pytest.raises(ValueError, match="oh: dimension 1 is 4, expected 5"):
+        kernel.resample([ob], tq, 0.0, 5.0, 3, 0, oxy, np.zeros((2, 4)), dims)

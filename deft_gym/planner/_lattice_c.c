@@ -198,15 +198,15 @@ typedef struct {
     int n;
 } Buffers;
 
-static const double *get_array(Buffers *bs, PyObject *o, int ndim, Py_ssize_t *shape,
-                               const char *name)
+static double *get_array_flags(Buffers *bs, PyObject *o, int ndim, Py_ssize_t *shape,
+                                const char *name, int flags)
 {
     if (bs->n >= MAX_BUF) {
-        PyErr_SetString(PyExc_RuntimeError, "evaluate: more arrays than MAX_BUF");
+        PyErr_SetString(PyExc_RuntimeError, "more arrays than MAX_BUF");
         return NULL;
     }
     Py_buffer *v = &bs->b[bs->n];
-    if (PyObject_GetBuffer(o, v, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return NULL;
+    if (PyObject_GetBuffer(o, v, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | flags) < 0) return NULL;
     bs->n++;
     if (v->itemsize != 8 || strcmp(v->format, "d") != 0 || v->ndim != ndim) {
         PyErr_Format(PyExc_TypeError, "%s: expected a C-contiguous float64 array of %d dimensions",
@@ -221,7 +221,13 @@ static const double *get_array(Buffers *bs, PyObject *o, int ndim, Py_ssize_t *s
             return NULL;
         }
     }
-    return (const double *)v->buf;
+    return (double *)v->buf;
+}
+
+static const double *get_array(Buffers *bs, PyObject *o, int ndim, Py_ssize_t *shape,
+                               const char *name)
+{
+    return get_array_flags(bs, o, ndim, shape, name, 0);
 }
 
 static void release(Buffers *bs)
@@ -510,9 +516,137 @@ done:
     return result;
 }
 
+
+/* -- predicted obstacles at the planning times (lattice._obstacles, one group) ------------- */
+static PyObject *KEY_X, *KEY_Y, *KEY_HEADING, *KEY_LENGTH, *KEY_WIDTH, *KEY_V;
+
+/* the doubles of a list of exactly m Python floats (no ints, no bools), or NULL */
+static PyObject *float_list(PyObject *ob, PyObject *key, Py_ssize_t m)
+{
+    PyObject *l = PyDict_GetItemWithError(ob, key);
+    if (!l || !PyList_CheckExact(l) || PyList_GET_SIZE(l) != m) return NULL;
+    for (Py_ssize_t i = 0; i < m; i++)
+        if (!PyFloat_CheckExact(PyList_GET_ITEM(l, i))) return NULL;
+    return l;
+}
+
+static int float_item(PyObject *ob, PyObject *key, int optional, double *out)
+{
+    PyObject *v = PyDict_GetItemWithError(ob, key);
+    if (!v) {
+        if (PyErr_Occurred() || !optional) return 0;
+        *out = 0.0;
+        return 1;
+    }
+    if (!PyFloat_CheckExact(v)) return 0;
+    *out = PyFloat_AS_DOUBLE(v);
+    return 1;
+}
+
+#define AT(l, i) PyFloat_AS_DOUBLE(PyList_GET_ITEM(l, i))
+
+/* resample(obs, tq, ot0, inv_dt, m, j, oxy, oh, dims) -> bool
+ *
+ * The moving obstacles `obs` (dicts sharing the time base t0 = ot0, dt = 1 / inv_dt and m
+ * prediction points) at the planning times `tq` (K,), written to rows j.. of oxy (2,N,K),
+ * oh (N,K) and dims (N,3), as _obstacles' numpy lines do: linear interpolation of x and y,
+ * heading of the nearest point (round half to even), held at both ends; half length, half width,
+ * speed. Returns False, having maybe written part of those rows, when the input is not the
+ * well-formed case (an obstacle that is not a dict, a value that is not a Python float, a list
+ * of another length, a NaN time): the numpy lines then run and raise or compute what they do. */
+static PyObject *resample(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 9) {
+        PyErr_SetString(PyExc_TypeError, "resample: expected 9 arguments");
+        return NULL;
+    }
+    PyObject *obs = args[0];
+    double ot0 = PyFloat_AsDouble(args[2]), inv = PyFloat_AsDouble(args[3]);
+    Py_ssize_t m = PyLong_AsSsize_t(args[4]), j = PyLong_AsSsize_t(args[5]);
+    if (PyErr_Occurred()) return NULL;
+    if (!PyList_CheckExact(obs)) {
+        PyErr_SetString(PyExc_TypeError, "resample: obs must be a list");
+        return NULL;
+    }
+    Buffers bs = {.n = 0};
+    PyObject *result = NULL;
+    Py_ssize_t K = -1, N = -1;
+    Py_ssize_t sh_tq[1] = {-1};
+    const double *tq = get_array(&bs, args[1], 1, sh_tq, "tq");
+    if (!tq) goto done;
+    K = sh_tq[0];
+    Py_ssize_t sh_xy[3] = {2, -1, K};
+    double *oxy = get_array_flags(&bs, args[6], 3, sh_xy, "oxy", PyBUF_WRITABLE);
+    if (!oxy) goto done;
+    N = sh_xy[1];
+    Py_ssize_t sh_h[2] = {N, K}, sh_d[2] = {N, 3};
+    double *oh = get_array_flags(&bs, args[7], 2, sh_h, "oh", PyBUF_WRITABLE);
+    double *dims = oh ? get_array_flags(&bs, args[8], 2, sh_d, "dims", PyBUF_WRITABLE) : NULL;
+    if (!dims) goto done;
+    Py_ssize_t n = PyList_GET_SIZE(obs);
+    if (j < 0 || j + n > N || m < 2) {
+        PyErr_SetString(PyExc_ValueError, "resample: rows out of range or fewer than 2 points");
+        goto done;
+    }
+    result = Py_False;
+    Py_ssize_t *i0 = PyMem_Malloc(sizeof(Py_ssize_t) * (size_t)(2 * (K > 0 ? K : 1)));
+    double *w = PyMem_Malloc(sizeof(double) * (size_t)(K > 0 ? K : 1));
+    if (!i0 || !w) {
+        PyMem_Free(i0);
+        PyMem_Free(w);
+        result = PyErr_NoMemory();
+        goto done;
+    }
+    Py_ssize_t *ih = i0 + K;
+    double last = (double)m - 1.0;
+    for (Py_ssize_t k = 0; k < K; k++) {
+        /* f = minimum(maximum((tq - t0) * (1 / dt), 0), m - 1); i = minimum(int64(f), m - 2) */
+        double f = npmin(npmax((tq[k] - ot0) * inv, 0.0), last);
+        if (isnan(f)) goto fallback;
+        Py_ssize_t i = (Py_ssize_t)f;
+        i0[k] = i < m - 2 ? i : m - 2;
+        w[k] = f - (double)i0[k];
+        ih[k] = (Py_ssize_t)nearbyint(f);
+    }
+    for (Py_ssize_t o = 0; o < n; o++) {
+        PyObject *ob = PyList_GET_ITEM(obs, o);
+        if (!PyDict_CheckExact(ob)) goto fallback;
+        PyObject *X = float_list(ob, KEY_X, m), *Y = X ? float_list(ob, KEY_Y, m) : NULL;
+        PyObject *H = Y ? float_list(ob, KEY_HEADING, m) : NULL;
+        double len, wid, v;
+        if (!H || !float_item(ob, KEY_LENGTH, 0, &len) || !float_item(ob, KEY_WIDTH, 0, &wid) ||
+            !float_item(ob, KEY_V, 1, &v))
+            goto fallback;
+        double *rx = oxy + (j + o) * K, *ry = oxy + (N + j + o) * K, *rh = oh + (j + o) * K;
+        for (Py_ssize_t k = 0; k < K; k++) {
+            Py_ssize_t i = i0[k];
+            double x0 = AT(X, i), y0 = AT(Y, i);
+            rx[k] = x0 + (AT(X, i + 1) - x0) * w[k];
+            ry[k] = y0 + (AT(Y, i + 1) - y0) * w[k];
+            rh[k] = AT(H, ih[k]);
+        }
+        double *d = dims + (j + o) * 3;
+        d[0] = 0.5 * len;
+        d[1] = 0.5 * wid;
+        d[2] = v;
+    }
+    result = Py_True;
+fallback:
+    PyMem_Free(i0);
+    PyMem_Free(w);
+    if (PyErr_Occurred()) result = NULL;
+    else Py_INCREF(result);
+done:
+    release(&bs);
+    return result;
+}
+#undef AT
+
 static PyMethodDef methods[] = {
     {"evaluate", (PyCFunction)(void (*)(void))evaluate, METH_FASTCALL,
      "Cheapest feasible (lateral, longitudinal) pair and its cost; see the module source."},
+    {"resample", (PyCFunction)(void (*)(void))resample, METH_FASTCALL,
+     "Moving obstacles of one time base at the planning times; see the module source."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -520,4 +654,12 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_lattice_c",
                                     "Compiled evaluation step of the lattice planner.", -1,
                                     methods, NULL, NULL, NULL, NULL};
 
-PyMODINIT_FUNC PyInit__lattice_c(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__lattice_c(void)
+{
+    if (!(KEY_X = PyUnicode_InternFromString("x")) || !(KEY_Y = PyUnicode_InternFromString("y")) ||
+        !(KEY_HEADING = PyUnicode_InternFromString("heading")) ||
+        !(KEY_LENGTH = PyUnicode_InternFromString("length")) ||
+        !(KEY_WIDTH = PyUnicode_InternFromString("width")) || !(KEY_V = PyUnicode_InternFromString("v")))
+        return NULL;
+    return PyModule_Create(&module);
+}

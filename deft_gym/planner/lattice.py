@@ -489,11 +489,16 @@ class LatticePlanner(Planner):
             dims[:j] = st[:, 3:]
         if groups:
             tq = t0 + self.tk
+        kernel = self.kernel
         for (ot0, odt, m), obs_g in groups.items():
+            j1 = j + len(obs_g)
+            # the compiled lines below, when every value is a Python float (else they run)
+            if kernel is not None and kernel.resample(obs_g, tq, ot0, 1.0 / odt, m, j, oxy, oh, dims):
+                j = j1
+                continue
             f = np.minimum(np.maximum((tq - ot0) * (1.0 / odt), 0.0), m - 1.0)
             i = np.minimum(f.astype(np.int64), m - 2)
             w = f - i
-            j1 = j + len(obs_g)
             # x, y and heading of the group's predictions (obstacle, point), each must be numbers
             X, Y, H = (_numbers([ob[key] for ob in obs_g], key) for key in ("x", "y", "heading"))
             x0, y0 = X[:, i], Y[:, i]
