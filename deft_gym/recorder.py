@@ -5,11 +5,11 @@ records ``deft_gym.episode`` (scenario, seeds, configuration; written first) and
 ``deft_gym.outcome`` (written last). It is written to ``<name>.tmp`` and renamed when complete,
 so a finished log is never partial; a crashed run leaves the ``.tmp`` for inspection.
 
-Messages are encoded when published and written by a recorder process of their own
-(:mod:`deft_gym.recorder_worker`), as Apollo's ``cyber_recorder`` is a process of its own: the
-MCAP writer's per-message Python then runs beside the simulation instead of inside it. Set
-``DEFT_GYM_RECORDER=inline`` (or pass ``background=False``) to write in the simulation's
-process; both write the same bytes.
+Messages are snapshot when published and written by a recorder process of their own
+(:mod:`deft_gym.recorder_worker`), as Apollo's ``cyber_recorder`` is a process of its own: JSON
+encoding and the MCAP writer's per-message Python then run beside the simulation instead of
+inside it. Set ``DEFT_GYM_RECORDER=inline`` (or pass ``background=False``) to encode and write
+in the simulation's process; both write the same bytes.
 
 The truth file (``truth.jsonl``) lists, per planning output, the sequence numbers of the
 messages the planner actually consumed and its frame time. It is for measuring extraction
@@ -23,13 +23,13 @@ import contextlib
 import itertools
 import json
 import os
+import pickle
 import subprocess
 import sys
 import threading
 from pathlib import Path
 from typing import Any
 
-from deft_gym import recorder_worker
 from deft_gym.codec import encode
 from deft_gym.messages import SCHEMAS, Message
 from deft_gym.recorder_worker import Entry, EpisodeLog, read_frame, write_frame
@@ -44,6 +44,10 @@ def _meta(values: dict[str, Any]) -> dict[str, str]:
     return {k: v if isinstance(v, str) else json.dumps(v, sort_keys=True) for k, v in values.items()}
 
 
+def _pickle(payload: Any) -> bytes:
+    return pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
+
+
 class RecorderError(RuntimeError):
     """The recorder process could not write a log (or is gone)."""
 
@@ -53,6 +57,7 @@ class RecorderProcess:
     after a fork (a forked child never writes to its parent's pipe) or after it died."""
 
     _current: RecorderProcess | None = None
+    PIPE_BYTES = 1 << 20
 
     @classmethod
     def get(cls) -> RecorderProcess:
@@ -66,11 +71,20 @@ class RecorderProcess:
 
     def __init__(self) -> None:
         self.pid = os.getpid()
-        self.proc = subprocess.Popen([sys.executable, recorder_worker.__file__], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, close_fds=True)
+        # the package's own directory first on the path: the process imports this deft_gym
+        root = str(Path(__file__).resolve().parent.parent)
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH"))))}
+        self.proc = subprocess.Popen([sys.executable, "-m", "deft_gym.recorder_worker"], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, close_fds=True, env=env)
         self._ids = itertools.count(1)
         self._lock = threading.Lock()
         atexit.register(self.stop)
+        # a pipe buffer that holds several batches: a send then never waits for the recorder
+        # process to be scheduled (Linux; elsewhere the default buffer is kept)
+        with contextlib.suppress(ImportError, AttributeError, OSError):
+            import fcntl
+
+            fcntl.fcntl(self.proc.stdin.fileno(), fcntl.F_SETPIPE_SZ, self.PIPE_BYTES)
 
     def stop(self, timeout: float = 10.0) -> None:
         """End the recorder process (its open logs stay ``.tmp``), wait for it, close the pipes."""
@@ -115,9 +129,10 @@ class RecorderProcess:
 class McapRecorder:
     """A bus tap writing every message to an MCAP episode log.
 
-    Each message is encoded when it is published (so the log holds the payload as it was
-    then) and handed on in batches of :attr:`BATCH` to the log: in the recorder process
-    (``background``, the default unless ``DEFT_GYM_RECORDER=inline``) or in this one.
+    Each message's payload is pickled (for the recorder process: ``background``, the default
+    unless ``DEFT_GYM_RECORDER=inline``) or JSON-encoded (for a log written in this process)
+    when it is published, so the log holds the payload as it was then; messages are handed on
+    in batches of :attr:`BATCH`.
     :meth:`close` returns once the log is complete and in place, and raises
     :class:`RecorderError` if it could not be written.
     """
@@ -135,6 +150,7 @@ class McapRecorder:
         args = (str(self.path), channels, EPISODE_METADATA, _meta(metadata), compress)
         self._log: EpisodeLog | None = None
         self._proc: RecorderProcess | None = None
+        self._snapshot = _pickle if background else encode
         if background:
             self._proc = RecorderProcess.get()
             self._id = self._proc.new_id()
@@ -157,10 +173,11 @@ class McapRecorder:
             raise RecorderError(f"MCAP log {self.path}: {exc}") from None
 
     def __call__(self, msg: Message) -> None:
-        pending = self._pending
-        pending.append((msg.topic, msg.publish_ns, encode(msg.payload), msg.seq))
+        # the payload as it is now: pickled for the recorder process, which encodes it (cheaper
+        # here than JSON), or encoded here
+        self._pending.append((msg.topic, msg.publish_ns, self._snapshot(msg.payload), msg.seq))
         self.count += 1
-        if len(pending) >= self.BATCH:
+        if len(self._pending) >= self.BATCH:
             self.flush()
 
     def flush(self) -> None:

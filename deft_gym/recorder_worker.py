@@ -1,15 +1,16 @@
-"""The MCAP episode log, and the recorder process that writes it off the simulation's thread.
+"""The MCAP episode log, and the recorder process that writes it beside the simulation.
 
-This file imports only the standard library and ``mcap``: the recorder process runs it as a
-script (``python recorder_worker.py``), so it starts in a few tens of milliseconds without
-loading the simulation. Apollo records the same way: ``cyber_recorder`` is a process of its
-own, fed the serialised messages.
+The recorder process (``python -m deft_gym.recorder_worker``) is fed each message's payload
+pickled at its publish time - a snapshot that costs the simulation less than JSON encoding -
+and does the rest: JSON encoding (:func:`deft_gym.codec.encode`, the same bytes as encoding in
+the simulation's process) and the MCAP writer's per-message Python. Apollo records the same
+way: ``cyber_recorder`` is a process of its own, fed serialised messages.
 
-The recorder process reads commands from its stdin and answers some on its stdout. A frame is
-a 4-byte little-endian length and a pickled tuple ``(op, log_id, *args)``:
+It reads commands from its stdin and answers some on its stdout. A frame is a 4-byte
+little-endian length and a pickled tuple ``(op, log_id, *args)``:
 
 - ``("open", id, path, channels, metadata, compress)`` -> ``("ok",)`` or ``("error", text)``
-- ``("write", id, batch)``: ``batch`` is a list of ``(topic, publish_ns, data, seq)``
+- ``("write", id, batch)``: ``batch`` is a list of ``(topic, publish_ns, pickled payload, seq)``
 - ``("meta", id, name, values)``
 - ``("close", id, outcome)`` -> ``("ok", path, cpu_seconds)`` or ``("error", text)``
 
@@ -29,6 +30,8 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from mcap.writer import CompressionType, Writer
+
+from deft_gym.codec import encode
 
 FRAME = struct.Struct("<I")
 
@@ -72,6 +75,17 @@ class EpisodeLog:
             if cid is None:
                 cid = channels[topic] = self.writer.register_channel(topic, "json", 0, {})
             add(cid, ns, data, ns, seq)
+
+    def write_pickled(self, batch: list[Entry]) -> None:
+        """:meth:`write` of entries whose data is the pickled payload (JSON-encoded here)."""
+        loads, out = pickle.loads, []
+        for topic, ns, blob, seq in batch:
+            try:
+                data = encode(loads(blob))
+            except TypeError as exc:
+                raise TypeError(f"{topic} message {seq}: {exc}") from None
+            out.append((topic, ns, data, seq))
+        self.write(out)
 
     def add_metadata(self, name: str, values: dict[str, str]) -> None:
         """A metadata record (string values)."""
@@ -125,7 +139,7 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
                 if op == "close":
                     write_frame(out, ("error", errors.pop(lid)))
             elif op == "write":
-                logs[lid].write(args[0])
+                logs[lid].write_pickled(args[0])
             elif op == "meta":
                 logs[lid].add_metadata(*args)
             elif op == "close":

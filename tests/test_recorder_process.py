@@ -66,8 +66,8 @@ def test_open_error_is_raised_at_once(tmp_path: Path) -> None:
 
 def test_write_error_is_raised_at_close(tmp_path: Path) -> None:
     rec = McapRecorder(tmp_path / "log.mcap", TOPICS, {}, background=True)
-    rec._pending.append((TOPICS["control"], "not a time", b"{}", 0))  # the writer rejects it
-    with pytest.raises(RecorderError, match=r"MCAP log .*log\.mcap: TypeError"):
+    rec(Message(TOPICS["control"], 0, 0, {"v": {1.0, 2.0}}))  # a set has no JSON form
+    with pytest.raises(RecorderError, match=r"MCAP log .*log\.mcap: .*/apollo/control message 0: .*set"):
         rec.close({"outcome": "ok"})
     assert not (tmp_path / "log.mcap").exists() and (tmp_path / "log.mcap.tmp").exists()
     _write(tmp_path / "next.mcap", background=True)  # the recorder process goes on with other logs
