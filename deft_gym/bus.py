@@ -54,6 +54,7 @@ class Bus:
         self.supervisor: Supervisor = _Direct()
         self.stopped = False
         self.published = 0
+        self.reliable: set[str] = set()  # topics whose deliveries are never lost
 
     # -- scheduling -------------------------------------------------------------------------
     def schedule(self, t_ns: int, fn: Callable[..., None], *args: Any) -> None:
@@ -131,8 +132,9 @@ class Bus:
         if not subs:
             return
         jitter = self.jitter
+        reliable = msg.topic in self.reliable
         for node in subs:
-            delay = jitter.delivery_ns()
+            delay = jitter.delivery_ns(reliable)
             if delay is not None:
                 self.schedule(self.now_ns + delay, node.receive, msg)
 

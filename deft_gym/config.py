@@ -20,6 +20,14 @@ CONFIG_DIR = ROOT / "configs"
 DEFAULT_ADS_CONFIG = CONFIG_DIR / "ads" / "default.yaml"
 
 
+def _known_roles(cls: type, v: list[str]) -> list[str]:
+    """Validator of a list of topic roles."""
+    bad = [r for r in v if r not in ROLES]
+    if bad:
+        raise ValueError(f"unknown topic role(s) {bad}; expected some of {list(ROLES)}")
+    return v
+
+
 class ConfigError(ValueError):
     """A configuration file is invalid. The message names the file and the field."""
 
@@ -46,6 +54,10 @@ class JitterConfig(Strict):
     enabled: bool = True
     delivery: Duration = Duration(mean_ms=1.0, std_ms=0.6)
     drop_prob: float = Field(default=0.001, ge=0.0, lt=1.0)
+    reliable: list[str] = Field(default_factory=lambda: ["routing"],
+                                description="topic roles whose deliveries are never lost (a drawn loss is "
+                                "redelivered), as Apollo's routing response is latched (transient local)")
+    _roles = field_validator("reliable")(_known_roles)
     timer_ms: float = Field(default=0.5, ge=0.0, description="std of timer wake-up lateness")
     dispatch: Duration = Duration(mean_ms=0.3, std_ms=0.2)
     shuffle_simultaneous: bool = True
@@ -77,13 +89,7 @@ class PlanningConfig(ModuleConfig):
     planner: PlannerSpec = PlannerSpec()
     publish_input_headers: bool = False
 
-    @field_validator("subscribe")
-    @classmethod
-    def _roles(cls, v: list[str]) -> list[str]:
-        bad = [r for r in v if r not in ROLES]
-        if bad:
-            raise ValueError(f"unknown topic role(s) {bad}; expected some of {list(ROLES)}")
-        return v
+    _roles = field_validator("subscribe")(_known_roles)
 
 
 class AdsConfig(Strict):

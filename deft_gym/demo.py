@@ -45,7 +45,8 @@ def main(argv: list[str] | None = None) -> int:
             for i in range(args.reruns):
                 results.append(run_episode(sc, jitter_seed=os_seed(), out_dir=out / sc.name / str(i)))
                 progress.advance(task)
-            div = [divergence_stats(results[0].planning, r.planning) for r in results[1:]]
+            # reruns without planning outputs to pair have no divergence (median None)
+            div = [d for r in results[1:] if (d := divergence_stats(results[0].planning, r.planning))["paired"]]
             rows.append({"scenario": sc.name,
                          "outcomes": [r.outcome.outcome for r in results],
                          "collisions": sum(r.outcome.collision is not None for r in results),

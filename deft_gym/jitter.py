@@ -36,6 +36,7 @@ class JitterModel:
         self._rng = random.Random(self.seed)
         self._lognormal_params: dict[int, tuple[Duration, float, float | None]] = {}
         self.drops = 0
+        self.redeliveries = 0  # losses drawn for reliable deliveries, redelivered
 
     def duration_ns(self, dist: Duration) -> int:
         """A processing (or dispatch) time [ns] drawn from ``dist``."""
@@ -61,13 +62,16 @@ class JitterModel:
         var = math.log1p((dist.std_ms / dist.mean_ms) ** 2) if dist.mean_ms > 0 else 0.0
         return math.log(max(dist.mean_ms, 1e-9)) - var / 2, math.sqrt(var)
 
-    def delivery_ns(self) -> int | None:
-        """Delivery delay [ns] of one message to one subscriber, or None if it is dropped."""
+    def delivery_ns(self, reliable: bool = False) -> int | None:
+        """Delivery delay [ns] of one message to one subscriber, or None if it is dropped; a
+        ``reliable`` delivery that draws a loss is redelivered (its delay drawn after the loss)."""
         if not self.config.enabled:
             return round(self.config.delivery.mean_ms * _NS_PER_MS)
         if self.config.drop_prob and self._rng.random() < self.config.drop_prob:
-            self.drops += 1
-            return None
+            if not reliable:
+                self.drops += 1
+                return None
+            self.redeliveries += 1
         return self.duration_ns(self.config.delivery)
 
     def timer_lateness_ns(self) -> int:

@@ -181,7 +181,7 @@ class McapRecorder:
             self.flush()
 
     def flush(self) -> None:
-        """Hand the encoded messages held back to the log (in publish order)."""
+        """Hand the messages held back (their payload snapshots) to the log, in publish order."""
         if not self._pending:
             return
         if self._proc is not None:

@@ -116,6 +116,7 @@ class Simulation:
         self.world: World = build_world(sc, self.roadmap)
         self.jitter = JitterModel(ads.jitter, jitter_seed)
         self.bus = Bus(self.jitter)
+        self.bus.reliable = {ads.topic(role) for role in ads.jitter.reliable}
         self.on_step: list[Callable[[Simulation], None]] = []
         topics = ads.topics
         dest_xy, dest_s = destination_xy(self.roadmap, sc.ego.destination)

@@ -82,3 +82,25 @@ def test_dropped_deliveries_are_counted() -> None:
     bus.run(10**10)
     outs = [s for s in seen if s[0] == "out"]
     assert 50 < len(outs) < 150 and bus.jitter.drops == 200 - len(outs)
+
+
+def test_reliable_topic_is_never_lost() -> None:
+    """Routing is published once: a lost delivery would leave the planner without a route for
+    the whole run. Deliveries of ``jitter.reliable`` roles that draw a loss are redelivered."""
+    from deft_gym.config import load_ads_config
+    from deft_gym.scenario import load_scenario
+    from deft_gym.simulation import Simulation
+
+    ads = load_ads_config()
+    lossy = ads.model_copy(update={"jitter": ads.jitter.model_copy(update={"drop_prob": 0.6, "reliable": []})})
+    reliable = ads.model_copy(update={"jitter": ads.jitter.model_copy(update={"drop_prob": 0.6})})
+    sc = load_scenario(SCENARIOS / "lane_follow_static.yaml")
+    sc = sc.model_copy(update={"duration": 3.0})
+    unplanned = []
+    for seed in range(12):
+        a = Simulation(sc, lossy, jitter_seed=seed).run()
+        b = Simulation(sc, reliable, jitter_seed=seed).run()
+        assert b.planning, f"seed {seed}: routing lost although reliable"
+        if not a.planning:
+            unplanned.append(seed)
+    assert unplanned  # without it, some seeds lose the routing message and never plan
