@@ -143,7 +143,8 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
             elif op == "meta":
                 logs[lid].add_metadata(*args)
             elif op == "close":
-                path = logs.pop(lid).close(*args)
+                path = logs[lid].close(*args)  # on an error, abandoned below
+                del logs[lid]
                 write_frame(out, ("ok", str(path), cpu.pop(lid, 0.0) + time.process_time() - c0))
         except Exception as exc:  # held for the log's close; the process goes on
             text = f"{type(exc).__name__}: {exc}"
