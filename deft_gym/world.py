@@ -168,17 +168,17 @@ class World:
         # polygon distance (scalar math: they only decide which pairs get the exact distance)
         gaps = []
         for i, p in enumerate(present):
-            px, py = p.obj.position
-            gaps.append((math.hypot(float(px) - ex, float(py) - ey) - p.obj.diagonal / 2 - half_ego, i))
-        gaps.sort()
+            px, py = (float(c) for c in p.obj.position)
+            gaps.append((math.hypot(px - ex, py - ey) - p.obj.diagonal / 2 - half_ego, i, px, py))
+        gaps.sort()  # by gap (then index: unique, so positions are never compared)
         ego_poly = None
-        for gap, i in gaps:
+        for gap, i, px, py in gaps:
             if gap >= self.min_distance:
                 break
             p = present[i]
             o = p.obj
-            if box_gap_point(ex, ey, eh, ego.LENGTH, ego.WIDTH, float(o.position[0]), float(o.position[1]),
-                             float(o.heading), o.LENGTH, o.WIDTH) >= self.min_distance + 1e-9:
+            if box_gap_point(ex, ey, eh, ego.LENGTH, ego.WIDTH, px, py, float(o.heading), o.LENGTH,
+                             o.WIDTH) >= self.min_distance + 1e-9:
                 continue  # the polygons cannot be closer than the minimum
             if ego_poly is None:
                 ego_poly = shapely.Polygon(ego.polygon())
