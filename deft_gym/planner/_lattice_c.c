@@ -1,4 +1,5 @@
-/* Compiled evaluation step of the lattice planner (deft_gym/planner/lattice.py).
+/* Compiled evaluation step of the lattice planner (deft_gym/planner/lattice.py), and its
+ * resampling of predicted obstacles (`resample`, see its comment below).
  *
  * `evaluate` is LatticePlanner._evaluate_numpy written as plain loops: the same float
  * operations in the same order, so its results are bit-identical to the numpy version (numpy's
@@ -651,7 +652,7 @@ static PyMethodDef methods[] = {
 };
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_lattice_c",
-                                    "Compiled evaluation step of the lattice planner.", -1,
+                                    "Compiled evaluation step and obstacle resampling of the lattice planner.", -1,
                                     methods, NULL, NULL, NULL, NULL};
 
 PyMODINIT_FUNC PyInit__lattice_c(void)

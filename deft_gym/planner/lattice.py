@@ -42,8 +42,8 @@ try:  # the C function behind np.interp: the same results without the Python wra
 except (ImportError, TypeError):  # pragma: no cover - other numpy layouts
     _interp = np.interp
 
-try:  # the evaluation step compiled (setup.py); bit-identical to _evaluate_numpy, which is
-    # used without it or when DEFT_GYM_PURE_PYTHON is set
+try:  # the evaluation step and the obstacle resampling compiled (setup.py); bit-identical to
+    # _evaluate_numpy and _obstacles' numpy lines, used without it or when DEFT_GYM_PURE_PYTHON is set
     from deft_gym.planner import _lattice_c
 except ImportError:  # pragma: no cover - the build is optional
     _lattice_c = None
