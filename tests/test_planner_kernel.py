@@ -171,7 +171,7 @@ def test_obstacle_resampling_matches_numpy_on_odd_types(recorded) -> None:
     taken = []
 
     class Counting:  # the compiled module, counting the groups it resampled
-        evaluate = staticmethod(_kernel().evaluate)
+        evaluate, profiles = staticmethod(_kernel().evaluate), staticmethod(_kernel().profiles)
 
         @staticmethod
         def resample(*args):
@@ -220,3 +220,70 @@ def test_resample_takes_only_well_formed_obstacles() -> None:
         kernel.resample([ob, ob], tq, 0.0, 5.0, 3, 1, oxy, oh, dims)
     with pytest.raises(ValueError, match="oh: dimension 1 is 4, expected 5"):
         kernel.resample([ob], tq, 0.0, 5.0, 3, 0, oxy, np.zeros((2, 4)), dims)
+
+
+def _bits(a: np.ndarray) -> bytes:
+    """The array's bytes with every NaN made the same NaN (payloads may differ, values may not)."""
+    return np.where(np.isnan(a), math.nan, a).tobytes()
+
+
+def test_profiles_match_numpy_bitwise(recorded) -> None:
+    """The compiled longitudinal profiles equal ``_profiles_numpy`` bit for bit, on the calls of
+    every seed scenario's frames and on the same calls with odd start states and targets."""
+    kernel = _kernel()
+    rng = np.random.default_rng(7)
+    calls = []
+
+    class Recording:  # the compiled module, keeping the arguments of each profiles call
+        evaluate, resample = staticmethod(kernel.evaluate), staticmethod(kernel.resample)
+
+        @staticmethod
+        def profiles(*args):
+            calls.append(copy.deepcopy(args))
+            return kernel.profiles(*args)
+
+    planner = None
+    for _, map_spec, frames in recorded:
+        planner = load_planner(LATTICE, map_spec, {})
+        planner.kernel = Recording
+        for frame in frames[::4]:
+            _outcome(planner, frame)
+    assert len(calls) > 200 and any(c[3] for c in calls)  # some with reach rows
+    compared = 0
+    for args in calls:
+        sva, cruise, reach, ti, ds, rv, s0, v0, a0, v_des, decel, tk = args
+        variants = [(ds, rv, s0, v0, a0, v_des)]
+        for _ in range(2):  # odd values in the start state and the targets
+            odd = [float(x) for x in rng.choice(ODD, size=4)]
+            ds2 = [float(rng.choice(ODD)) if rng.random() < 0.3 else x for x in ds]
+            variants.append((ds2, list(rv), *odd))
+        for ds_, rv_, s0_, v0_, a0_, vd_ in variants:
+            got, want = np.full(sva.shape, 7.0), np.full(sva.shape, 7.0)
+            assert kernel.profiles(got, cruise, reach, ti, ds_, rv_, s0_, v0_, a0_, vd_, decel, tk)
+            planner._profiles_numpy(want, ti, ds_, rv_, s0_, v0_, a0_, vd_)
+            assert _bits(got) == _bits(want), (ds_, rv_, s0_, v0_, a0_, vd_)
+            compared += 1
+    assert compared > 600
+
+
+def test_profiles_take_only_plain_ints_and_floats() -> None:
+    kernel = _kernel()
+    planner = load_planner(LATTICE, load_scenario(list_scenarios()[0]).map.model_dump(), {})
+    K, C, T = planner.K, planner._n_cruise, len(planner._reach_T)
+
+    def run(ti, ds, rv) -> bool:
+        sva = np.zeros((3, C + len(ti) + 1, K))
+        return kernel.profiles(sva, planner._cruise_stack, planner._reach_basis, ti, ds, rv, 1.0, 2.0, 0.5,
+                               10.0, 6.0, planner.tk)
+
+    assert run([0, T - 1], [5.0, 6.0], [0.0, 1.0]) and run([], [], [])
+    for ti, ds, rv in (([T], [5.0], [0.0]), ([-1], [5.0], [0.0]), ([True], [5.0], [0.0]),
+                       ([np.int64(2)], [5.0], [0.0]), ([2], [5], [0.0]), ([2], [5.0], [np.float64(0.0)]),
+                       ((2,), [5.0], [0.0]), ([2], [5.0, 6.0], [0.0]), ([2, 2**70], [5.0, 6.0], [0.0, 0.0])):
+        assert not run(ti, ds, rv), (ti, ds, rv)  # the numpy lines decide (index error, conversion)
+    with pytest.raises(ValueError, match="cruise: dimension 3"):
+        kernel.profiles(np.zeros((3, C + 1, K)), np.zeros((3, 3, C, K + 1)), planner._reach_basis, [], [], [],
+                        0.0, 0.0, 0.0, 0.0, 1.0, planner.tk)
+    with pytest.raises(ValueError, match="fewer rows"):
+        kernel.profiles(np.zeros((3, C, K)), planner._cruise_stack, planner._reach_basis, [], [], [],
+                        0.0, 0.0, 0.0, 0.0, 1.0, planner.tk)

@@ -1,5 +1,6 @@
-/* Compiled evaluation step of the lattice planner (deft_gym/planner/lattice.py), and its
- * resampling of predicted obstacles (`resample`, see its comment below).
+/* Compiled evaluation step of the lattice planner (deft_gym/planner/lattice.py), its
+ * resampling of predicted obstacles (`resample`) and its longitudinal profiles (`profiles`);
+ * see their comments below.
  *
  * `evaluate` is LatticePlanner._evaluate_numpy written as plain loops: the same float
  * operations in the same order, so its results are bit-identical to the numpy version (numpy's
@@ -36,9 +37,10 @@ enum { /* per call: desired speed, reference line and lateral options; then plan
     P_LA, P_WA, P_LH, P_WH, P_BATCH, N_PARAMS
 };
 
-/* np.maximum / np.minimum on two doubles (NaN in either propagates) */
-static inline double npmax(double a, double b) { return (a >= b || isnan(a)) ? a : b; }
-static inline double npmin(double a, double b) { return (a <= b || isnan(a)) ? a : b; }
+/* np.maximum / np.minimum on two doubles: NaN in either propagates, and of two equal values
+ * the second is returned (what numpy gives on x86, MAXPD/MINPD's rule: max(+0, -0) is -0) */
+static inline double npmax(double a, double b) { return (a > b || isnan(a)) ? a : b; }
+static inline double npmin(double a, double b) { return (a < b || isnan(a)) ? a : b; }
 
 /* numpy's pairwise summation of n <= 128 contiguous doubles (what .sum(axis=-1) does per row) */
 static double pairwise_sum(const double *a, Py_ssize_t n)
@@ -643,16 +645,135 @@ done:
 }
 #undef AT
 
+/* -- longitudinal profiles (lattice._longitudinal's numpy lines and _brake) ------------------ */
+
+/* the doubles of a list of exactly n Python floats, or NULL (nothing raised) */
+static const double *float_seq(PyObject *l, Py_ssize_t n, double *out)
+{
+    if (!PyList_CheckExact(l) || PyList_GET_SIZE(l) != n) return NULL;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *v = PyList_GET_ITEM(l, i);
+        if (!PyFloat_CheckExact(v)) return NULL;
+        out[i] = PyFloat_AS_DOUBLE(v);
+    }
+    return out;
+}
+
+/* profiles(sva, cruise, reach, ti, ds, rv, s0, v0, a0, v_des, decel, tk) -> bool
+ *
+ * Fills sva (3,P,K) with s, v, a of the planner's longitudinal profiles, as _longitudinal's
+ * numpy lines do, operation by operation:
+ *   rows [0, C): cruise quartics, (v0 * cruise[0] + a0 * cruise[1]) + v_des * cruise[2]
+ *                (cruise (3,3,C,K): speed, acceleration and desired-speed shapes), s + s0;
+ *   rows [C, P-1): reach quintics of grid duration ti[r] (reach (T,4,3,K)),
+ *                ((v0 * B0 + a0 * B1) + ds[r] * B2) + rv[r] * B3, s + s0;
+ *   row P-1:     _brake(s0, v0, decel, tk).
+ * Returns False, having written nothing that matters, when ti, ds, rv are not lists of
+ * R = P - C - 1 in-range Python ints / Python floats: the numpy lines then run (and raise
+ * what numpy raises). */
+static PyObject *profiles(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 12) {
+        PyErr_SetString(PyExc_TypeError, "profiles: expected 12 arguments");
+        return NULL;
+    }
+    double s0 = PyFloat_AsDouble(args[6]), v0 = PyFloat_AsDouble(args[7]);
+    double a0 = PyFloat_AsDouble(args[8]), v_des = PyFloat_AsDouble(args[9]);
+    double decel = PyFloat_AsDouble(args[10]);
+    if (PyErr_Occurred()) return NULL;
+    Buffers bs = {.n = 0};
+    PyObject *result = NULL;
+    Py_ssize_t sh_tk[1] = {-1};
+    const double *tk = get_array(&bs, args[11], 1, sh_tk, "tk");
+    if (!tk) goto done;
+    Py_ssize_t K = sh_tk[0];
+    Py_ssize_t sh_sva[3] = {3, -1, K};
+    double *sva = get_array_flags(&bs, args[0], 3, sh_sva, "sva", PyBUF_WRITABLE);
+    if (!sva) goto done;
+    Py_ssize_t P = sh_sva[1];
+    Py_ssize_t sh_c[4] = {3, 3, -1, K}, sh_r[4] = {-1, 4, 3, K};
+    const double *cruise = get_array(&bs, args[1], 4, sh_c, "cruise");
+    const double *reach = cruise ? get_array(&bs, args[2], 4, sh_r, "reach") : NULL;
+    if (!reach) goto done;
+    Py_ssize_t C = sh_c[2], T = sh_r[0], R = P - C - 1;
+    if (R < 0) {
+        PyErr_SetString(PyExc_ValueError, "profiles: fewer rows than the cruise rows and the brake");
+        goto done;
+    }
+    result = Py_False;
+    double *coef = PyMem_Malloc(sizeof(double) * (size_t)(2 * R + 1));
+    Py_ssize_t *ti = PyMem_Malloc(sizeof(Py_ssize_t) * (size_t)(R + 1));
+    if (!coef || !ti) {
+        PyMem_Free(coef);
+        PyMem_Free(ti);
+        result = PyErr_NoMemory();
+        goto done;
+    }
+    double *ds = coef, *rv = coef + R;
+    if (!float_seq(args[4], R, ds) || !float_seq(args[5], R, rv) || !PyList_CheckExact(args[3]) ||
+        PyList_GET_SIZE(args[3]) != R)
+        goto fallback;
+    for (Py_ssize_t r = 0; r < R; r++) {
+        PyObject *v = PyList_GET_ITEM(args[3], r);
+        if (!PyLong_CheckExact(v)) goto fallback;
+        ti[r] = PyLong_AsSsize_t(v);
+        if (ti[r] < 0 || ti[r] >= T) { /* numpy's take would raise (or wrap a negative index) */
+            PyErr_Clear();
+            goto fallback;
+        }
+    }
+    const Py_ssize_t plane = P * K; /* s, v, a planes of sva */
+    const Py_ssize_t cplane = C * K;
+    for (int c = 0; c < 3; c++) {
+        double *out = sva + c * plane;
+        const double *bv = cruise + c * cplane, *ba = cruise + (3 + c) * cplane;
+        const double *bf = cruise + (6 + c) * cplane;
+        for (Py_ssize_t i = 0; i < cplane; i++) {
+            double x = (v0 * bv[i] + a0 * ba[i]) + v_des * bf[i];
+            out[i] = c == 0 ? x + s0 : x;
+        }
+        for (Py_ssize_t r = 0; r < R; r++) {
+            const double *B = reach + ti[r] * 12 * K + c * K; /* B[ti, coefficient, c, :] */
+            const double *B0 = B, *B1 = B + 3 * K, *B2 = B + 6 * K, *B3 = B + 9 * K;
+            double *o = out + (C + r) * K;
+            for (Py_ssize_t k = 0; k < K; k++) {
+                double x = ((v0 * B0[k] + a0 * B1[k]) + ds[r] * B2[k]) + rv[r] * B3[k];
+                o[k] = c == 0 ? x + s0 : x;
+            }
+        }
+    }
+    /* _brake: t_stop = max(v0, 0) / decel (Python's max: NaN v0 stays NaN) */
+    double t_stop = (0.0 > v0 ? 0.0 : v0) / decel, half = 0.5 * decel;
+    double *bs_ = sva + (P - 1) * K, *bv_ = bs_ + plane, *ba_ = bv_ + plane;
+    for (Py_ssize_t k = 0; k < K; k++) {
+        double tt = npmin(tk[k], t_stop);
+        bs_[k] = (s0 + v0 * tt) - half * (tt * tt);
+        bv_[k] = npmax(v0 - decel * tt, 0.0);
+        ba_[k] = tk[k] < t_stop ? -decel : 0.0;
+    }
+    result = Py_True;
+fallback:
+    PyMem_Free(coef);
+    PyMem_Free(ti);
+    if (PyErr_Occurred()) result = NULL;
+    else Py_INCREF(result);
+done:
+    release(&bs);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"evaluate", (PyCFunction)(void (*)(void))evaluate, METH_FASTCALL,
      "Cheapest feasible (lateral, longitudinal) pair and its cost; see the module source."},
     {"resample", (PyCFunction)(void (*)(void))resample, METH_FASTCALL,
      "Moving obstacles of one time base at the planning times; see the module source."},
+    {"profiles", (PyCFunction)(void (*)(void))profiles, METH_FASTCALL,
+     "The longitudinal profiles (cruise, reach, brake) into sva; see the module source."},
     {NULL, NULL, 0, NULL},
 };
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_lattice_c",
-                                    "Compiled evaluation step and obstacle resampling of the lattice planner.", -1,
+                                    "Compiled evaluation step, obstacle resampling and profiles of the lattice planner.", -1,
                                     methods, NULL, NULL, NULL, NULL};
 
 PyMODINIT_FUNC PyInit__lattice_c(void)

@@ -42,8 +42,9 @@ try:  # the C function behind np.interp: the same results without the Python wra
 except (ImportError, TypeError):  # pragma: no cover - other numpy layouts
     _interp = np.interp
 
-try:  # the evaluation step and the obstacle resampling compiled (setup.py); bit-identical to
-    # _evaluate_numpy and _obstacles' numpy lines, used without it or when DEFT_GYM_PURE_PYTHON is set
+try:  # the evaluation step, obstacle resampling and profiles compiled (setup.py); bit-identical to
+    # _evaluate_numpy, _obstacles' numpy lines and _profiles_numpy, used without it or when
+    # DEFT_GYM_PURE_PYTHON is set
     from deft_gym.planner import _lattice_c
 except ImportError:  # pragma: no cover - the build is optional
     _lattice_c = None
@@ -261,6 +262,7 @@ class LatticePlanner(Planner):
         self._cruise_basis = [np.stack(_quartic(0.0, *u, qT, t)) for u in
                               ((1.0, 0.0, zero), (0.0, 1.0, zero), (0.0, 0.0, qf))]
         self._n_cruise = len(p.speed_factors) * len(p.speed_times)
+        self._cruise_stack = np.ascontiguousarray(np.stack(self._cruise_basis))  # (3, 3, C, K), compiled path
         # reach quintics (to s1, v1 at T, then constant speed): T on a 0.1 s grid; for one T the
         # profile is linear in (s0, v0, a0, s1, v1), so each grid T has a (5, 3, K) basis
         self._reach_T = np.round(np.arange(1.0, p.horizon + 4.0 + 1e-9, 0.1), 6)
@@ -655,9 +657,23 @@ class LatticePlanner(Planner):
                 rv.append(v_e)
                 labels.append(label)
         labels.append("BRAKE")
-        # (s, v, a) x profile x time: cruise rows, reach rows, the brake
+        sva = np.empty((3, len(labels), self.K))  # (s, v, a) x profile x time: cruise, reach, brake
+        kernel = self.kernel
+        if kernel is None or not kernel.profiles(sva, self._cruise_stack, self._reach_basis, ti, ds, rv, s0, v0,
+                                                 a0, v_des, p.emergency_decel, self.tk):
+            self._profiles_numpy(sva, ti, ds, rv, s0, v0, a0, v_des)
+        penalty = np.array([self._penalty.get(x, 0.0) for x in labels])
+        labels = ["STOP" if x in self._penalty else x for x in labels]
+        return {"s": sva[0], "v": sva[1], "a": sva[2], "sva": sva, "label": labels, "n": len(labels),
+                "penalty": penalty}
+
+    def _profiles_numpy(self, sva: np.ndarray, ti: list[int], ds: list[float], rv: list[float], s0: float,
+                        v0: float, a0: float, v_des: float) -> None:
+        """Fill ``sva`` (3, P, K): cruise rows, reach rows (grid duration index ``ti``, distance
+        ``ds``, end speed ``rv``), then the brake. The compiled ``profiles`` does the same
+        operations in the same order, and refuses (so these lines run) what is not plain
+        ints and floats."""
         n_c = self._n_cruise
-        sva = np.empty((3, len(labels), self.K))
         bv, ba, bf = self._cruise_basis
         np.add(v0 * bv + a0 * ba, v_des * bf, out=sva[:, :n_c])
         sva[0, :n_c] += s0
@@ -668,11 +684,7 @@ class LatticePlanner(Planner):
             np.add(v0 * B[:, 0] + a0 * B[:, 1] + coef[0] * B[:, 2], coef[1] * B[:, 3],
                    out=sva[:, n_c:-1].transpose(1, 0, 2))
             sva[0, n_c:-1] += s0
-        sva[0, -1], sva[1, -1], sva[2, -1] = _brake(s0, v0, p.emergency_decel, self.tk)
-        penalty = np.array([self._penalty.get(x, 0.0) for x in labels])
-        labels = ["STOP" if x in self._penalty else x for x in labels]
-        return {"s": sva[0], "v": sva[1], "a": sva[2], "sva": sva, "label": labels, "n": len(labels),
-                "penalty": penalty}
+        sva[0, -1], sva[1, -1], sva[2, -1] = _brake(s0, v0, self.p.emergency_decel, self.tk)
 
     def _leaders(self, obs: dict[str, Any], lat: _Lateral, s0: float) -> list[tuple[float, float, str]]:
         """Per distinct lateral target centre, a target behind the nearest obstacle ahead in its
