@@ -31,6 +31,8 @@ class PredictionNode(Node):
         self.dt = float(cfg.params.get("dt", 0.2))
         self.static_speed = float(cfg.params.get("static_speed", 0.3))
         self.t = np.arange(round(self.horizon / self.dt) + 1) * self.dt
+        self._t_list: list[float] = self.t.tolist()  # the same times as floats, for scalar math
+        self._t_last = self._t_list[-1]
         # (lane, length bucket) -> (reference line, its wrapped heading if it is one straight lane)
         self._chains: dict[Any, tuple[Any, float | None]] = {}
         self._lane_of: dict[int, Any] = {}  # obstacle id -> its lane last cycle (tracking)
@@ -52,6 +54,13 @@ class PredictionNode(Node):
         if ob["type"] in STATIC_TYPES or v < self.static_speed:
             return {**base, "is_static": True, "x": [ob["x"]], "y": [ob["y"]], "heading": [ob["heading"]]}
         loc = self._locate(ob)
+        if loc is not None:
+            lane, s, d = loc
+            # the chain covers the horizon: t[-1] * v is dist[-1] below (the same product)
+            ref, const = self._chain(lane, s + self._t_last * v + 5.0)
+            if const is not None:  # one straight lane: the heading is the same everywhere
+                xs, ys = ref.geoms[0].xy_list([s + t * v for t in self._t_list], d)
+                return {**base, "is_static": False, "x": xs, "y": ys, "heading": [const] * len(xs)}
         dist = self.t * v
         if loc is None:
             h = ob["heading"]
@@ -59,11 +68,6 @@ class PredictionNode(Node):
             ys = ob["y"] + dist * np.sin(h)
             hs = np.full(self.t.shape, h)
         else:
-            lane, s, d = loc
-            ref, const = self._chain(lane, s + dist[-1] + 5.0)
-            if const is not None:  # one straight lane: the heading is the same everywhere
-                xs, ys = ref.geoms[0].xy_list([s + v for v in dist.tolist()], d)
-                return {**base, "is_static": False, "x": xs, "y": ys, "heading": [const] * len(xs)}
             ss = s + dist
             pts = ref.xy(ss, d)
             xs, ys = pts[:, 0], pts[:, 1]
