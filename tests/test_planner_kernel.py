@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -62,6 +63,12 @@ def _kernel():
         pytest.fail("the compiled planner step is not built (pip install -e . needs a C compiler) "
                     "or DEFT_GYM_PURE_PYTHON is set")
     return lattice._lattice_c
+
+
+def _proxy(**replaced) -> SimpleNamespace:
+    """The compiled module with some functions replaced (to count or record calls)."""
+    kernel = _kernel()
+    return SimpleNamespace(**{**{k: getattr(kernel, k) for k in dir(kernel) if not k.startswith("_")}, **replaced})
 
 
 @pytest.fixture(scope="module")
@@ -170,17 +177,13 @@ def test_obstacle_resampling_matches_numpy_on_odd_types(recorded) -> None:
     outcomes = {"planned": 0, "error": 0}
     taken = []
 
-    class Counting:  # the compiled module, counting the groups it resampled
-        evaluate, profiles = staticmethod(_kernel().evaluate), staticmethod(_kernel().profiles)
-
-        @staticmethod
-        def resample(*args):
-            taken.append(_kernel().resample(*args))
-            return taken[-1]
+    def resample(*args):
+        taken.append(_kernel().resample(*args))
+        return taken[-1]
 
     for name, map_spec, frames in recorded:
         compiled, numpy_only = _pair(map_spec)
-        compiled.kernel = Counting
+        compiled.kernel = _proxy(resample=resample)  # counting the groups it resampled
         for i, frame in enumerate(frames):
             odd = _odd_type(frame, rng) if i % 2 == 0 else None
             frame = odd or frame
@@ -234,18 +237,14 @@ def test_profiles_match_numpy_bitwise(recorded) -> None:
     rng = np.random.default_rng(7)
     calls = []
 
-    class Recording:  # the compiled module, keeping the arguments of each profiles call
-        evaluate, resample = staticmethod(kernel.evaluate), staticmethod(kernel.resample)
-
-        @staticmethod
-        def profiles(*args):
-            calls.append(copy.deepcopy(args))
-            return kernel.profiles(*args)
+    def profiles(*args):
+        calls.append(copy.deepcopy(args))
+        return kernel.profiles(*args)
 
     planner = None
     for _, map_spec, frames in recorded:
         planner = load_planner(LATTICE, map_spec, {})
-        planner.kernel = Recording
+        planner.kernel = _proxy(profiles=profiles)  # keeping the arguments of each call
         for frame in frames[::4]:
             _outcome(planner, frame)
     assert len(calls) > 200 and any(c[3] for c in calls)  # some with reach rows
@@ -287,3 +286,19 @@ def test_profiles_take_only_plain_ints_and_floats() -> None:
     with pytest.raises(ValueError, match="fewer rows"):
         kernel.profiles(np.zeros((3, C, K)), planner._cruise_stack, planner._reach_basis, [], [], [],
                         0.0, 0.0, 0.0, 0.0, 1.0, planner.tk)
+
+
+def test_near_matches_numpy() -> None:
+    kernel = _kernel()
+    rng = np.random.default_rng(2)
+    for _ in range(300):
+        n, K = int(rng.integers(0, 6)), int(rng.integers(1, 40))
+        oxy = rng.normal(size=(2, n, K)) * 60.0
+        mask = rng.random(oxy.shape) < 0.02
+        oxy[mask] = rng.choice(ODD, size=int(mask.sum()))
+        ex, ey, reach2 = float(rng.normal() * 20), float(rng.normal() * 20), float(rng.uniform(0, 5000))
+        gx, gy = oxy[0] - ex, oxy[1] - ey
+        want = ((gx * gx + gy * gy).min(axis=1) < reach2).tolist() if n else []
+        assert kernel.near(oxy, ex, ey, reach2) == want
+    with pytest.raises(ValueError, match="oxy: dimension 0 is 3, expected 2"):
+        kernel.near(np.zeros((3, 1, 4)), 0.0, 0.0, 1.0)

@@ -1,6 +1,6 @@
 /* Compiled evaluation step of the lattice planner (deft_gym/planner/lattice.py), its
- * resampling of predicted obstacles (`resample`) and its longitudinal profiles (`profiles`);
- * see their comments below.
+ * resampling of predicted obstacles (`resample`) and their relevance test (`near`), and its
+ * longitudinal profiles (`profiles`); see their comments below.
  *
  * `evaluate` is LatticePlanner._evaluate_numpy written as plain loops: the same float
  * operations in the same order, so its results are bit-identical to the numpy version (numpy's
@@ -762,11 +762,59 @@ done:
     return result;
 }
 
+/* near(oxy, ex, ey, reach2) -> list of bool
+ *
+ * Per obstacle row of oxy (2,N,K): whether its centre comes closer than sqrt(reach2) to
+ * (ex, ey) at any time, as _obstacles' numpy line
+ * ((gx * gx + gy * gy).min(axis=1) < reach2) with gx = x - ex, gy = y - ey: a NaN anywhere in
+ * a row makes its minimum NaN, which is not near. */
+static PyObject *near(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "near: expected 4 arguments");
+        return NULL;
+    }
+    double ex = PyFloat_AsDouble(args[1]), ey = PyFloat_AsDouble(args[2]);
+    double reach2 = PyFloat_AsDouble(args[3]);
+    if (PyErr_Occurred()) return NULL;
+    Buffers bs = {.n = 0};
+    PyObject *result = NULL;
+    Py_ssize_t sh[3] = {2, -1, -1};
+    const double *oxy = get_array(&bs, args[0], 3, sh, "oxy");
+    if (!oxy) goto done;
+    Py_ssize_t N = sh[1], K = sh[2];
+    if (K < 1) {
+        PyErr_SetString(PyExc_ValueError, "near: no planning times");
+        goto done;
+    }
+    result = PyList_New(N);
+    if (!result) goto done;
+    for (Py_ssize_t o = 0; o < N; o++) {
+        const double *x = oxy + o * K, *y = oxy + (N + o) * K;
+        double m = INFINITY;
+        int nan = 0;
+        for (Py_ssize_t k = 0; k < K; k++) {
+            double gx = x[k] - ex, gy = y[k] - ey;
+            double d2 = gx * gx + gy * gy;
+            if (isnan(d2)) nan = 1;
+            else if (d2 < m) m = d2;
+        }
+        PyObject *b = (!nan && m < reach2) ? Py_True : Py_False;
+        Py_INCREF(b);
+        PyList_SET_ITEM(result, o, b);
+    }
+done:
+    release(&bs);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"evaluate", (PyCFunction)(void (*)(void))evaluate, METH_FASTCALL,
      "Cheapest feasible (lateral, longitudinal) pair and its cost; see the module source."},
     {"resample", (PyCFunction)(void (*)(void))resample, METH_FASTCALL,
      "Moving obstacles of one time base at the planning times; see the module source."},
+    {"near", (PyCFunction)(void (*)(void))near, METH_FASTCALL,
+     "Which predicted obstacles come within reach of a point; see the module source."},
     {"profiles", (PyCFunction)(void (*)(void))profiles, METH_FASTCALL,
      "The longitudinal profiles (cruise, reach, brake) into sva; see the module source."},
     {NULL, NULL, 0, NULL},

@@ -512,8 +512,11 @@ class LatticePlanner(Planner):
             j = j1
         # relevance: within reach of the ego over the horizon
         ex, ey = float(_interp(s0, ref.s, ref.x)), float(_interp(s0, ref.s, ref.y))
-        gx, gy = oxy[0] - ex, oxy[1] - ey
-        near = ((gx * gx + gy * gy).min(axis=1) < self._reach2).tolist()
+        if kernel is not None:
+            near = kernel.near(oxy, ex, ey, self._reach2)
+        else:
+            gx, gy = oxy[0] - ex, oxy[1] - ey
+            near = ((gx * gx + gy * gy).min(axis=1) < self._reach2).tolist()
         if not any(near):
             return None
         # Frenet now and at the horizon (leaders, gaps, followers)
