@@ -9,7 +9,9 @@ Messages are snapshot when published and written by a recorder process of their 
 (:mod:`deft_gym.recorder_worker`), as Apollo's ``cyber_recorder`` is a process of its own: JSON
 encoding and the MCAP writer's per-message Python then run beside the simulation instead of
 inside it. Set ``DEFT_GYM_RECORDER=inline`` (or pass ``background=False``) to encode and write
-in the simulation's process; both write the same bytes.
+in the simulation's process; both write the same bytes. That is the default where the process
+may use only one CPU (``auto``), and agents/train.py chooses it for its environment processes when
+they are at least as many as the CPUs.
 
 The truth file (``truth.jsonl``) lists, per planning output, the sequence numbers of the
 messages the planner actually consumed and its frame time. It is for measuring extraction
@@ -37,6 +39,24 @@ from deft_gym.recorder_worker import Entry, EpisodeLog, read_frame, write_frame
 EPISODE_METADATA = "deft_gym.episode"
 OUTCOME_METADATA = "deft_gym.outcome"
 RECORDER_ENV = "DEFT_GYM_RECORDER"
+
+
+def available_cpus() -> int:
+    """How many CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def recorder_in_process() -> bool:
+    """Whether logs are written in the simulation's process (``DEFT_GYM_RECORDER``: ``process``,
+    ``inline``, or ``auto``, the default: inline when this process may use only one CPU, where
+    a recorder process would compete with the simulation instead of running beside it)."""
+    mode = os.environ.get(RECORDER_ENV, "auto")
+    if mode not in ("auto", "process", "inline"):
+        raise ValueError(f"{RECORDER_ENV}={mode!r}: expected auto, process or inline")
+    return mode == "inline" or (mode == "auto" and available_cpus() < 2)
 
 
 def _meta(values: dict[str, Any]) -> dict[str, str]:
@@ -129,8 +149,8 @@ class RecorderProcess:
 class McapRecorder:
     """A bus tap writing every message to an MCAP episode log.
 
-    Each message's payload is pickled (for the recorder process: ``background``, the default
-    unless ``DEFT_GYM_RECORDER=inline``) or JSON-encoded (for a log written in this process)
+    Each message's payload is pickled (for the recorder process: ``background``, by default
+    unless :func:`recorder_in_process`) or JSON-encoded (for a log written in this process)
     when it is published, so the log holds the payload as it was then; messages are handed on
     in batches of :attr:`BATCH`.
     :meth:`close` returns once the log is complete and in place, and raises
@@ -144,7 +164,7 @@ class McapRecorder:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if background is None:
-            background = os.environ.get(RECORDER_ENV, "process") != "inline"
+            background = not recorder_in_process()
         channels = [(topic, role, SCHEMAS[role]["title"], json.dumps(SCHEMAS[role]).encode())
                     for role, topic in topics.items()]
         args = (str(self.path), channels, EPISODE_METADATA, _meta(metadata), compress)

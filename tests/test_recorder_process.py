@@ -125,3 +125,36 @@ def test_simulation_process_dying_leaves_the_tmp(tmp_path: Path) -> None:
     assert not os.path.exists(f"/proc/{worker}") or "Z" in Path(f"/proc/{worker}/stat").read_text().split()[2]
     assert not (tmp_path / "log.mcap").exists()
     assert (tmp_path / "log.mcap.tmp").stat().st_size > 1000  # the messages handed over are in it
+
+
+def test_recorder_mode_from_environment_and_cpus(monkeypatch) -> None:
+    from deft_gym import recorder
+
+    monkeypatch.delenv(recorder.RECORDER_ENV, raising=False)
+    monkeypatch.setattr(recorder, "available_cpus", lambda: 1)
+    assert recorder.recorder_in_process()  # auto, one CPU: the recorder process would compete
+    monkeypatch.setattr(recorder, "available_cpus", lambda: 2)
+    assert not recorder.recorder_in_process()
+    monkeypatch.setenv(recorder.RECORDER_ENV, "inline")
+    assert recorder.recorder_in_process()
+    monkeypatch.setenv(recorder.RECORDER_ENV, "process")
+    monkeypatch.setattr(recorder, "available_cpus", lambda: 1)
+    assert not recorder.recorder_in_process()
+    monkeypatch.setenv(recorder.RECORDER_ENV, "thread")
+    with pytest.raises(ValueError, match="DEFT_GYM_RECORDER='thread': expected auto, process or inline"):
+        recorder.recorder_in_process()
+
+
+def test_training_envs_filling_the_cpus_log_inline(monkeypatch, tmp_path) -> None:
+    from agents import train
+    from agents.config import TrainConfig
+    from deft_gym import recorder
+
+    monkeypatch.delenv(recorder.RECORDER_ENV, raising=False)
+    cfg = TrainConfig()
+    env = train.make_env(cfg, 0, None, inline_logs=True)()
+    env.close()
+    assert os.environ[recorder.RECORDER_ENV] == "inline"
+    monkeypatch.setenv(recorder.RECORDER_ENV, "process")  # the user's choice stands
+    train.make_env(cfg, 1, None, inline_logs=True)().close()
+    assert os.environ[recorder.RECORDER_ENV] == "process"
