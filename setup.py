@@ -1,19 +1,22 @@
-"""Build of the optional compiled planner kernel (everything else is in pyproject.toml).
+"""Build of the optional compiled kernels (everything else is in pyproject.toml).
 
 ``deft_gym.planner._lattice_c`` is the lattice planner's evaluation step, its resampling of
-predicted obstacles and its longitudinal profiles in C, bit-identical to their numpy versions (which are used when the
-extension is missing: ``optional=True`` turns a failed build into a warning). IEEE semantics are kept: no fast-math, no FMA contraction.
+predicted obstacles (and their relevance test) and its longitudinal profiles in C;
+``deft_gym.modules._control_c`` is the control module's conversion of a planned trajectory and
+its nearest-point search. Both are bit-identical to the Python and numpy versions (which are
+used when an extension is missing: ``optional=True`` turns a failed build into a warning). IEEE
+semantics are kept: no fast-math, no FMA contraction.
 """
 
 from setuptools import Extension, setup
 
+FLAGS = ["-O2", "-std=c99", "-fno-fast-math", "-ffp-contract=off"]
+
 setup(
     ext_modules=[
-        Extension(
-            "deft_gym.planner._lattice_c",
-            ["deft_gym/planner/_lattice_c.c"],
-            extra_compile_args=["-O2", "-std=c99", "-fno-fast-math", "-ffp-contract=off"],
-            optional=True,
-        )
+        Extension("deft_gym.planner._lattice_c", ["deft_gym/planner/_lattice_c.c"],
+                  extra_compile_args=FLAGS, optional=True),
+        Extension("deft_gym.modules._control_c", ["deft_gym/modules/_control_c.c"],
+                  extra_compile_args=FLAGS, optional=True),
     ]
 )

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,14 @@ from deft_gym.bus import Node, header
 from deft_gym.config import ModuleConfig
 from deft_gym.interp import interp1
 from deft_gym.messages import NS_PER_S
+
+try:  # the plan conversion compiled (setup.py): _trajectory_lists' result for the usual case, None
+    # otherwise; not used without it or when DEFT_GYM_PURE_PYTHON is set
+    from deft_gym.modules import _control_c
+except ImportError:  # pragma: no cover - the build is optional
+    _control_c = None
+if os.environ.get("DEFT_GYM_PURE_PYTHON"):
+    _control_c = None
 
 WHEELBASE_HALF = 2.4  # [m] highway-env's bicycle: half the vehicle length
 
@@ -42,6 +51,7 @@ class ControlNode(Node):
         self._cache_seq = -1
         self._tr: dict[str, Any] = {}
         self._fast = False
+        self.kernel = _control_c  # None: the Python conversion only (tests compare the two)
 
     def _traj(self, msg: Any) -> dict[str, Any]:
         """The planned trajectory as arrays (unwrapped heading, arc length ``s``), converted once
@@ -49,8 +59,12 @@ class ControlNode(Node):
         for the scalar look-ups; anything else takes numpy's path, with numpy's errors."""
         if msg.seq != self._cache_seq:
             tr = msg.payload["trajectory"]
-            lists = _float_lists(tr)  # the usual case, in plain floats (the same operations)
-            if lists is not None and _well_formed(lists):
+            # the usual case, in plain floats (the same operations); compiled when built, which
+            # leaves everything else to the Python version
+            lists = self.kernel.float_lists(tr) if self.kernel is not None else None
+            if lists is None:
+                lists = _trajectory_lists(tr)
+            if lists is not None:
                 self._tr, self._fast = lists, True
             else:
                 self._tr, self._fast = _numpy_trajectory(tr)
@@ -75,7 +89,12 @@ class ControlNode(Node):
                 v_ref = interp(t, ts, tr["v"])
                 a_ref = interp(t, ts, tr["a"])
                 s_ref = interp(t, ts, ss)
-                i = _nearest(xs, ys, x, y) if self._fast else int(np.argmin((xs - x) ** 2 + (ys - y) ** 2))
+                if self._fast:
+                    i = self.kernel.nearest(xs, ys, x, y) if self.kernel is not None else None
+                    if i is None:  # no kernel, or values it leaves to Python
+                        i = _nearest(xs, ys, x, y)
+                else:
+                    i = int(np.argmin((xs - x) ** 2 + (ys - y) ** 2))
                 hi = tr["heading"][i]
                 s_match = ss[i] + (x - xs[i]) * math.cos(hi) + (y - ys[i]) * math.sin(hi)
                 acc = a_ref + self.kp_v * (v_ref - v) + self.kp_s * (s_ref - s_match)
@@ -143,6 +162,13 @@ def _float_lists(tr: dict[str, Any]) -> dict[str, list[float]] | None:
     seg = np.hypot(np.diff(cols["x"]), np.diff(cols["y"])).tolist()
     cols["s"] = [0.0, *itertools.accumulate(seg)]
     return cols
+
+
+def _trajectory_lists(tr: dict[str, Any]) -> dict[str, list[float]] | None:
+    """:func:`_float_lists` when it applies and the result is :func:`_well_formed`, else None
+    (what ``_control_c.float_lists`` computes for the usual case)."""
+    lists = _float_lists(tr)
+    return lists if lists is not None and _well_formed(lists) else None
 
 
 def _well_formed(tr: dict[str, list[float]]) -> bool:
