@@ -121,6 +121,7 @@ class World:
     def add_participant(self, pid: str, kind: str, obj: Any) -> Participant:
         p = Participant(pid, len(self.participants) + 1, kind, obj)
         self.participants.append(p)
+        self._kinds_n = -1  # re-sort the participants by kind at the next step
         if kind == "static":
             self.road.objects.append(obj)
         elif kind == "reactive" or (kind == "scripted" and obj.spawn_time <= self.time):
@@ -131,7 +132,9 @@ class World:
     def step(self, dt: float, steering: float, acceleration: float) -> None:
         """Advance by ``dt`` [s]: NPC decisions, kinematics, then the collision check."""
         road = self.road
-        reactive = [p.obj for p in self.participants if p.kind == "reactive"]
+        if self._kinds_n != len(self.participants):
+            self._sort_participants()
+        reactive = self._reactive
         for obj in reactive:  # decisions on the current state, then all move (as highway-env)
             obj.act()
         for obj in reactive:
@@ -139,17 +142,25 @@ class World:
         self.ticks += 1
         t = self.ticks * dt  # exact multiples, no accumulated rounding
         self.clock[0] = t
-        for p in self.participants:
-            if p.kind == "scripted":
-                obj = p.obj
-                if obj not in road.vehicles and t >= obj.spawn_time:
-                    road.vehicles.append(obj)
-                obj.place(t)
+        for obj in self._scripted:
+            if t >= obj.spawn_time and obj not in road.vehicles:
+                road.vehicles.append(obj)
+            obj.place(t)
         ego = self.ego
         ego.act({"steering": steering, "acceleration": acceleration})
         ego.step(dt)
         road.advance()
         self._check_collisions(t)
+
+    _kinds_n = -1  # len(participants) when _reactive/_scripted/_half_diag were made
+
+    def _sort_participants(self) -> None:
+        ps = self.participants
+        self._reactive = [p.obj for p in ps if p.kind == "reactive"]
+        self._scripted = [p.obj for p in ps if p.kind == "scripted"]
+        # half diagonals as floats (highway-env keeps numpy scalars: the same values)
+        self._half_diag = [float(p.obj.diagonal) / 2 for p in ps]
+        self._kinds_n = len(ps)
 
     def present_participants(self) -> list[Participant]:
         t = self.clock[0]
@@ -157,25 +168,35 @@ class World:
 
     def _check_collisions(self, t: float) -> None:
         ego = self.ego
-        present = self.present_participants()
-        if not present:
-            return
-        ex, ey = float(ego.position[0]), float(ego.position[1])
-        eh = float(ego.heading)
-        half_ego = ego.diagonal / 2
+        if self._kinds_n != len(self.participants):
+            self._sort_participants()
+        ex, ey = ego.position.tolist()
+        half_ego = float(ego.diagonal) / 2
+        min_distance = self.min_distance
         # exact polygon distances only where they can lower the minimum (or be a collision):
         # the bounding-circle gap, then the separating-axis gap, are lower bounds of the
-        # polygon distance (scalar math: they only decide which pairs get the exact distance)
+        # polygon distance (scalar math: they only decide which pairs get the exact distance).
+        # A pair whose circle gap is not below the minimum now never will be in this check
+        # (the minimum only falls): only the others are sorted.
         gaps = []
-        for i, p in enumerate(present):
-            px, py = (float(c) for c in p.obj.position)
-            gaps.append((math.hypot(px - ex, py - ey) - p.obj.diagonal / 2 - half_ego, i, px, py))
+        hypot = math.hypot
+        for i, p in enumerate(self.participants):
+            o = p.obj
+            if p.kind == "scripted" and not t >= o.spawn_time:
+                continue  # not present yet
+            px, py = o.position.tolist()
+            gap = hypot(px - ex, py - ey) - self._half_diag[i] - half_ego
+            if gap < min_distance:
+                gaps.append((gap, i, px, py))
+        if not gaps:
+            return
         gaps.sort()  # by gap (then index: unique, so positions are never compared)
+        eh = float(ego.heading)
         ego_poly = None
         for gap, i, px, py in gaps:
             if gap >= self.min_distance:
                 break
-            p = present[i]
+            p = self.participants[i]
             o = p.obj
             if box_gap_point(ex, ey, eh, ego.LENGTH, ego.WIDTH, px, py, float(o.heading), o.LENGTH,
                              o.WIDTH) >= self.min_distance + 1e-9:
