@@ -214,7 +214,7 @@ class ReactiveVehicle(IDMVehicle):
         # is under way and its timer has not passed LANE_CHANGE_DELAY (utils.do_every): that
         # test is made here, without the call
         if self.enable_lane_change and (self.lane_index != self.target_lane_index
-                                        or self.LANE_CHANGE_DELAY < self.timer):
+                                        or self.timer > self.LANE_CHANGE_DELAY):
             self.change_lane_policy()
         lane_index, target_lane_index = self.lane_index, self.target_lane_index
         steering = self.steering_control(target_lane_index)
@@ -229,13 +229,17 @@ class ReactiveVehicle(IDMVehicle):
         if lane_index != target_lane_index:
             front, rear = road.neighbour_vehicles(self, target_lane_index)
             acc = min(acc, self.acceleration(self, front, rear))
-        acc = max(-self.ACC_MAX, min(self.ACC_MAX, acc))
+        # max(-a, min(a, x)) as comparisons, with the builtins' choices (NaN -> a, ties -> first)
+        a = self.ACC_MAX
+        acc = acc if acc < a else a
+        acc = acc if acc > -a else -a
         if self.lights is not None:
             acc_light = self._light_acceleration()
             if acc_light is not None and acc_light < acc:
-                acc = max(acc_light, -self.ACC_MAX)
-        self.action = {"steering": max(-self.MAX_STEERING_ANGLE, min(self.MAX_STEERING_ANGLE, steering)),
-                       "acceleration": acc}
+                acc = max(acc_light, -a)
+        m = self.MAX_STEERING_ANGLE
+        steering = steering if steering < m else m
+        self.action = {"steering": steering if steering > -m else -m, "acceleration": acc}
 
     def _idm(self, front: Vehicle | None, d: float) -> float:
         """:meth:`acceleration` of this vehicle behind ``front`` at lane distance ``d`` [m]
@@ -315,8 +319,10 @@ class ReactiveVehicle(IDMVehicle):
         if self.crashed:
             a["steering"] = 0
             a["acceleration"] = -1.0 * self.speed
-        a["steering"] = float(a["steering"])
-        a["acceleration"] = float(a["acceleration"])
+        if type(a["steering"]) is not float:  # act's are floats already
+            a["steering"] = float(a["steering"])
+        if type(a["acceleration"]) is not float:
+            a["acceleration"] = float(a["acceleration"])
         if self.speed > self.MAX_SPEED:
             a["acceleration"] = min(a["acceleration"], 1.0 * (self.MAX_SPEED - self.speed))
         elif self.speed < self.MIN_SPEED:
@@ -338,13 +344,17 @@ class ReactiveVehicle(IDMVehicle):
     def on_state_update(self) -> None:
         """Track the current lane among the previous lane, its neighbours and successors
         (highway-env searches every lane of the map at every step)."""
-        if self.lane_index is None:
+        lane_index = self.lane_index
+        if lane_index is None:
             return super().on_state_update()
-        g = self.roadmap.geoms[self.lane_index]
-        s, r = self._frenet(self.lane_index)
-        if self.lane_index == self.target_lane_index and abs(r) < g.width / 2 - 0.3 and 0.0 <= s <= g.length - 0.5:
-            return  # well inside the current lane: it stays the closest one
+        g = self.roadmap.geoms[lane_index]
         x, y = self.position.tolist()
+        key = (lane_index, x, y)  # self._frenet(lane_index), inline
+        if key != self._fc_key:
+            self._fc_key, self._fc_val = key, g.frenet_point(x, y)
+        s, r = self._fc_val
+        if lane_index == self.target_lane_index and abs(r) < g.width / 2 - 0.3 and 0.0 <= s <= g.length - 0.5:
+            return  # well inside the current lane: it stays the closest one
         cand = [self.lane_index, *self.roadmap.successors.get(self.lane_index, ())]
         cand += self.road.network.side_lanes(self.lane_index)
         if self.target_lane_index not in cand:

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import shapely
 from highway_env.vehicle.kinematics import Vehicle
+from highway_env.vehicle.objects import RoadObject
 
 from deft_gym.geometry import box_gap_point
 from deft_gym.participants import ReactiveVehicle, ScriptedVehicle, StaticObstacle, bicycle_step
@@ -55,6 +56,27 @@ class EgoVehicle(Vehicle):
 
     def on_state_update(self) -> None:
         pass
+
+
+_CORNERS: dict[tuple[float, float], np.ndarray] = {}
+
+
+def footprint(obj: RoadObject) -> np.ndarray:
+    """``obj.polygon()`` (the closed ring of its corners, shape (5, 2)) with highway-env's own
+    operations - the same ``np.cos``/``np.sin``, rotation matrix and matrix product, so the same
+    bits - without rebuilding the constant corner array or tiling the position."""
+    if type(obj).polygon is not RoadObject.polygon:
+        return obj.polygon()
+    length, width = obj.LENGTH, obj.WIDTH
+    points = _CORNERS.get((length, width))
+    if points is None:  # built as highway-env builds it: the transpose of a (4, 2) array
+        points = _CORNERS[(length, width)] = np.array(
+            [[-length / 2, -width / 2], [-length / 2, +width / 2], [+length / 2, +width / 2],
+             [+length / 2, -width / 2]]).T
+    c, s = np.cos(obj.heading), np.sin(obj.heading)
+    rotation = np.array([[c, -s], [s, c]])
+    corners = (rotation @ points).T + obj.position  # broadcast: np.tile's sums
+    return np.concatenate((corners, corners[0:1]))
 
 
 @dataclass
@@ -202,7 +224,7 @@ class World:
                              o.WIDTH) >= self.min_distance + 1e-9:
                 continue  # the polygons cannot be closer than the minimum
             if ego_poly is None:
-                ego_poly = shapely.Polygon(ego.polygon())
+                ego_poly = shapely.polygons(shapely.linearrings(footprint(ego)))
             dist = ego_poly.distance(self._polygon(p))
             self.min_distance = min(self.min_distance, dist)
             if dist <= 0.0 and self.collision is None:
@@ -213,10 +235,10 @@ class World:
     def _polygon(self, p: Participant) -> shapely.Polygon:
         """A participant's footprint; static obstacles' never change and are kept."""
         if p.kind != "static":
-            return shapely.Polygon(p.obj.polygon())
+            return shapely.polygons(shapely.linearrings(footprint(p.obj)))
         poly = self._static_polygons.get(p.num)
         if poly is None:
-            poly = self._static_polygons[p.num] = shapely.Polygon(p.obj.polygon())
+            poly = self._static_polygons[p.num] = shapely.polygons(shapely.linearrings(footprint(p.obj)))
         return poly
 
     # -- ground truth for sensors -----------------------------------------------------------
