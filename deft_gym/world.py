@@ -38,10 +38,15 @@ class EgoVehicle(Vehicle):
 
     def clip_actions(self) -> None:
         a = self.action
-        a["steering"] = max(-self.MAX_STEERING, min(self.MAX_STEERING, float(a["steering"])))
+        # max(-m, min(m, x)) and max(x, 0.0) as comparisons, with the builtins' choices
+        # (NaN -> m, ties -> the first argument)
+        m = self.MAX_STEERING
+        steering = float(a["steering"])
+        steering = steering if steering < m else m
+        a["steering"] = steering if steering > -m else -m
         acc = float(a["acceleration"])
-        if self.speed <= 0.0:
-            acc = max(acc, 0.0)
+        if self.speed <= 0.0 and acc < 0.0:
+            acc = 0.0
         a["acceleration"] = acc
 
     def step(self, dt: float) -> None:
