@@ -104,7 +104,9 @@ class FastRoad(Road):
 
     def neighbours(self, vehicle: Any, lane_index: LaneIndex) -> tuple[Any, Any, float]:
         """Preceding and following member on ``lane_index`` (highway-env's semantics), and the
-        preceding one's ``s`` minus the vehicle's (NaN without one)."""
+        preceding one's ``s`` minus the vehicle's: its ``lane_distance_to`` on that lane (NaN
+        without one, or when the vehicle is no road member: its lane distance is then not taken
+        from these projections)."""
         s_all, near = self._projection(lane_index)
         me = self._index.get(id(vehicle), -1)
         s = s_all[me] if me >= 0 else float(self.geoms[lane_index].frenet_point(*vehicle.position)[0])
@@ -119,9 +121,10 @@ class FastRoad(Road):
             if s_v < s and s_v > s_rear:  # ties: the first member
                 s_rear, i_rear = s_v, i
         members = self._members
+        rear = members[i_rear] if i_rear >= 0 else None
         if i_front < 0:
-            return None, (members[i_rear] if i_rear >= 0 else None), math.nan
-        return members[i_front], (members[i_rear] if i_rear >= 0 else None), s_front - s
+            return None, rear, math.nan
+        return members[i_front], rear, (s_front - s if me >= 0 else math.nan)
 
     def neighbour_vehicles(self, vehicle: Any, lane_index: LaneIndex = None) -> tuple[Any, Any]:
         """Preceding and following member on ``lane_index`` (highway-env's semantics)."""

@@ -257,4 +257,11 @@ def test_fast_road_neighbours_match_the_plain_search(kind: str) -> None:
                 if kind == "highway":
                     assert (front, rear) == stock.neighbour_vehicles(o, lane_index)
                 checked += 1
+        # a vehicle that is no road member: projected on its own, no gap from the projections
+        lane_index, s, d = where[int(rng.integers(len(where)))]
+        ghost = StaticObstacle(road, rm.geoms[lane_index].xy(np.array(s + 0.5), d), 0.0, "CONE")
+        front, rear, gap = road.neighbours(ghost, lane_index)
+        assert math.isnan(gap) and road.index_of(ghost) == -1
+        if kind == "highway":
+            assert (front, rear) == stock.neighbour_vehicles(ghost, lane_index)
     assert checked > 500
