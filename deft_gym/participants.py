@@ -170,10 +170,16 @@ class ReactiveVehicle(IDMVehicle):
             self._fc_key, self._fc_val = key, self.roadmap.geoms[lane_index].frenet_point(x, y)
         return self._fc_val
 
+    _end_key: Any = None
+    _end_s: float = 0.0
+
     def follow_road(self) -> None:
         """highway-env's ``follow_road``: at the end of the target lane, switch to the next one."""
-        lane = self.road.network.get_lane(self.target_lane_index)
-        if self._frenet(self.target_lane_index)[0] > lane.length - lane.VEHICLE_LENGTH / 2:
+        target = self.target_lane_index
+        if target != self._end_key:  # the lane's switching point, kept while the target lane is
+            lane = self.road.network.get_lane(target)
+            self._end_key, self._end_s = target, lane.length - lane.VEHICLE_LENGTH / 2
+        if self._frenet(target)[0] > self._end_s:
             self.target_lane_index = self.road.network.next_lane(
                 self.target_lane_index, route=self.route, position=self.position, np_random=self.road.np_random)
 
@@ -204,20 +210,53 @@ class ReactiveVehicle(IDMVehicle):
         if self.crashed:
             return
         self.follow_road()
-        if self.enable_lane_change:
+        # highway-env's change_lane_policy returns at once, touching nothing, when no lane change
+        # is under way and its timer has not passed LANE_CHANGE_DELAY (utils.do_every): that
+        # test is made here, without the call
+        if self.enable_lane_change and (self.lane_index != self.target_lane_index
+                                        or self.timer > self.LANE_CHANGE_DELAY):
             self.change_lane_policy()
-        steering = self.steering_control(self.target_lane_index)
-        front, rear = self.road.neighbour_vehicles(self, self.lane_index)
-        acc = self.acceleration(self, front, rear)
-        if self.lane_index != self.target_lane_index:
-            front, rear = self.road.neighbour_vehicles(self, self.target_lane_index)
+        lane_index, target_lane_index = self.lane_index, self.target_lane_index
+        steering = self.steering_control(target_lane_index)
+        road = self.road
+        if lane_index and hasattr(road, "neighbours"):
+            front, rear, gap = road.neighbours(self, lane_index)
+            # the front vehicle's distance along the current lane, as lane_distance_to has it
+            acc = self._idm(front, gap) if gap == gap or front is None else self.acceleration(self, front, rear)
+        else:
+            front, rear = road.neighbour_vehicles(self, lane_index)
+            acc = self.acceleration(self, front, rear)
+        if lane_index != target_lane_index:
+            front, rear = road.neighbour_vehicles(self, target_lane_index)
             acc = min(acc, self.acceleration(self, front, rear))
-        acc = max(-self.ACC_MAX, min(self.ACC_MAX, acc))
-        acc_light = self._light_acceleration()
-        if acc_light is not None and acc_light < acc:
-            acc = max(acc_light, -self.ACC_MAX)
-        self.action = {"steering": max(-self.MAX_STEERING_ANGLE, min(self.MAX_STEERING_ANGLE, steering)),
-                       "acceleration": acc}
+        # max(-a, min(a, x)) as comparisons, with the builtins' choices (NaN -> a, ties -> first)
+        a = self.ACC_MAX
+        acc = acc if acc < a else a
+        acc = acc if acc > -a else -a
+        if self.lights is not None:
+            acc_light = self._light_acceleration()
+            if acc_light is not None and acc_light < acc:
+                acc = max(acc_light, -a)
+        m = self.MAX_STEERING_ANGLE
+        steering = steering if steering < m else m
+        self.action = {"steering": steering if steering > -m else -m, "acceleration": acc}
+
+    def _idm(self, front: Vehicle | None, d: float) -> float:
+        """:meth:`acceleration` of this vehicle behind ``front`` at lane distance ``d`` [m]
+        (the same operations)."""
+        target = self.target_speed
+        lane = self.lane
+        if lane and lane.speed_limit is not None:
+            target = 0.0 if target < 0.0 else (lane.speed_limit if target > lane.speed_limit else target)
+        speed = self.speed
+        if -1e-2 <= target <= 1e-2:
+            target = 1e-2 if target >= 0 else -1e-2
+        acc = self.COMFORT_ACC_MAX * (1 - ((speed if speed > 0 else 0) / abs(target)) ** self.DELTA)
+        if front:
+            if -1e-2 <= d <= 1e-2:
+                d = 1e-2 if d >= 0 else -1e-2
+            acc -= self.COMFORT_ACC_MAX * (self.desired_gap(self, front) / d) ** 2
+        return acc
 
     def acceleration(self, ego_vehicle: Vehicle, front_vehicle: Vehicle = None,
                      rear_vehicle: Vehicle = None) -> float:
@@ -280,8 +319,10 @@ class ReactiveVehicle(IDMVehicle):
         if self.crashed:
             a["steering"] = 0
             a["acceleration"] = -1.0 * self.speed
-        a["steering"] = float(a["steering"])
-        a["acceleration"] = float(a["acceleration"])
+        if type(a["steering"]) is not float:  # act's are floats already
+            a["steering"] = float(a["steering"])
+        if type(a["acceleration"]) is not float:
+            a["acceleration"] = float(a["acceleration"])
         if self.speed > self.MAX_SPEED:
             a["acceleration"] = min(a["acceleration"], 1.0 * (self.MAX_SPEED - self.speed))
         elif self.speed < self.MIN_SPEED:
@@ -291,9 +332,10 @@ class ReactiveVehicle(IDMVehicle):
         if not other:
             return math.nan
         lane_index = self.lane_index if lane is None else None
-        if lane_index is not None and hasattr(self.road, "lane_coordinates"):
-            s_all, _ = self.road.lane_coordinates(lane_index)
-            i, j = self.road.index_of(other), self.road.index_of(self)
+        road = self.road
+        if lane_index is not None and hasattr(road, "lane_s"):
+            s_all = road.lane_s(lane_index)
+            i, j = road.index_of(other), road.index_of(self)
             if i >= 0 and j >= 0:
                 return float(s_all[i] - s_all[j])
         return super().lane_distance_to(other, lane)
@@ -302,12 +344,16 @@ class ReactiveVehicle(IDMVehicle):
     def on_state_update(self) -> None:
         """Track the current lane among the previous lane, its neighbours and successors
         (highway-env searches every lane of the map at every step)."""
-        if self.lane_index is None:
+        lane_index = self.lane_index
+        if lane_index is None:
             return super().on_state_update()
+        g = self.roadmap.geoms[lane_index]
         x, y = self.position.tolist()
-        g = self.roadmap.geoms[self.lane_index]
-        s, r = self._frenet(self.lane_index)
-        if self.lane_index == self.target_lane_index and abs(r) < g.width / 2 - 0.3 and 0.0 <= s <= g.length - 0.5:
+        key = (lane_index, x, y)  # self._frenet(lane_index), inline
+        if key != self._fc_key:
+            self._fc_key, self._fc_val = key, g.frenet_point(x, y)
+        s, r = self._fc_val
+        if lane_index == self.target_lane_index and abs(r) < g.width / 2 - 0.3 and 0.0 <= s <= g.length - 0.5:
             return  # well inside the current lane: it stays the closest one
         cand = [self.lane_index, *self.roadmap.successors.get(self.lane_index, ())]
         cand += self.road.network.side_lanes(self.lane_index)

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import shapely
 from highway_env.vehicle.kinematics import Vehicle
+from highway_env.vehicle.objects import RoadObject
 
 from deft_gym.geometry import box_gap_point
 from deft_gym.participants import ReactiveVehicle, ScriptedVehicle, StaticObstacle, bicycle_step
@@ -37,10 +38,15 @@ class EgoVehicle(Vehicle):
 
     def clip_actions(self) -> None:
         a = self.action
-        a["steering"] = max(-self.MAX_STEERING, min(self.MAX_STEERING, float(a["steering"])))
+        # max(-m, min(m, x)) and max(x, 0.0) as comparisons, with the builtins' choices
+        # (NaN -> m, ties -> the first argument)
+        m = self.MAX_STEERING
+        steering = float(a["steering"])
+        steering = steering if steering < m else m
+        a["steering"] = steering if steering > -m else -m
         acc = float(a["acceleration"])
-        if self.speed <= 0.0:
-            acc = max(acc, 0.0)
+        if self.speed <= 0.0 and acc < 0.0:
+            acc = 0.0
         a["acceleration"] = acc
 
     def step(self, dt: float) -> None:
@@ -55,6 +61,27 @@ class EgoVehicle(Vehicle):
 
     def on_state_update(self) -> None:
         pass
+
+
+_CORNERS: dict[tuple[float, float], np.ndarray] = {}
+
+
+def footprint(obj: RoadObject) -> np.ndarray:
+    """``obj.polygon()`` (the closed ring of its corners, shape (5, 2)) with highway-env's own
+    operations - the same ``np.cos``/``np.sin``, rotation matrix and matrix product, so the same
+    bits - without rebuilding the constant corner array or tiling the position."""
+    if type(obj).polygon is not RoadObject.polygon:
+        return obj.polygon()
+    length, width = obj.LENGTH, obj.WIDTH
+    points = _CORNERS.get((length, width))
+    if points is None:  # built as highway-env builds it: the transpose of a (4, 2) array
+        points = _CORNERS[(length, width)] = np.array(
+            [[-length / 2, -width / 2], [-length / 2, +width / 2], [+length / 2, +width / 2],
+             [+length / 2, -width / 2]]).T
+    c, s = np.cos(obj.heading), np.sin(obj.heading)
+    rotation = np.array([[c, -s], [s, c]])
+    corners = (rotation @ points).T + obj.position  # broadcast: np.tile's sums
+    return np.concatenate((corners, corners[0:1]))
 
 
 @dataclass
@@ -121,6 +148,7 @@ class World:
     def add_participant(self, pid: str, kind: str, obj: Any) -> Participant:
         p = Participant(pid, len(self.participants) + 1, kind, obj)
         self.participants.append(p)
+        self._kinds_n = -1  # re-sort the participants by kind at the next step
         if kind == "static":
             self.road.objects.append(obj)
         elif kind == "reactive" or (kind == "scripted" and obj.spawn_time <= self.time):
@@ -131,7 +159,9 @@ class World:
     def step(self, dt: float, steering: float, acceleration: float) -> None:
         """Advance by ``dt`` [s]: NPC decisions, kinematics, then the collision check."""
         road = self.road
-        reactive = [p.obj for p in self.participants if p.kind == "reactive"]
+        if self._kinds_n != len(self.participants):
+            self._sort_participants()
+        reactive = self._reactive
         for obj in reactive:  # decisions on the current state, then all move (as highway-env)
             obj.act()
         for obj in reactive:
@@ -139,17 +169,25 @@ class World:
         self.ticks += 1
         t = self.ticks * dt  # exact multiples, no accumulated rounding
         self.clock[0] = t
-        for p in self.participants:
-            if p.kind == "scripted":
-                obj = p.obj
-                if obj not in road.vehicles and t >= obj.spawn_time:
-                    road.vehicles.append(obj)
-                obj.place(t)
+        for obj in self._scripted:
+            if t >= obj.spawn_time and obj not in road.vehicles:
+                road.vehicles.append(obj)
+            obj.place(t)
         ego = self.ego
         ego.act({"steering": steering, "acceleration": acceleration})
         ego.step(dt)
         road.advance()
         self._check_collisions(t)
+
+    _kinds_n = -1  # len(participants) when _reactive/_scripted/_half_diag were made
+
+    def _sort_participants(self) -> None:
+        ps = self.participants
+        self._reactive = [p.obj for p in ps if p.kind == "reactive"]
+        self._scripted = [p.obj for p in ps if p.kind == "scripted"]
+        # half diagonals as floats (highway-env keeps numpy scalars: the same values)
+        self._half_diag = [float(p.obj.diagonal) / 2 for p in ps]
+        self._kinds_n = len(ps)
 
     def present_participants(self) -> list[Participant]:
         t = self.clock[0]
@@ -157,31 +195,41 @@ class World:
 
     def _check_collisions(self, t: float) -> None:
         ego = self.ego
-        present = self.present_participants()
-        if not present:
-            return
-        ex, ey = float(ego.position[0]), float(ego.position[1])
-        eh = float(ego.heading)
-        half_ego = ego.diagonal / 2
+        if self._kinds_n != len(self.participants):
+            self._sort_participants()
+        ex, ey = ego.position.tolist()
+        half_ego = float(ego.diagonal) / 2
+        min_distance = self.min_distance
         # exact polygon distances only where they can lower the minimum (or be a collision):
         # the bounding-circle gap, then the separating-axis gap, are lower bounds of the
-        # polygon distance (scalar math: they only decide which pairs get the exact distance)
+        # polygon distance (scalar math: they only decide which pairs get the exact distance).
+        # A pair whose circle gap is not below the minimum now never will be in this check
+        # (the minimum only falls): only the others are sorted.
         gaps = []
-        for i, p in enumerate(present):
-            px, py = (float(c) for c in p.obj.position)
-            gaps.append((math.hypot(px - ex, py - ey) - p.obj.diagonal / 2 - half_ego, i, px, py))
+        hypot = math.hypot
+        for i, p in enumerate(self.participants):
+            o = p.obj
+            if p.kind == "scripted" and not t >= o.spawn_time:
+                continue  # not present yet
+            px, py = o.position.tolist()
+            gap = hypot(px - ex, py - ey) - self._half_diag[i] - half_ego
+            if gap < min_distance:
+                gaps.append((gap, i, px, py))
+        if not gaps:
+            return
         gaps.sort()  # by gap (then index: unique, so positions are never compared)
+        eh = float(ego.heading)
         ego_poly = None
         for gap, i, px, py in gaps:
             if gap >= self.min_distance:
                 break
-            p = present[i]
+            p = self.participants[i]
             o = p.obj
             if box_gap_point(ex, ey, eh, ego.LENGTH, ego.WIDTH, px, py, float(o.heading), o.LENGTH,
                              o.WIDTH) >= self.min_distance + 1e-9:
                 continue  # the polygons cannot be closer than the minimum
             if ego_poly is None:
-                ego_poly = shapely.Polygon(ego.polygon())
+                ego_poly = shapely.polygons(shapely.linearrings(footprint(ego)))
             dist = ego_poly.distance(self._polygon(p))
             self.min_distance = min(self.min_distance, dist)
             if dist <= 0.0 and self.collision is None:
@@ -192,10 +240,10 @@ class World:
     def _polygon(self, p: Participant) -> shapely.Polygon:
         """A participant's footprint; static obstacles' never change and are kept."""
         if p.kind != "static":
-            return shapely.Polygon(p.obj.polygon())
+            return shapely.polygons(shapely.linearrings(footprint(p.obj)))
         poly = self._static_polygons.get(p.num)
         if poly is None:
-            poly = self._static_polygons[p.num] = shapely.Polygon(p.obj.polygon())
+            poly = self._static_polygons[p.num] = shapely.polygons(shapely.linearrings(footprint(p.obj)))
         return poly
 
     # -- ground truth for sensors -----------------------------------------------------------

@@ -163,3 +163,105 @@ def test_scalar_frenet_matches_numpy_bitwise() -> None:
             s, d = line.frenet(pts)
             s_l, d_l = line.frenet_list(pts.tolist())
             assert _bits(s_l) == _bits(s) and _bits(d_l) == _bits(d)
+
+
+def test_footprint_is_highway_envs_polygon_bitwise() -> None:
+    """The collision check's footprints are ``RoadObject.polygon()``'s arrays, bit for bit."""
+    from deft_gym.scenario import build_world, load_scenario
+    from deft_gym.world import footprint
+    from tests.conftest import SCENARIOS
+
+    world = build_world(load_scenario(SCENARIOS / "take_exit.yaml"))
+    objs = [world.ego] + [p.obj for p in world.participants]  # ego, reactive, a cone
+    rng = np.random.default_rng(8)
+    for k in range(3000):
+        o = objs[k % len(objs)]
+        o.position = rng.normal(size=2) * 10.0 ** float(rng.integers(0, 4))
+        o.heading = float(rng.normal() * 4) if k % 7 else float(rng.choice([0.0, math.pi / 2, -math.pi]))
+        got, want = footprint(o), o.polygon()
+        assert got.shape == want.shape and got.tobytes() == want.tobytes()
+
+
+def _plain_neighbours(road, vehicle, lane_index):
+    """highway-env's neighbour search as DeFT-Gym first wrote it: every member projected,
+    the on-lane test, None-started comparisons."""
+    from highway_env.road.lane import AbstractLane
+    from highway_env.vehicle.objects import Landmark
+
+    members = [v for v in road.vehicles + road.objects if not isinstance(v, Landmark)]
+    geom = road.geoms[lane_index]
+    s_all, lat = geom.frenet_list([[float(v.position[0]), float(v.position[1])] for v in members])
+    L = AbstractLane.VEHICLE_LENGTH
+    half, end = geom.width / 2 + 1.0, geom.length + L
+    me = next(i for i, m in enumerate(members) if m is vehicle)
+    s = s_all[me]
+    s_front = s_rear = None
+    i_front = i_rear = -1
+    for i, s_v in enumerate(s_all):
+        if i == me or not (abs(lat[i]) <= half and -L <= s_v < end):
+            continue
+        if s <= s_v and (s_front is None or s_v <= s_front):
+            s_front, i_front = s_v, i
+        if s_v < s and (s_rear is None or s_v > s_rear):
+            s_rear, i_rear = s_v, i
+    return (members[i_front] if i_front >= 0 else None, members[i_rear] if i_rear >= 0 else None,
+            s_front - s if i_front >= 0 else None)
+
+
+@pytest.mark.parametrize("kind", ["highway", "intersection"])
+def test_fast_road_neighbours_match_the_plain_search(kind: str) -> None:
+    """FastRoad's neighbours (cached projections, on-lane lists, members rebuilt only when the
+    road's lists change) are the plain search's, ties included, on straight and circular lanes;
+    the front gap is ``lane_distance_to``'s."""
+    from highway_env.road.road import Road
+
+    from deft_gym.participants import StaticObstacle
+    from deft_gym.road import FastRoad
+    from deft_gym.roadmap import shared_roadmap
+
+    rm = shared_roadmap({"type": kind})
+    road = FastRoad(network=rm.network, np_random=np.random.RandomState(0), record_history=False, geoms=rm.geoms)
+    stock = Road(network=rm.network, np_random=np.random.RandomState(0), record_history=False)
+    rng = np.random.default_rng(4)
+    lanes = list(rm.geoms)
+    checked = 0
+    where: dict[int, tuple] = {}  # object -> (lane, s, d)
+    for step in range(60):
+        if step % 6 == 0:  # the road's lists change: a new object (sometimes on another's spot)
+            if where and rng.random() < 0.5:
+                lane_index, s, d = where[int(rng.integers(len(where)))]
+            else:
+                lane_index = lanes[int(rng.integers(len(lanes)))]
+                s, d = float(rng.uniform(-8, rm.geoms[lane_index].length)), float(rng.normal())
+            road.objects.append(StaticObstacle(road, np.zeros(2), 0.0, "CONE"))
+            where[len(road.objects) - 1] = (lane_index, s, d)
+        for k, o in enumerate(road.objects):  # everybody moves a little along its lane
+            lane_index, s, d = where[k]
+            g = rm.geoms[lane_index]
+            if step % 6:
+                s, d = s + float(rng.uniform(0, 2)), d + float(rng.normal() * 0.2)
+                where[k] = (lane_index, s, d)
+            o.position = g.xy(np.array(s), d)
+            o.heading = g.heading_point(s)
+            o.lane_index, o.lane = lane_index, rm.lanes[lane_index]
+        road.advance()
+        stock.objects = road.objects
+        for o in road.objects:
+            for lane_index in {o.lane_index, lanes[int(rng.integers(len(lanes)))]}:
+                front, rear, gap = road.neighbours(o, lane_index)
+                want = _plain_neighbours(road, o, lane_index)
+                assert (front, rear) == want[:2] == road.neighbour_vehicles(o, lane_index)
+                assert (gap if front is not None else None) == want[2]
+                if front is not None and lane_index == o.lane_index:
+                    assert gap == o.lane_distance_to(front)  # highway-env's, on the object's lane
+                if kind == "highway":
+                    assert (front, rear) == stock.neighbour_vehicles(o, lane_index)
+                checked += 1
+        # a vehicle that is no road member: projected on its own, no gap from the projections
+        lane_index, s, d = where[int(rng.integers(len(where)))]
+        ghost = StaticObstacle(road, rm.geoms[lane_index].xy(np.array(s + 0.5), d), 0.0, "CONE")
+        front, rear, gap = road.neighbours(ghost, lane_index)
+        assert math.isnan(gap) and road.index_of(ghost) == -1
+        if kind == "highway":
+            assert (front, rear) == stock.neighbour_vehicles(ghost, lane_index)
+    assert checked > 500

@@ -90,3 +90,101 @@ def test_fast_idm_follows_highway_envs_idm() -> None:
     for p, v in zip(world.participants, stock):
         assert np.allclose(p.obj.position, v.position, atol=1e-6), p.id
         assert p.obj.speed == pytest.approx(v.speed, abs=1e-6)
+
+
+def _plain_act(self, action=None) -> None:
+    """ReactiveVehicle.act as first written: highway-env's IDMVehicle.act step by step
+    (change_lane_policy called every step, the generic IDM acceleration), then the lights."""
+    if self.crashed:
+        return
+    self.follow_road()
+    if self.enable_lane_change:
+        self.change_lane_policy()
+    steering = self.steering_control(self.target_lane_index)
+    front, rear = self.road.neighbour_vehicles(self, self.lane_index)
+    acc = self.acceleration(self, front, rear)
+    if self.lane_index != self.target_lane_index:
+        front, rear = self.road.neighbour_vehicles(self, self.target_lane_index)
+        acc = min(acc, self.acceleration(self, front, rear))
+    acc = max(-self.ACC_MAX, min(self.ACC_MAX, acc))
+    acc_light = self._light_acceleration()
+    if acc_light is not None and acc_light < acc:
+        acc = max(acc_light, -self.ACC_MAX)
+    self.action = {"steering": max(-self.MAX_STEERING_ANGLE, min(self.MAX_STEERING_ANGLE, steering)),
+                   "acceleration": acc}
+
+
+@pytest.mark.parametrize("name", ["bench_highway", "left_turn"])
+def test_fast_act_is_the_plain_act_bit_for_bit(name: str) -> None:
+    """ReactiveVehicle.act's shortcuts (change_lane_policy's timer test made before the call,
+    the IDM gap taken from the neighbour search, comparisons for the clamps) change no bit: two
+    worlds, one with the plain act, stay identical through lane changes, MOBIL decisions and
+    lights, with more vehicles than the scenario has."""
+    import types
+
+    data = scenario_to_dict(load_scenario(SCENARIOS / f"{name}.yaml"))
+    if name == "bench_highway":  # denser traffic: slow leaders, lane changes, one of them aborted
+        rng = np.random.default_rng(0)
+        for i in range(10):
+            data["participants"].append({"id": f"extra_{i}", "type": "reactive", "lane": ["a", "b", i % 3],
+                                         "s": 150.0 + 25.0 * i, "speed": float(rng.uniform(3, 18)),
+                                         "target_speed": float(rng.uniform(5, 20))})
+    sc = scenario_from_dict(data, source=name)
+    fast, plain = build_world(sc), build_world(sc)
+    for p in plain.participants:
+        if p.kind == "reactive":
+            p.obj.act = types.MethodType(_plain_act, p.obj)
+    changes = 0
+    for k in range(600):
+        steer, acc = 0.02 * np.sin(k * 0.02), 0.8 * np.cos(k * 0.013)
+        fast.step(0.05, steer, acc)
+        plain.step(0.05, steer, acc)
+        for a, b in zip(fast.participants, plain.participants, strict=True):
+            o, q = a.obj, b.obj
+            assert o.position.tobytes() == q.position.tobytes(), (k, a.id)
+            assert (o.heading, o.speed) == (q.heading, q.speed), (k, a.id)
+            if a.kind == "reactive":
+                assert (o.action, o.lane_index, o.target_lane_index, o.timer) == \
+                    (q.action, q.lane_index, q.target_lane_index, q.timer), (k, a.id)
+                changes += o.lane_index != o.target_lane_index
+        assert fast.min_distance == plain.min_distance
+    assert changes > 0  # lane changes happened
+
+
+def _plain_check_collisions(self, t: float) -> None:
+    """The collision check as first written: every present participant's exact polygon distance."""
+    import shapely
+
+    from deft_gym.world import Collision
+
+    ego = self.ego
+    ego_poly = shapely.Polygon(ego.polygon())
+    for p in self.present_participants():
+        dist = ego_poly.distance(shapely.Polygon(p.obj.polygon()))
+        self.min_distance = min(self.min_distance, dist)
+        if dist <= 0.0 and self.collision is None:
+            self.collision = Collision(p.id, p.num, p.kind, p.obstacle_type, t, float(ego.speed),
+                                       bool(ego.speed > 0.1), float(ego.position[0]), float(ego.position[1]))
+
+
+@pytest.mark.parametrize("hit", [True, False])
+def test_collision_check_is_the_plain_check_bit_for_bit(hit: bool) -> None:
+    """The bounds that skip exact distances, the sorting of only the pairs that can lower the
+    minimum and the footprints built without np.tile give the plain check's minimum distance
+    (every bit) and collision, with static, scripted (appearing late) and reactive participants."""
+    import types
+
+    data = scenario_to_dict(load_scenario(SCENARIOS / "take_exit.yaml"))
+    data["participants"].append({"id": "late", "type": "scripted",
+                                 "waypoints": [{"t": 1.5, "x": 120.0, "y": 0.0 if hit else 4.0},
+                                               {"t": 8.0, "x": 0.0, "y": 0.0 if hit else 4.0}]})
+    sc = scenario_from_dict(data, source="collision check")
+    fast, plain = build_world(sc), build_world(sc)
+    plain._check_collisions = types.MethodType(_plain_check_collisions, plain)
+    for k in range(300):
+        steer, acc = 0.002 * np.sin(k * 0.05), 0.0
+        fast.step(0.05, steer, acc)
+        plain.step(0.05, steer, acc)
+        assert repr(fast.min_distance) == repr(plain.min_distance), k
+        assert fast.collision == plain.collision, k
+    assert (fast.collision is not None) == hit
