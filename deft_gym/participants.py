@@ -222,7 +222,7 @@ class ReactiveVehicle(IDMVehicle):
         if lane_index and hasattr(road, "neighbours"):
             front, rear, gap = road.neighbours(self, lane_index)
             # the front vehicle's distance along the current lane, as lane_distance_to has it
-            acc = self._idm(front, gap) if gap == gap or front is None else self.acceleration(self, front, rear)
+            acc = self._idm(self, front, gap) if gap == gap or front is None else self.acceleration(self, front, rear)
         else:
             front, rear = road.neighbour_vehicles(self, lane_index)
             acc = self.acceleration(self, front, rear)
@@ -241,28 +241,9 @@ class ReactiveVehicle(IDMVehicle):
         steering = steering if steering < m else m
         self.action = {"steering": steering if steering > -m else -m, "acceleration": acc}
 
-    def _idm(self, front: Vehicle | None, d: float) -> float:
-        """:meth:`acceleration` of this vehicle behind ``front`` at lane distance ``d`` [m]
-        (the same operations)."""
-        target = self.target_speed
-        lane = self.lane
-        if lane and lane.speed_limit is not None:
-            target = 0.0 if target < 0.0 else (lane.speed_limit if target > lane.speed_limit else target)
-        speed = self.speed
-        if -1e-2 <= target <= 1e-2:
-            target = 1e-2 if target >= 0 else -1e-2
-        acc = self.COMFORT_ACC_MAX * (1 - ((speed if speed > 0 else 0) / abs(target)) ** self.DELTA)
-        if front:
-            if -1e-2 <= d <= 1e-2:
-                d = 1e-2 if d >= 0 else -1e-2
-            acc -= self.COMFORT_ACC_MAX * (self.desired_gap(self, front) / d) ** 2
-        return acc
-
-    def acceleration(self, ego_vehicle: Vehicle, front_vehicle: Vehicle = None,
-                     rear_vehicle: Vehicle = None) -> float:
-        """highway-env's IDM acceleration [m/s^2]."""
-        if ego_vehicle is None or not hasattr(ego_vehicle, "speed") or not hasattr(ego_vehicle, "action"):
-            return 0
+    def _idm(self, ego_vehicle: Vehicle, front: Vehicle | None, d: float) -> float:
+        """highway-env's IDM acceleration [m/s^2] of ``ego_vehicle`` behind ``front`` at lane
+        distance ``d`` [m] (the same operations)."""
         target = getattr(ego_vehicle, "target_speed", 0)
         lane = ego_vehicle.lane
         if lane and lane.speed_limit is not None:
@@ -271,12 +252,19 @@ class ReactiveVehicle(IDMVehicle):
         if -1e-2 <= target <= 1e-2:
             target = 1e-2 if target >= 0 else -1e-2
         acc = self.COMFORT_ACC_MAX * (1 - ((speed if speed > 0 else 0) / abs(target)) ** self.DELTA)
-        if front_vehicle:
-            d = ego_vehicle.lane_distance_to(front_vehicle)
+        if front:
             if -1e-2 <= d <= 1e-2:
                 d = 1e-2 if d >= 0 else -1e-2
-            acc -= self.COMFORT_ACC_MAX * (self.desired_gap(ego_vehicle, front_vehicle) / d) ** 2
+            acc -= self.COMFORT_ACC_MAX * (self.desired_gap(ego_vehicle, front) / d) ** 2
         return acc
+
+    def acceleration(self, ego_vehicle: Vehicle, front_vehicle: Vehicle = None,
+                     rear_vehicle: Vehicle = None) -> float:
+        """highway-env's IDM acceleration [m/s^2]."""
+        if ego_vehicle is None or not hasattr(ego_vehicle, "speed") or not hasattr(ego_vehicle, "action"):
+            return 0
+        d = ego_vehicle.lane_distance_to(front_vehicle) if front_vehicle else math.nan
+        return self._idm(ego_vehicle, front_vehicle, d)
 
     def desired_gap(self, ego_vehicle: Vehicle, front_vehicle: Vehicle = None, projected: bool = True) -> float:
         """highway-env's IDM desired gap [m]."""
