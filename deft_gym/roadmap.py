@@ -188,6 +188,7 @@ class RoadMap:
                 if a[1] == b[0] and np.linalg.norm(pa - pb) < self.CONNECT_TOL and abs(wrap_angle(ha - hb)) < 0.05:
                     self.successors[a].append(b)
         self.stop_line_of: dict[LaneId, StopLine] = {sl.lane: sl for sl in self.stop_lines}
+        self._around: dict[LaneId, tuple[LaneId, ...]] = {}
         self._tree = shapely.STRtree([shapely.LineString(g.xy(np.linspace(0, g.length, 12)))
                                       for g in self.geoms.values()])
 
@@ -213,6 +214,14 @@ class RoadMap:
                 line = self.lanes[(a, b, min(j, k) + 1)].line_types[0]
                 if line == S:
                     out.append((a, b, j))
+        return out
+
+    def around(self, lane_id: LaneId) -> tuple[LaneId, ...]:
+        """The lane, its successors and its changeable neighbours, in that order: where a vehicle
+        on it can be a moment later (what trackers search first; cached, the map is static)."""
+        out = self._around.get(lane_id)
+        if out is None:
+            out = self._around[lane_id] = (lane_id, *self.successors[lane_id], *self.changeable_neighbours(lane_id))
         return out
 
     def straight_successor(self, lane_id: LaneId) -> LaneId | None:

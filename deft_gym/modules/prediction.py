@@ -36,7 +36,6 @@ class PredictionNode(Node):
         # (lane, length bucket) -> (reference line, its wrapped heading if it is one straight lane)
         self._chains: dict[Any, tuple[Any, float | None]] = {}
         self._lane_of: dict[int, Any] = {}  # obstacle id -> its lane last cycle (tracking)
-        self._candidates: dict[Any, tuple[Any, ...]] = {}  # lane -> it, successors, neighbours
 
     def compute(self, now_ns: int) -> list[tuple[str, dict[str, Any]]]:
         msg = self.latest[self.in_topic]
@@ -82,10 +81,7 @@ class PredictionNode(Node):
         x, y, h = ob["x"], ob["y"], ob["heading"]
         prev = self._lane_of.get(ob["id"])
         if prev is not None:
-            cand = self._candidates.get(prev)
-            if cand is None:  # the map does not change: once per lane
-                cand = self._candidates[prev] = (prev, *rm.successors[prev], *rm.changeable_neighbours(prev))
-            for lane in cand:
+            for lane in rm.around(prev):
                 g = rm.geoms[lane]
                 s, d = g.frenet_point(x, y)
                 if (0.0 <= s <= g.length and abs(d) <= g.width / 2

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -231,7 +232,6 @@ class LatticePlanner(Planner):
         self._route_cache: dict[Any, _Route] = {}
         self._ref_cache: dict[Any, _Ref] = {}
         self._lat_cache: dict[Any, _Lateral] = {}
-        self._cand_cache: dict[LaneId, list[LaneId]] = {}
         reach = max(p.horizon * p.horizon, 30.0) + 20.0  # [m] obstacles farther never matter
         self._reach2 = reach * reach
         self._half_lane = self.map.spec.lane_width / 2
@@ -377,18 +377,14 @@ class LatticePlanner(Planner):
         neighbours), the whole map only when that finds nothing good."""
         prev = self.state.lane
         if prev is not None:
-            cand = self._cand_cache.get(prev)
-            if cand is None:  # the map is static
-                cand = [prev, *self.map.successors[prev], *self.map.changeable_neighbours(prev)]
-                self._cand_cache[prev] = cand
-            best, score = self._best_lane(cand, x, y, h, route)
+            best, score = self._best_lane(self.map.around(prev), x, y, h, route)
             if best is not None and score < 1.5:
                 return best
         _, idx = self.map.candidate_lanes(np.array([x, y]), radius=4.0)
         best, score = self._best_lane([self.map.lane_ids[j] for j in sorted(idx.tolist())], x, y, h, route)
         return best if score < 6.0 else None
 
-    def _best_lane(self, cand: list[LaneId], x: float, y: float, h: float, route: _Route) -> tuple[LaneId | None, float]:
+    def _best_lane(self, cand: Sequence[LaneId], x: float, y: float, h: float, route: _Route) -> tuple[LaneId | None, float]:
         roads = route.roads
         best, best_score = None, math.inf
         for lid in cand:
