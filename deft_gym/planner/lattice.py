@@ -321,7 +321,7 @@ class LatticePlanner(Planner):
         c_route = self._route_cost(lat, ref, route, lane, s0)
         best, cost, poses = self._evaluate(ref, lat, lat_d, lon, obs, walls, v_des, c_route)
         if best is None:
-            s, v, acc = _brake(s0, vs0, self.p.emergency_decel, self.tk)
+            s, v, acc = lon["sva"][:, -1]  # the emergency brake, the last profile
             dd = np.zeros(self.K)
             poses = _Poses.along(ref, np.full(self.K, d0), dd, s, v, _interp(s, ref.s, ref.k))
             out = self._to_xy(poses, t0, dd, acc, h0)
