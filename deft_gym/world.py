@@ -148,7 +148,6 @@ class World:
     def add_participant(self, pid: str, kind: str, obj: Any) -> Participant:
         p = Participant(pid, len(self.participants) + 1, kind, obj)
         self.participants.append(p)
-        self._kinds_n = -1  # re-sort the participants by kind at the next step
         if kind == "static":
             self.road.objects.append(obj)
         elif kind == "reactive" or (kind == "scripted" and obj.spawn_time <= self.time):
@@ -208,9 +207,9 @@ class World:
         gaps = []
         hypot = math.hypot
         for i, p in enumerate(self.participants):
+            if not p.present(t):
+                continue
             o = p.obj
-            if p.kind == "scripted" and not t >= o.spawn_time:
-                continue  # not present yet
             px, py = o.position.tolist()
             gap = hypot(px - ex, py - ey) - self._half_diag[i] - half_ego
             if gap < min_distance:
