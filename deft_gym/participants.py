@@ -337,10 +337,7 @@ class ReactiveVehicle(IDMVehicle):
             return super().on_state_update()
         g = self.roadmap.geoms[lane_index]
         x, y = self.position.tolist()
-        key = (lane_index, x, y)  # self._frenet(lane_index), inline
-        if key != self._fc_key:
-            self._fc_key, self._fc_val = key, g.frenet_point(x, y)
-        s, r = self._fc_val
+        s, r = self._frenet(lane_index)
         if lane_index == self.target_lane_index and abs(r) < g.width / 2 - 0.3 and 0.0 <= s <= g.length - 0.5:
             return  # well inside the current lane: it stays the closest one
         cand = [self.lane_index, *self.roadmap.successors.get(self.lane_index, ())]
