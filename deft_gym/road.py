@@ -66,31 +66,10 @@ class FastRoad(Road):
         geom = self.geoms[lane_index]
         L = AbstractLane.VEHICLE_LENGTH
         half, lo, end = geom.width / 2 + 1.0, -L, geom.length + L
-        near: list[tuple[int, float]] = []
-        if geom.kind == "straight":  # LaneGeom.frenet_list's scalar math, fused with the on-lane test
-            (sx, sy), (ux, uy), (lx, ly) = geom._s0, geom._dir, geom._lat
-            s = []
-            for i, (x, y) in enumerate(self._xy):
-                dx, dy = x - sx, y - sy
-                s_v = dx * ux + dy * uy
-                s.append(s_v)
-                if abs(dx * lx + dy * ly) <= half and lo <= s_v < end:
-                    near.append((i, s_v))
-        else:
-            s, lat = geom.frenet_list(self._xy)
-            for i, s_v in enumerate(s):
-                if abs(lat[i]) <= half and lo <= s_v < end:
-                    near.append((i, s_v))
+        s, lat = geom.frenet_list(self._xy)
+        near = [(i, s_v) for i, s_v in enumerate(s) if abs(lat[i]) <= half and lo <= s_v < end]
         out = self._lane_cache[lane_index] = (s, near)
         return out
-
-    def lane_coordinates(self, lane_index: LaneIndex) -> tuple[list[float], list[bool]]:
-        """``(s, on_lane)`` of every road member on ``lane_index`` (cached per step)."""
-        s, near = self._projection(lane_index)
-        on = [False] * len(s)
-        for i, _ in near:
-            on[i] = True
-        return s, on
 
     def lane_s(self, lane_index: LaneIndex) -> list[float]:
         """``s`` [m] of every road member on ``lane_index`` (cached per step)."""
