@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules/_control_c.c
+$(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules/_control_c.c deft_gym/_snapshot_c.c
 	test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
@@ -34,4 +34,4 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf $(VENV) runs/demo build deft_gym/planner/*.so deft_gym/modules/*.so
+	rm -rf $(VENV) runs/demo build deft_gym/planner/*.so deft_gym/modules/*.so deft_gym/*.so

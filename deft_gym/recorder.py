@@ -25,16 +25,17 @@ import contextlib
 import itertools
 import json
 import os
-import pickle
 import subprocess
 import sys
 import threading
 from pathlib import Path
 from typing import Any
 
+import orjson
+
 from deft_gym.codec import encode
 from deft_gym.messages import SCHEMAS, Message
-from deft_gym.recorder_worker import Entry, EpisodeLog, read_frame, write_frame
+from deft_gym.recorder_worker import Entry, EpisodeLog, read_frame, snapshot, write_frame
 
 EPISODE_METADATA = "deft_gym.episode"
 OUTCOME_METADATA = "deft_gym.outcome"
@@ -62,10 +63,6 @@ def recorder_in_process() -> bool:
 def _meta(values: dict[str, Any]) -> dict[str, str]:
     """MCAP metadata values are strings: JSON-encode everything that is not one."""
     return {k: v if isinstance(v, str) else json.dumps(v, sort_keys=True) for k, v in values.items()}
-
-
-def _pickle(payload: Any) -> bytes:
-    return pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
 
 
 class RecorderError(RuntimeError):
@@ -149,8 +146,9 @@ class RecorderProcess:
 class McapRecorder:
     """A bus tap writing every message to an MCAP episode log.
 
-    Each message's payload is pickled (for the recorder process: ``background``, by default
-    unless :func:`recorder_in_process`) or JSON-encoded (for a log written in this process)
+    Each message's payload is snapshot (for the recorder process: ``background``, by default
+    unless :func:`recorder_in_process`; see :func:`deft_gym.recorder_worker.snapshot`) or
+    JSON-encoded (for a log written in this process)
     when it is published, so the log holds the payload as it was then; messages are handed on
     in batches of :attr:`BATCH`.
     :meth:`close` returns once the log is complete and in place, and raises
@@ -170,7 +168,7 @@ class McapRecorder:
         args = (str(self.path), channels, EPISODE_METADATA, _meta(metadata), compress)
         self._log: EpisodeLog | None = None
         self._proc: RecorderProcess | None = None
-        self._snapshot = _pickle if background else encode
+        self._snapshot = snapshot if background else encode
         if background:
             self._proc = RecorderProcess.get()
             self._id = self._proc.new_id()
@@ -193,7 +191,7 @@ class McapRecorder:
             raise RecorderError(f"MCAP log {self.path}: {exc}") from None
 
     def __call__(self, msg: Message) -> None:
-        # the payload as it is now: pickled for the recorder process, which encodes it (cheaper
+        # the payload as it is now: snapshot for the recorder process, which encodes it (cheaper
         # here than JSON), or encoded here
         self._pending.append((msg.topic, msg.publish_ns, self._snapshot(msg.payload), msg.seq))
         self.count += 1
@@ -274,11 +272,10 @@ def read_jsonl(path: Path | str) -> list[Any]:
 
 
 def write_truth(path: Path | str, records: list[dict[str, Any]], topics: dict[str, str]) -> Path:
-    """``truth.jsonl``: one JSON object per planning output (inputs keyed by topic name)."""
-    lines = []
-    for r in records:
-        inputs = {topics[role]: seq for role, seq in r["inputs"].items()}
-        lines.append(json.dumps({"planning_seq": r["seq"], "publish_ns": r["publish_ns"],
-                                 "frame_ns": r["frame_ns"], "frame_time": r["frame_time"],
-                                 "inputs": inputs}, sort_keys=True))
-    return write_atomic(path, "\n".join(lines) + ("\n" if lines else ""))
+    """``truth.jsonl``: one JSON object per planning output (inputs keyed by topic name, keys
+    sorted)."""
+    dumps, sort = orjson.dumps, orjson.OPT_SORT_KEYS
+    lines = [dumps({"planning_seq": r["seq"], "publish_ns": r["publish_ns"], "frame_ns": r["frame_ns"],
+                    "frame_time": r["frame_time"], "inputs": {topics[role]: seq for role, seq in r["inputs"].items()}},
+                   option=sort) for r in records]
+    return write_atomic(path, b"\n".join(lines) + (b"\n" if lines else b""))
