@@ -28,6 +28,7 @@ import os
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +36,7 @@ import orjson
 
 from deft_gym.codec import encode
 from deft_gym.messages import SCHEMAS, Message
-from deft_gym.recorder_worker import Entry, EpisodeLog, read_frame, snapshot, write_frame
+from deft_gym.recorder_worker import Batch, Entry, EpisodeLog, read_frame, write_frame
 
 EPISODE_METADATA = "deft_gym.episode"
 OUTCOME_METADATA = "deft_gym.outcome"
@@ -144,13 +145,13 @@ class RecorderProcess:
 
 
 class McapRecorder:
-    """A bus tap writing every message to an MCAP episode log.
+    """A bus tap writing every message to an MCAP episode log (:attr:`tap` is the tap itself,
+    without the method call of calling the recorder).
 
     Each message's payload is snapshot (for the recorder process: ``background``, by default
-    unless :func:`recorder_in_process`; see :func:`deft_gym.recorder_worker.snapshot`) or
-    JSON-encoded (for a log written in this process)
-    when it is published, so the log holds the payload as it was then; messages are handed on
-    in batches of :attr:`BATCH`.
+    unless :func:`recorder_in_process`; see :class:`deft_gym.recorder_worker.Batch`) or
+    JSON-encoded (for a log written in this process) when it is published, so the log holds the
+    payload as it was then; messages are handed on in batches of :attr:`BATCH`.
     :meth:`close` returns once the log is complete and in place, and raises
     :class:`RecorderError` if it could not be written.
     """
@@ -168,17 +169,19 @@ class McapRecorder:
         args = (str(self.path), channels, EPISODE_METADATA, _meta(metadata), compress)
         self._log: EpisodeLog | None = None
         self._proc: RecorderProcess | None = None
-        self._snapshot = snapshot if background else encode
+        self._pending: list[Entry] = []
+        self._batch: Batch | None = None
+        self.tap: Callable[[Message], None] = self._encode
         if background:
             self._proc = RecorderProcess.get()
             self._id = self._proc.new_id()
             self._request("open", *args)
+            self.tap = self._batch = Batch(self.BATCH, self.flush)
         else:
             self._log = EpisodeLog(*args)
-        self.count = 0
+        self._count = 0
         self.closed = False
         self.process_seconds = 0.0  # CPU time the recorder process spent on this log (after close)
-        self._pending: list[Entry] = []
 
     def _request(self, op: str, *args: Any, wait: bool = True) -> tuple[Any, ...] | None:
         """A command about this log to the recorder process; its errors name the log."""
@@ -191,22 +194,28 @@ class McapRecorder:
             raise RecorderError(f"MCAP log {self.path}: {exc}") from None
 
     def __call__(self, msg: Message) -> None:
-        # the payload as it is now: snapshot for the recorder process, which encodes it (cheaper
-        # here than JSON), or encoded here
-        self._pending.append((msg.topic, msg.publish_ns, self._snapshot(msg.payload), msg.seq))
-        self.count += 1
+        self.tap(msg)
+
+    @property
+    def count(self) -> int:
+        """Messages recorded so far."""
+        return self._batch.total if self._batch is not None else self._count
+
+    def _encode(self, msg: Message) -> None:
+        # the tap of a log written here: the payload encoded as it is now
+        self._pending.append((msg.topic, msg.publish_ns, encode(msg.payload), msg.seq))
+        self._count += 1
         if len(self._pending) >= self.BATCH:
             self.flush()
 
     def flush(self) -> None:
         """Hand the messages held back (their payload snapshots) to the log, in publish order."""
-        if not self._pending:
-            return
-        if self._proc is not None:
-            self._request("write", self._pending, wait=False)
-        else:
+        if self._batch is not None:
+            if self._batch.count:
+                self._request("write", self._batch.take(), wait=False)
+        elif self._pending:
             self._log.write(self._pending)
-        self._pending = []
+            self._pending = []
 
     def add_metadata(self, name: str, values: dict[str, Any]) -> None:
         """Add a metadata record (values that are not strings are JSON-encoded)."""

@@ -1,8 +1,8 @@
 """The MCAP episode log, and the recorder process that writes it beside the simulation.
 
-The recorder process (``python -m deft_gym.recorder_worker``) is fed a snapshot of each
-message's payload taken at its publish time (:func:`snapshot`, which costs the simulation less
-than JSON encoding) and does the rest: JSON encoding (:func:`deft_gym.codec.encode`, the same bytes as encoding in
+The recorder process (``python -m deft_gym.recorder_worker``) is fed batches of messages,
+each with a snapshot of its payload taken at its publish time (:class:`Batch`, which costs the
+simulation less than JSON encoding), and does the rest: JSON encoding (:func:`deft_gym.codec.encode`, the same bytes as encoding in
 the simulation's process) and the MCAP writer's per-message Python. Apollo records the same
 way: ``cyber_recorder`` is a process of its own, fed serialised messages.
 
@@ -10,7 +10,7 @@ It reads commands from its stdin and answers some on its stdout. A frame is a 4-
 little-endian length and a pickled tuple ``(op, log_id, *args)``:
 
 - ``("open", id, path, channels, metadata, compress)`` -> ``("ok",)`` or ``("error", text)``
-- ``("write", id, batch)``: ``batch`` is a list of ``(topic, publish_ns, payload snapshot, seq)``
+- ``("write", id, batch)``: ``batch`` is the bytes of :meth:`Batch.take`
 - ``("meta", id, name, values)``
 - ``("close", id, outcome)`` -> ``("ok", path, cpu_seconds)`` or ``("error", text)``
 
@@ -26,6 +26,7 @@ import signal
 import struct
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -39,21 +40,68 @@ except ImportError:  # pragma: no cover - the build is optional
     _snapshot_c = None
 
 FRAME = struct.Struct("<I")
+_TOPIC = struct.Struct("=q")  # a batch entry: topic length, the topic (UTF-8),
+_REST = struct.Struct("=qqq")  # publish time [ns], sequence number, payload length, the payload
+
+# (topic, publish time [ns], encoded payload, per-topic sequence number)
+Entry = tuple[str, int, bytes, int]
 
 
 def _pickle(payload: Any) -> bytes:
     return pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
 
 
-# snapshot(payload) -> bytes: the payload as it is now, for the recorder process. Compiled, a
-# tree of plain values (dict, list, tuple, str, 64-bit int, float, bool, None) is written in its
-# own format (floats as their 8 bytes) and anything else pickled; a pickle without the build or
-# with DEFT_GYM_PURE_PYTHON set. unsnapshot reads back either kind.
-snapshot = _pickle if _snapshot_c is None or os.environ.get("DEFT_GYM_PURE_PYTHON") else _snapshot_c.dumps
-unsnapshot = pickle.loads if _snapshot_c is None else _snapshot_c.loads
+class PyBatch:
+    """:class:`Batch` without the compiled module (or with ``DEFT_GYM_PURE_PYTHON`` set): the
+    same entries, each payload pickled."""
 
-# (topic, publish time [ns], encoded payload, per-topic sequence number)
-Entry = tuple[str, int, bytes, int]
+    def __init__(self, limit: int, flush: Callable[[], None]) -> None:
+        if limit < 1 or not callable(flush):
+            raise ValueError("Batch(limit, flush): limit >= 1 and a callable flush")
+        self.limit, self.flush = limit, flush
+        self.count = self.total = 0
+        self._buf = bytearray()
+
+    def __call__(self, msg: Any) -> None:
+        topic, data = msg.topic.encode(), _pickle(msg.payload)
+        self._buf += _TOPIC.pack(len(topic)) + topic + _REST.pack(msg.publish_ns, msg.seq, len(data)) + data
+        self.count += 1
+        self.total += 1
+        if self.count >= self.limit:
+            self.flush()
+
+    def take(self) -> bytes:
+        """The entries so far; the batch is then empty."""
+        out, self._buf, self.count = bytes(self._buf), bytearray(), 0
+        return out
+
+
+def py_read_batch(data: bytes) -> list[tuple[str, int, Any, int]]:
+    """:func:`read_batch` without the compiled module (pickled payloads only)."""
+    out, at, end = [], 0, len(data)
+    while at < end:
+        try:
+            (n,) = _TOPIC.unpack_from(data, at)
+            topic = data[at + 8 : at + 8 + n].decode()
+            ns, seq, m = _REST.unpack_from(data, at + 8 + n)
+        except struct.error:
+            raise ValueError("snapshot data is truncated or malformed") from None
+        at += 8 + n + 24
+        blob = data[at : at + m]
+        if len(blob) != m or n < 0 or m < 0:
+            raise ValueError("snapshot data is truncated or malformed")
+        at += m
+        out.append((topic, ns, pickle.loads(blob), seq))
+    return out
+
+
+# Batch(limit, flush): the bus tap of a log written by the recorder process. Each message's
+# entry goes into a buffer at its publish time, with a snapshot of its payload: compiled
+# (setup.py), a tree of plain values (dict, list, tuple, str, 64-bit int, float, bool, None) in
+# the module's own format (floats as their 8 bytes, 3x faster than pickle) and anything else
+# pickled. read_batch(data) reads a batch back as (topic, publish_ns, payload, seq) entries.
+Batch = PyBatch if _snapshot_c is None or os.environ.get("DEFT_GYM_PURE_PYTHON") else _snapshot_c.Batch
+read_batch = py_read_batch if _snapshot_c is None else _snapshot_c.read_batch
 
 
 class EpisodeLog:
@@ -93,15 +141,14 @@ class EpisodeLog:
                 cid = channels[topic] = self.writer.register_channel(topic, "json", 0, {})
             add(cid, ns, data, ns, seq)
 
-    def write_snapshots(self, batch: list[Entry]) -> None:
-        """:meth:`write` of entries whose data is a payload :func:`snapshot` (JSON-encoded here)."""
-        loads, out = unsnapshot, []
-        for topic, ns, blob, seq in batch:
+    def write_batch(self, data: bytes) -> None:
+        """:meth:`write` of a batch of entries (:meth:`Batch.take`), payloads JSON-encoded here."""
+        out = []
+        for topic, ns, payload, seq in read_batch(data):
             try:
-                data = encode(loads(blob))
+                out.append((topic, ns, encode(payload), seq))
             except TypeError as exc:
                 raise TypeError(f"{topic} message {seq}: {exc}") from None
-            out.append((topic, ns, data, seq))
         self.write(out)
 
     def add_metadata(self, name: str, values: dict[str, str]) -> None:
@@ -156,7 +203,7 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
                 if op == "close":
                     write_frame(out, ("error", errors.pop(lid)))
             elif op == "write":
-                logs[lid].write_snapshots(args[0])
+                logs[lid].write_batch(args[0])
             elif op == "meta":
                 logs[lid].add_metadata(*args)
             elif op == "close":

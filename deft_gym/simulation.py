@@ -149,7 +149,7 @@ class Simulation:
         if self.out_dir is not None:
             self.recorder = McapRecorder(self.out_dir / "episode.mcap", topics, self.metadata(), compress=compress,
                                          background=recorder_process)
-            self.bus.taps.append(self.recorder)
+            self.bus.taps.append(self.recorder.tap)
         self.added: list[dict[str, Any]] = []
         self._wall = 0.0
         self._started = False
@@ -223,10 +223,11 @@ class Simulation:
         result = EpisodeResult(self.scenario.name, outcome, self._wall, self.jitter.seed,
                                self.planning_outputs, messages=bus.published, drops=self.jitter.drops)
         if self.recorder is not None:
+            self.recorder.flush()  # the last messages are written while the truth file is
+            result.truth_path = str(write_truth(self.out_dir / "truth.jsonl", self.planning.truth, self.ads.topics))
             result.log_path = str(self.recorder.close({**outcome.as_dict(), "wall_time": self._wall,
                                                        "jitter_seed": self.jitter.seed,
                                                        "participants_added": self.added}))
-            result.truth_path = str(write_truth(self.out_dir / "truth.jsonl", self.planning.truth, self.ads.topics))
         self._result = result
         return result
 

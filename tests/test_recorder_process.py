@@ -13,8 +13,10 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
+from deft_gym import recorder
 from deft_gym.messages import DEFAULT_TOPICS, Message
 from deft_gym.recorder import McapRecorder, RecorderError, RecorderProcess
+from deft_gym.recorder_worker import PyBatch
 from deft_gym.simulation import Simulation
 
 SCENARIO = Path(__file__).resolve().parent.parent / "configs" / "scenarios" / "lane_follow_static.yaml"
@@ -31,7 +33,10 @@ def _write(path: Path, background: bool, n: int = 600) -> McapRecorder:
     return rec
 
 
-def test_recorder_process_writes_the_in_process_bytes(tmp_path: Path) -> None:
+@pytest.mark.parametrize("batch", ["default", "python"])
+def test_recorder_process_writes_the_in_process_bytes(tmp_path: Path, monkeypatch, batch: str) -> None:
+    if batch == "python":  # without the compiled snapshot: payloads pickled
+        monkeypatch.setattr(recorder, "Batch", PyBatch)
     a = _write(tmp_path / "a.mcap", background=True)
     b = _write(tmp_path / "b.mcap", background=False)
     assert a.path.read_bytes() == b.path.read_bytes()

@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 
 from deft_gym.codec import encode
+from deft_gym.messages import Message
+from deft_gym.recorder_worker import PyBatch, py_read_batch
 from deft_gym.simulation import Simulation
 
 _snapshot_c = pytest.importorskip("deft_gym._snapshot_c")
@@ -146,3 +148,86 @@ def test_malformed_data_is_a_value_error() -> None:
         loads(b"S" + b"s" + struct.pack("=q", 1) + b"\xff")
     with pytest.raises(TypeError):  # an unhashable key
         loads(b"S" + b"d" + struct.pack("=q", 1) + b"l" + struct.pack("=q", 0) + b"N")
+
+
+def _messages(n: int) -> list[Message]:
+    out = []
+    for i in range(n):
+        payload = {"header": {"seq": i, "stamp": i / 3}, "x": [i * 0.5, -0.0, math.nan], "ok": i % 2 == 0}
+        if i % 5 == 4:
+            payload["np"] = np.float64(i)  # pickled
+        out.append(Message(f"/topic/{i % 3}/é", i, 10_000_000 * i, payload))
+    return out
+
+
+def test_batch_entries_read_back_in_order() -> None:
+    flushed: list[bytes] = []
+    batch = _snapshot_c.Batch(4, lambda: flushed.append(batch.take()))
+    msgs = _messages(10)
+    for m in msgs:
+        batch(m)
+    assert (batch.count, batch.total, batch.limit, len(flushed)) == (2, 10, 4, 2)
+    flushed.append(batch.take())
+    assert batch.count == 0 and batch.take() == b""
+    entries = [e for data in flushed for e in _snapshot_c.read_batch(data)]
+    assert len(entries) == 10
+    for (topic, ns, payload, seq), m in zip(entries, msgs, strict=True):
+        assert (topic, ns, seq) == (m.topic, m.publish_ns, m.seq) and _same(payload, m.payload)
+
+
+def test_python_batch_writes_the_same_entries() -> None:
+    """PyBatch (no compiled module) frames entries as Batch does; with every payload pickled the
+    bytes are the same, and each reader reads the other's batches."""
+    msgs = [Message(m.topic, m.seq, m.publish_ns, {**m.payload, "np": np.float64(1)}) for m in _messages(6)]
+    c, py = _snapshot_c.Batch(100, lambda: None), PyBatch(100, lambda: None)
+    for m in msgs:
+        c(m)
+        py(m)
+    data = c.take()
+    assert data == py.take()
+    assert repr(py_read_batch(data)) == repr(_snapshot_c.read_batch(data))
+    c2 = _snapshot_c.Batch(100, lambda: None)
+    for m in _messages(6):
+        c2(m)
+    assert [e[::3] for e in _snapshot_c.read_batch(c2.take())] == [(m.topic, m.seq) for m in _messages(6)]
+
+
+def test_batch_errors_leave_the_batch_as_it_was() -> None:
+    batch = _snapshot_c.Batch(10, lambda: None)
+    batch(Message("/a", 0, 0, {"v": 1.0}))
+    before = batch.count
+    with pytest.raises(TypeError, match="topic must be a str"):
+        batch(Message(b"/a", 1, 1, {}))  # type: ignore[arg-type]
+    with pytest.raises(AttributeError, match="local object"):
+        batch(Message("/a", 1, 1, {"f": lambda: None}))
+    with pytest.raises(OverflowError):
+        batch(Message("/a", 2**64, 1, {}))
+    with pytest.raises(TypeError, match="one message"):
+        batch()
+    assert batch.count == before and len(_snapshot_c.read_batch(batch.take())) == 1
+    for bad in ((0, lambda: None), (1, 5)):
+        for cls in (_snapshot_c.Batch, PyBatch):
+            with pytest.raises(ValueError, match="limit >= 1"):
+                cls(*bad)
+
+
+def test_truncated_batches_are_value_errors() -> None:
+    for cls in (_snapshot_c.Batch, PyBatch):
+        batch = cls(10, lambda: None)
+        ends = []  # where each entry ends
+        for m in _messages(3):
+            batch(m)
+            ends.append(len(batch.take()) + (ends[-1] if ends else 0))
+        for m in _messages(3):
+            batch(m)
+        data = batch.take()
+        assert len(data) == ends[-1]
+        readers = [_snapshot_c.read_batch] + ([py_read_batch] if cls is PyBatch else [])
+        for read in readers:
+            assert len(read(data)) == 3
+            for n in range(1, len(data)):
+                if n in ends:
+                    assert len(read(data[:n])) == ends.index(n) + 1
+                    continue
+                with pytest.raises((ValueError, UnicodeDecodeError, pickle.UnpicklingError, EOFError)):
+                    read(data[:n])
