@@ -41,7 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from deft_gym.config import ConfigError, load_mapping, validate
 from deft_gym.envs.context import SEED_SCENARIOS
 from deft_gym.envs.sink import write_json_atomic
-from deft_gym.recorder import append_jsonl, read_jsonl, write_atomic
+from deft_gym.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
 DEFAULT_METHODS = ("rl", "decictor", "random_delta", "random")
@@ -410,7 +410,7 @@ def main(argv: list[str] | None = None) -> int:
 
             th = threading.Thread(target=pump, daemon=True)
             th.start()
-            with ctx.Pool(cfg.workers) as pool:
+            with ctx.Pool(cfg.workers, init_pool_worker, (cfg.workers,)) as pool:
                 for recs in pool.imap_unordered(_job_entry, [(j, queue) for j in jobs]):
                     for r in recs:
                         append_jsonl(rec_path, r)

@@ -28,7 +28,7 @@ import yaml
 from agents.config import ALGOS, TrainConfig, load_train_config
 from deft_gym.config import ConfigError
 from deft_gym.envs.sink import write_json_atomic
-from deft_gym.recorder import RECORDER_ENV, append_jsonl, available_cpus, read_jsonl, write_atomic
+from deft_gym.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -46,16 +46,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 # -- environments --------------------------------------------------------------------------------
-def make_env(cfg: TrainConfig, rank: int, out: Path | None, inline_logs: bool = False) -> Any:
-    """A thunk building env ``rank`` (own worker id, own episode journal, Monitor-wrapped);
-    ``inline_logs``: its episode logs are written in its own process (unless the user set
-    ``DEFT_GYM_RECORDER``), for when every CPU already runs an env."""
+def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1) -> Any:
+    """A thunk building env ``rank`` (own worker id, own episode journal, Monitor-wrapped) in one
+    of ``workers`` env processes (:func:`deft_gym.recorder.init_pool_worker`; 1 when the envs
+    share this process)."""
 
     def thunk() -> Any:
         from stable_baselines3.common.monitor import Monitor
 
-        if inline_logs:
-            os.environ.setdefault(RECORDER_ENV, "inline")
+        if workers > 1:
+            init_pool_worker(workers)
 
         from deft_gym.envs.adversary import AdversaryEnv
 
@@ -77,9 +77,7 @@ def make_vec_env(cfg: TrainConfig, out: Path | None) -> Any:
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     if cfg.vec_env == "subproc" and cfg.n_envs > 1:
-        # one recorder process per env would compete with the envs when they fill every CPU
-        inline = cfg.n_envs >= available_cpus()
-        return SubprocVecEnv([make_env(cfg, i, out, inline) for i in range(cfg.n_envs)],
+        return SubprocVecEnv([make_env(cfg, i, out, cfg.n_envs) for i in range(cfg.n_envs)],
                              start_method="forkserver")
     return DummyVecEnv([make_env(cfg, i, out) for i in range(cfg.n_envs)])
 

@@ -10,8 +10,8 @@ Messages are snapshot when published and written by a recorder process of their 
 encoding and the MCAP writer's per-message Python then run beside the simulation instead of
 inside it. Set ``DEFT_GYM_RECORDER=inline`` (or pass ``background=False``) to encode and write
 in the simulation's process; both write the same bytes. That is the default where the process
-may use only one CPU (``auto``), and agents/train.py chooses it for its environment processes when
-they are at least as many as the CPUs.
+may use only one CPU (``auto``), and in the workers of a pool of simulation processes that fill the
+CPUs (:func:`init_pool_worker`: training envs, evaluation, extraction accuracy, robustness).
 
 The truth file (``truth.jsonl``) lists, per planning output, the sequence numbers of the
 messages the planner actually consumed and its frame time. It is for measuring extraction
@@ -59,6 +59,15 @@ def recorder_in_process() -> bool:
     if mode not in ("auto", "process", "inline"):
         raise ValueError(f"{RECORDER_ENV}={mode!r}: expected auto, process or inline")
     return mode == "inline" or (mode == "auto" and available_cpus() < 2)
+
+
+def init_pool_worker(workers: int) -> None:
+    """Initializer of a worker of a pool of ``workers`` simulation processes: when they are at
+    least as many as the CPUs, each writes its logs in its own process (``DEFT_GYM_RECORDER``
+    defaults to ``inline`` there; a value the user set stands), since a recorder process per
+    worker would compete with the workers instead of running beside them."""
+    if workers >= available_cpus():
+        os.environ.setdefault(RECORDER_ENV, "inline")
 
 
 def _meta(values: dict[str, Any]) -> dict[str, str]:

@@ -47,7 +47,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from deft_gym.config import load_ads_config
-from deft_gym.recorder import append_jsonl, read_jsonl, write_atomic
+from deft_gym.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
 from deft_gym.scenario import list_scenarios, load_scenario, scenario_from_dict, scenario_to_dict
 from deft_gym.simulation import Simulation
 from deft_gym.trajectory import lsed
@@ -201,7 +201,7 @@ class Evaluation:
         with self.progress() as prog:
             task = prog.add_task(desc, total=len(jobs))
             if self.args.workers > 1:
-                with get_context("spawn").Pool(self.args.workers) as pool:
+                with get_context("spawn").Pool(self.args.workers, init_pool_worker, (self.args.workers,)) as pool:
                     for row in pool.imap_unordered(fn, jobs):
                         sink(row)
                         prog.advance(task)

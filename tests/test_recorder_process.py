@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import time
+from multiprocessing import get_context
 from pathlib import Path
 
 import pytest
@@ -150,16 +151,41 @@ def test_recorder_mode_from_environment_and_cpus(monkeypatch) -> None:
         recorder.recorder_in_process()
 
 
-def test_training_envs_filling_the_cpus_log_inline(monkeypatch, tmp_path) -> None:
+def _no_recorder_env(monkeypatch) -> None:
+    """DEFT_GYM_RECORDER unset for this test, and as it was after it."""
+    monkeypatch.setenv(recorder.RECORDER_ENV, "auto")  # registers the restore
+    monkeypatch.delenv(recorder.RECORDER_ENV)
+
+
+def test_pool_workers_filling_the_cpus_log_inline(monkeypatch) -> None:
+    _no_recorder_env(monkeypatch)
+    monkeypatch.setattr(recorder, "available_cpus", lambda: 4)
+    recorder.init_pool_worker(3)  # a CPU to spare: each worker gets a recorder process
+    assert recorder.RECORDER_ENV not in os.environ and not recorder.recorder_in_process()
+    recorder.init_pool_worker(4)
+    assert os.environ[recorder.RECORDER_ENV] == "inline" and recorder.recorder_in_process()
+    monkeypatch.setenv(recorder.RECORDER_ENV, "process")  # the user's choice stands
+    recorder.init_pool_worker(8)
+    assert os.environ[recorder.RECORDER_ENV] == "process"
+
+
+def test_pool_initializer_runs_in_the_workers(monkeypatch) -> None:
+    _no_recorder_env(monkeypatch)
+    n = recorder.available_cpus()
+    with get_context("spawn").Pool(1, recorder.init_pool_worker, (n,)) as pool:
+        assert pool.apply(recorder.recorder_in_process)
+    with get_context("spawn").Pool(1, recorder.init_pool_worker, (1,)) as pool:
+        assert pool.apply(recorder.recorder_in_process) == (n < 2)
+
+
+def test_training_envs_filling_the_cpus_log_inline(monkeypatch) -> None:
     from agents import train
     from agents.config import TrainConfig
-    from deft_gym import recorder
 
-    monkeypatch.delenv(recorder.RECORDER_ENV, raising=False)
+    _no_recorder_env(monkeypatch)
+    monkeypatch.setattr(recorder, "available_cpus", lambda: 2)
     cfg = TrainConfig()
-    env = train.make_env(cfg, 0, None, inline_logs=True)()
-    env.close()
+    train.make_env(cfg, 0, None)().close()  # envs in this process: its own choice
+    assert recorder.RECORDER_ENV not in os.environ
+    train.make_env(cfg, 0, None, workers=2)().close()
     assert os.environ[recorder.RECORDER_ENV] == "inline"
-    monkeypatch.setenv(recorder.RECORDER_ENV, "process")  # the user's choice stands
-    train.make_env(cfg, 1, None, inline_logs=True)().close()
-    assert os.environ[recorder.RECORDER_ENV] == "process"
