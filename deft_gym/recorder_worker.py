@@ -47,10 +47,6 @@ _REST = struct.Struct("=qqq")  # publish time [ns], sequence number, payload len
 Entry = tuple[str, int, bytes, int]
 
 
-def _pickle(payload: Any) -> bytes:
-    return pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL)
-
-
 class PyBatch:
     """:class:`Batch` without the compiled module (or with ``DEFT_GYM_PURE_PYTHON`` set): the
     same entries, each payload pickled."""
@@ -63,7 +59,7 @@ class PyBatch:
         self._buf = bytearray()
 
     def __call__(self, msg: Any) -> None:
-        topic, data = msg.topic.encode(), _pickle(msg.payload)
+        topic, data = msg.topic.encode(), pickle.dumps(msg.payload, protocol=pickle.HIGHEST_PROTOCOL)
         self._buf += _TOPIC.pack(len(topic)) + topic + _REST.pack(msg.publish_ns, msg.seq, len(data)) + data
         self.count += 1
         self.total += 1
