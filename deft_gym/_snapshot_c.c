@@ -160,13 +160,19 @@ static PyObject *truncated(void)
     return NULL;
 }
 
+/* the next 8 bytes (a double or an int64) into *out; 0 when there are fewer */
+static int get8(Reader *r, void *out)
+{
+    if (r->end - r->p < 8) return 0;
+    memcpy(out, r->p, 8);
+    r->p += 8;
+    return 1;
+}
+
 static int get_len(Reader *r, Py_ssize_t *n)
 {
     int64_t v;
-    if (r->end - r->p < 8) return 0;
-    memcpy(&v, r->p, 8);
-    r->p += 8;
-    if (v < 0) return 0;
+    if (!get8(r, &v) || v < 0) return 0;
     *n = (Py_ssize_t)v;
     return 1;
 }
@@ -179,10 +185,7 @@ static PyObject *get(Reader *r, int depth)
     switch (tag) {
     case 'f': {
         double d;
-        if (r->end - r->p < 8) return truncated();
-        memcpy(&d, r->p, 8);
-        r->p += 8;
-        return PyFloat_FromDouble(d);
+        return get8(r, &d) ? PyFloat_FromDouble(d) : truncated();
     }
     case 'F': {
         if (!get_len(r, &n) || (r->end - r->p) / 8 < n) return truncated();
@@ -244,10 +247,7 @@ static PyObject *get(Reader *r, int depth)
     }
     case 'i': {
         int64_t v;
-        if (r->end - r->p < 8) return truncated();
-        memcpy(&v, r->p, 8);
-        r->p += 8;
-        return PyLong_FromLongLong(v);
+        return get8(r, &v) ? PyLong_FromLongLong(v) : truncated();
     }
     case 'T':
         Py_RETURN_TRUE;
