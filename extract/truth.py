@@ -7,10 +7,10 @@ accuracy; the search never sees it.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
+from deft_gym.recorder import read_jsonl
 from extract.io_filter import PlanningIOFilter
 from extract.search import FrameChoice
 
@@ -18,9 +18,8 @@ from extract.search import FrameChoice
 def read_truth(path: Path) -> dict[int, dict[str, Any]]:
     """Truth records keyed by planning sequence number (unreadable lines are skipped)."""
     out: dict[int, dict[str, Any]] = {}
-    for line in path.read_text().splitlines():
+    for rec in read_jsonl(path):
         try:
-            rec = json.loads(line)
             out[int(rec["planning_seq"])] = rec
         except (ValueError, KeyError, TypeError):
             continue
