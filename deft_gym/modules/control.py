@@ -140,10 +140,11 @@ def _numpy_trajectory(tr: dict[str, Any]) -> tuple[dict[str, Any], bool]:
     seg = np.hypot(np.diff(arr["x"]), np.diff(arr["y"]))
     arr["s"] = np.concatenate([[0.0], np.cumsum(seg)])
     n = arr["t"].shape
-    fast = (all(a.ndim == 1 and a.shape == n for a in arr.values())
-            and bool(np.isfinite(arr["t"]).all() and np.isfinite(arr["s"]).all())
-            and bool((np.diff(arr["t"]) >= 0.0).all()))
-    return ({k: a.tolist() for k, a in arr.items()} if fast else arr), fast
+    if all(a.ndim == 1 and a.shape == n for a in arr.values()):
+        lists = {k: a.tolist() for k, a in arr.items()}
+        if _well_formed(lists):
+            return lists, True
+    return arr, False
 
 
 def _float_lists(tr: dict[str, Any]) -> dict[str, list[float]] | None:
@@ -154,11 +155,7 @@ def _float_lists(tr: dict[str, Any]) -> dict[str, list[float]] | None:
     n = len(cols["t"]) if type(cols["t"]) is list else -1
     if n < 1 or any(type(c) is not list or len(c) != n or set(map(type, c)) != {float} for c in cols.values()):
         return None
-    h = cols["heading"]
-    if all(abs(b - a) < math.pi for a, b in itertools.pairwise(h)):
-        cols["heading"] = [h[0], *(v + 0.0 for v in h[1:])]  # as _unwrap: -0.0 becomes 0.0
-    else:
-        cols["heading"] = np.unwrap(np.array(h)).tolist()
+    cols["heading"] = _unwrap(np.array(cols["heading"])).tolist()
     seg = np.hypot(np.diff(cols["x"]), np.diff(cols["y"])).tolist()
     cols["s"] = [0.0, *itertools.accumulate(seg)]
     return cols
