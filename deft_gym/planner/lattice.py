@@ -328,7 +328,7 @@ class LatticePlanner(Planner):
             behavior, target, off = "ESTOP", lane, st.offset
         else:
             li, pi = best
-            out = self._to_xy(poses, t0, lat_d[1, li], lon["a"][pi], h0)
+            out = self._to_xy(poses, t0, lat_d[1, li], lon["sva"][2, pi], h0)
             target, off = lat.target[li], float(lat.offset[li])
             behavior = self._behavior(lane, target, off, lon["label"][pi])
         self._commit(out, target, off, lane)
@@ -652,7 +652,7 @@ class LatticePlanner(Planner):
             for f in p.stop_time_factors:
                 T = f * 2.0 * dist / max(v0 + v_e, 0.5)
                 ti.append(_grid_index((T - 1.0) * 10.0, last_T))  # nearest grid T
-                ds.append(s_e - s0)
+                ds.append(dist)
                 rv.append(v_e)
                 labels.append(label)
         labels.append("BRAKE")
@@ -663,7 +663,7 @@ class LatticePlanner(Planner):
             self._profiles_numpy(sva, ti, ds, rv, s0, v0, a0, v_des)
         penalty = np.array([self._penalty.get(x, 0.0) for x in labels])
         labels = ["STOP" if x in self._penalty else x for x in labels]
-        return {"s": sva[0], "v": sva[1], "a": sva[2], "sva": sva, "label": labels, "n": len(labels),
+        return {"sva": sva, "label": labels, "n": len(labels),
                 "penalty": penalty}
 
     def _profiles_numpy(self, sva: np.ndarray, ti: list[int], ds: list[float], rv: list[float], s0: float,
