@@ -36,14 +36,14 @@ class JitterModel:
         self._rng = random.Random(self.seed)
         self._lognormal_params: dict[int, tuple[Duration, float, float | None]] = {}
         self.drops = 0
-        self.redeliveries = 0  # losses drawn for reliable deliveries, redelivered
 
     def duration_ns(self, dist: Duration) -> int:
         """A processing (or dispatch) time [ns] drawn from ``dist``."""
         # per distribution object, its lognormal parameters (looked up by identity: hashing a
-        # pydantic model hashes every field, on every draw)
+        # pydantic model hashes every field, on every draw; the entry keeps the object alive, so
+        # its id is not reused)
         params = self._lognormal_params.get(id(dist))
-        if params is None or params[0] is not dist:
+        if params is None:
             params = self._lognormal_params[id(dist)] = (dist, *self._lognormal(dist))
         _, mu, sigma = params
         if sigma is None:
@@ -67,11 +67,10 @@ class JitterModel:
         ``reliable`` delivery that draws a loss is redelivered (its delay drawn after the loss)."""
         if not self.config.enabled:
             return round(self.config.delivery.mean_ms * _NS_PER_MS)
-        if self.config.drop_prob and self._rng.random() < self.config.drop_prob:
-            if not reliable:
-                self.drops += 1
-                return None
-            self.redeliveries += 1
+        # a loss is drawn for every delivery; a reliable one is redelivered after it
+        if self.config.drop_prob and self._rng.random() < self.config.drop_prob and not reliable:
+            self.drops += 1
+            return None
         return self.duration_ns(self.config.delivery)
 
     def timer_lateness_ns(self) -> int:

@@ -336,10 +336,10 @@ class ReactiveVehicle(IDMVehicle):
         if lane_index is None:
             return super().on_state_update()
         g = self.roadmap.geoms[lane_index]
-        x, y = self.position.tolist()
         s, r = self._frenet(lane_index)
         if lane_index == self.target_lane_index and abs(r) < g.width / 2 - 0.3 and 0.0 <= s <= g.length - 0.5:
             return  # well inside the current lane: it stays the closest one
+        x, y = self.position.tolist()
         cand = [self.lane_index, *self.roadmap.successors.get(self.lane_index, ())]
         cand += self.road.network.side_lanes(self.lane_index)
         if self.target_lane_index not in cand:

@@ -193,9 +193,7 @@ class World:
         return [p for p in self.participants if p.present(t)]
 
     def _check_collisions(self, t: float) -> None:
-        ego = self.ego
-        if self._kinds_n != len(self.participants):
-            self._sort_participants()
+        ego = self.ego  # the per-kind lists are current: step made them
         ex, ey = ego.position.tolist()
         half_ego = float(ego.diagonal) / 2
         min_distance = self.min_distance
