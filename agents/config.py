@@ -37,7 +37,7 @@ class TrainConfig(BaseModel):
 
 def load_train_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None) -> TrainConfig:
     """Load ``path`` (or the defaults) with ``overrides`` on top; errors name file and field."""
-    data = dict(load_mapping(path)) if path is not None else {}
+    data = load_mapping(path) if path is not None else {}
     for key, value in (overrides or {}).items():
         if value is not None:
             data[key] = value

@@ -144,16 +144,13 @@ class NonInvasiveMutator:
             if self.constrained:
                 if math.hypot(x - start[0], y - start[1]) < self.ctx.feasible.spawn_distance:
                     continue
-                if not self.m_static_ok(m, x, y, h, length, width):
+                if not m.layout.static_ok(np.array([x]), np.array([y]), np.array([h]), length, width)[0]:
                     continue
             pid = m.new_id("cone" if obstacle == "CONE" else "static")
             spec = {"id": pid, "type": "static", "obstacle": obstacle, "x": x, "y": y, "heading": h}
             m.layout.add(Placed(pid, "static", spec, area=m.layout.static_footprint(x, y, h, length, width)))
             return True
         return False
-
-    def m_static_ok(self, m: Mutant, x: float, y: float, h: float, length: float, width: float) -> bool:
-        return bool(m.layout.static_ok(np.array([x]), np.array([y]), np.array([h]), length, width)[0])
 
     def add_vehicle(self, m: Mutant) -> bool:
         dt = self.ctx.feasible.dt

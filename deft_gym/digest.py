@@ -29,6 +29,8 @@ from deft_gym.recorder import write_atomic
 from deft_gym.scenario import Scenario, list_scenarios, load_scenario
 from deft_gym.simulation import run_episode
 
+DEFAULT_SEEDS = [7, 8]  # the jitter seeds of tests/data/digests.json
+
 
 def run_digest(scenario: Scenario | str | Path, jitter_seed: int) -> dict[str, str]:
     """Per topic, the digest of one recorded run (plus its outcome and sim time)."""
@@ -69,7 +71,8 @@ def differences(old: dict[str, dict[str, str]], new: dict[str, dict[str, str]]) 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m deft_gym.digest", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenarios", nargs="*", default=None, help="scenario names or YAML paths (default: all)")
-    ap.add_argument("--seeds", nargs="*", type=int, default=[7, 8], help="jitter seeds (default 7 8)")
+    ap.add_argument("--seeds", nargs="*", type=int, default=DEFAULT_SEEDS,
+                    help="jitter seeds (default %(default)s)")
     ap.add_argument("--out", type=Path, default=None, help="write the digests to this JSON file")
     ap.add_argument("--check", type=Path, default=None, help="compare with digests recorded earlier")
     args = ap.parse_args(argv)
@@ -87,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         console.print(f"{len(digests)} runs -> {args.out}")
     if args.check is not None:
         recorded = json.loads(args.check.read_text())
-        if args.scenarios or args.seeds != [7, 8]:
+        if args.scenarios or args.seeds != DEFAULT_SEEDS:
             recorded = {k: v for k, v in recorded.items() if k in digests}
         diff = differences(recorded, digests)
         for line in diff:
