@@ -14,6 +14,13 @@ ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "configs" / "scenarios"
 
 
+def float_bits(values: object) -> bytes:
+    """The bytes of ``values`` as float64 (signed zeros and NaN payloads included)."""
+    import numpy as np
+
+    return np.asarray(values, dtype=float).tobytes()
+
+
 @pytest.fixture(scope="session")
 def lane_follow_log(tmp_path_factory: pytest.TempPathFactory):
     """One recorded episode of the lane-following seed (jitter seed 7)."""

@@ -24,6 +24,7 @@ from deft_gym.modules import control
 from deft_gym.modules.control import ControlNode, _nearest, _trajectory_lists
 from deft_gym.scenario import list_scenarios, load_scenario
 from deft_gym.simulation import Simulation
+from tests.conftest import float_bits
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")  # odd values overflow on purpose
 COLUMNS = ("t", "x", "y", "v", "a", "heading")
@@ -36,16 +37,12 @@ def _kernel() -> Any:
     return control._control_c
 
 
-def _bits(values: list[float]) -> bytes:
-    return np.asarray(values, dtype=float).tobytes()  # signed zeros and NaN payloads included
-
-
 def _assert_same_lists(got: dict[str, list[float]] | None, want: dict[str, list[float]] | None) -> None:
     assert (got is None) == (want is None)
     if want is not None:
         assert list(got) == list(want)  # same keys, same order
         for k in want:
-            assert type(got[k]) is list and _bits(got[k]) == _bits(want[k]), k
+            assert type(got[k]) is list and float_bits(got[k]) == float_bits(want[k]), k
 
 
 def _plans(path: Path, seed: int, duration: float) -> list[dict[str, Any]]:
@@ -179,7 +176,7 @@ def _traj(node: ControlNode, tr: Any) -> tuple[bool, dict[str, bytes]] | str:
         out = node._traj(SimpleNamespace(seq=1, payload={"trajectory": tr}))
     except Exception as exc:  # the same error with and without the kernel is a match too
         return f"{type(exc).__name__}: {exc}"
-    return node._fast, {k: _bits(v) for k, v in out.items()}
+    return node._fast, {k: float_bits(v) for k, v in out.items()}
 
 
 def test_float_lists_leaves_planted_inputs_to_python() -> None:

@@ -9,6 +9,7 @@ import pytest
 
 from deft_gym.interp import interp1
 from deft_gym.modules.control import _nearest
+from tests.conftest import float_bits
 
 
 def _same(a: float, b: float) -> bool:
@@ -92,10 +93,6 @@ def test_unwrap_shortcut_matches_np_unwrap_bitwise() -> None:
         assert np.array_equal(want.view(np.int64), got.view(np.int64))  # identical bits, signed zeros too
 
 
-def _bits(a: object) -> bytes:
-    return np.asarray(a, dtype=float).tobytes()
-
-
 def test_control_trajectory_lists_match_the_numpy_path_bitwise() -> None:
     """Control converts a plan with plain-float lists itself; it must give numpy's values."""
     from deft_gym.modules.control import _float_lists, _numpy_trajectory, _well_formed
@@ -122,7 +119,7 @@ def test_control_trajectory_lists_match_the_numpy_path_bitwise() -> None:
             taken += 1
             assert set(got) == set(want)
             for k in want:
-                assert _bits(got[k]) == _bits(want[k]), k
+                assert float_bits(got[k]) == float_bits(want[k]), k
     assert taken > 1000
     # anything but equal-length lists of plain floats is left to numpy
     assert _float_lists({"t": [0, 1], "x": [0.0, 1.0], "y": [0.0, 1.0], "v": [1.0, 1.0], "a": [0.0, 0.0],
@@ -154,15 +151,15 @@ def test_scalar_frenet_matches_numpy_bitwise() -> None:
         for g in geoms:
             s, d = g.frenet(pts)
             s_l, d_l = g.frenet_list(pts.tolist())
-            assert _bits(s_l) == _bits(s) and _bits(d_l) == _bits(d)
+            assert float_bits(s_l) == float_bits(s) and float_bits(d_l) == float_bits(d)
             st, off = (pts[:, 0] * 3.0).tolist(), float(rng.normal() * 2)
             x_l, y_l = g.xy_list(st, off)
             xy = g.xy(np.array(st), off).reshape(-1, 2)
-            assert _bits(x_l) == _bits(xy[:, 0]) and _bits(y_l) == _bits(xy[:, 1])
+            assert float_bits(x_l) == float_bits(xy[:, 0]) and float_bits(y_l) == float_bits(xy[:, 1])
         for line in lines:
             s, d = line.frenet(pts)
             s_l, d_l = line.frenet_list(pts.tolist())
-            assert _bits(s_l) == _bits(s) and _bits(d_l) == _bits(d)
+            assert float_bits(s_l) == float_bits(s) and float_bits(d_l) == float_bits(d)
 
 
 def test_footprint_is_highway_envs_polygon_bitwise() -> None:

@@ -19,8 +19,9 @@ from deft_gym.messages import DEFAULT_TOPICS, Message
 from deft_gym.recorder import McapRecorder, RecorderError, RecorderProcess
 from deft_gym.recorder_worker import PyBatch
 from deft_gym.simulation import Simulation
+from tests.conftest import SCENARIOS
 
-SCENARIO = Path(__file__).resolve().parent.parent / "configs" / "scenarios" / "lane_follow_static.yaml"
+SCENARIO = SCENARIOS / "lane_follow_static.yaml"
 TOPICS = {"control": DEFAULT_TOPICS["control"], "planning": DEFAULT_TOPICS["planning"]}
 
 

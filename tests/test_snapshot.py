@@ -8,7 +8,6 @@ import math
 import pickle
 import random
 import struct
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,11 +16,12 @@ from deft_gym.codec import encode
 from deft_gym.messages import Message
 from deft_gym.recorder_worker import PyBatch, py_read_batch
 from deft_gym.simulation import Simulation
+from tests.conftest import SCENARIOS
 
 _snapshot_c = pytest.importorskip("deft_gym._snapshot_c")
 dumps, loads = _snapshot_c.dumps, _snapshot_c.loads
 
-SCENARIO = Path(__file__).resolve().parent.parent / "configs" / "scenarios" / "lane_follow_static.yaml"
+SCENARIO = SCENARIOS / "lane_follow_static.yaml"
 
 
 def _same(a, b) -> bool:
