@@ -10,7 +10,7 @@ STAMP  := $(VENV)/.installed
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules/_control_c.c deft_gym/_snapshot_c.c
+$(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules/_control_c.c deft_gym/record/_snapshot_c.c
 	test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m deft_gym.demo --out runs/demo/seeds
+	$(PY) -m deft_gym.cli.demo --out runs/demo/seeds
 	@if [ -f agents/demo.py ]; then $(PY) -m agents.demo --out runs/demo; fi
 
 test: $(STAMP)
@@ -28,7 +28,7 @@ test-slow: $(STAMP)
 	$(PY) -m pytest -q -n 2 -m slow
 
 bench: $(STAMP)
-	$(PY) -m deft_gym.bench --repeats 15 --out runs/bench.json
+	$(PY) -m deft_gym.cli.bench --repeats 15 --out runs/bench.json
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -3,7 +3,7 @@
 ``deft_gym.planner._lattice_c`` is the lattice planner's evaluation step, its resampling of
 predicted obstacles (and their relevance test) and its longitudinal profiles in C;
 ``deft_gym.modules._control_c`` is the control module's conversion of a planned trajectory and
-its nearest-point search; ``deft_gym._snapshot_c`` is the recorder's payload snapshot (pickle
+its nearest-point search; ``deft_gym.record._snapshot_c`` is the recorder's payload snapshot (pickle
 is used without it). All are bit-identical to the Python and numpy versions (which are
 used when an extension is missing: ``optional=True`` turns a failed build into a warning). IEEE
 semantics are kept: no fast-math, no FMA contraction.
@@ -19,6 +19,6 @@ setup(
                   extra_compile_args=FLAGS, optional=True),
         Extension("deft_gym.modules._control_c", ["deft_gym/modules/_control_c.c"],
                   extra_compile_args=FLAGS, optional=True),
-        Extension("deft_gym._snapshot_c", ["deft_gym/_snapshot_c.c"], extra_compile_args=FLAGS, optional=True),
+        Extension("deft_gym.record._snapshot_c", ["deft_gym/record/_snapshot_c.c"], extra_compile_args=FLAGS, optional=True),
     ]
 )

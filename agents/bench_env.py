@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from deft_gym.envs.adversary import AdversaryEnv
-from deft_gym.envs.context import SEED_SCENARIOS
+from deft_gym.search.context import SEED_SCENARIOS
 
 
 def main(argv: list[str] | None = None) -> int:

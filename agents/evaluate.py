@@ -20,8 +20,8 @@ parallel worker processes. Outputs in ``--out``:
 - ``table.md`` - the Table I analogue; ``cumulative_failures.png`` - the Figure 7 analogue.
 
 Held-out variants (``--variants K``) are the first K *robust* variants ``<seed>~v<1000000+i>``
-(:func:`deft_gym.variants.perturb`, seeds the adversary never trains on; robust: their unmutated
-runs complete consistently under eight jitter seeds, see :func:`deft_gym.envs.context.robust`).
+(:func:`deft_gym.scenarios.variants.perturb`, seeds the adversary never trains on; robust: their unmutated
+runs complete consistently under eight jitter seeds, see :func:`deft_gym.search.context.robust`).
 """
 
 from __future__ import annotations
@@ -39,9 +39,9 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.config import ConfigError, load_mapping, validate
-from deft_gym.envs.context import SEED_SCENARIOS
 from deft_gym.envs.sink import write_json_atomic
-from deft_gym.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
+from deft_gym.record.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
+from deft_gym.search.context import SEED_SCENARIOS
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
 DEFAULT_METHODS = ("rl", "decictor", "random_delta", "random")
@@ -150,7 +150,7 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
             recs.append({**base, **rec})
             if progress is not None:
                 progress.put(1)
-    from deft_gym.envs.trace import code_fingerprint
+    from deft_gym.search.trace import code_fingerprint
 
     code = code_fingerprint()  # the simulation code this job ran (a changed planner shows here)
     return [{**base, **r, "code": code} for r in recs]
@@ -355,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     seeds = list(cfg.scenarios)
     held_out = []
     if cfg.variants:
-        from deft_gym.envs.context import held_out_variants
+        from deft_gym.search.context import held_out_variants
 
         print(f"choosing {cfg.variants} robust held-out variant(s) per seed ...", flush=True)
         for s in seeds:
@@ -366,7 +366,7 @@ def main(argv: list[str] | None = None) -> int:
     done: dict[tuple[str, str, int], int] = defaultdict(int)
     records: list[dict[str, Any]] = []
     if rec_path.exists():  # resume: keep what earlier runs simulated with the same simulation code
-        from deft_gym.envs.trace import code_fingerprint
+        from deft_gym.search.trace import code_fingerprint
 
         code, names = code_fingerprint(), set(seeds + held_out)
         records = read_jsonl(rec_path)

@@ -1,7 +1,7 @@
 """Scenario mutation operators for the search baselines (Decictor Algorithm 2).
 
 A :class:`Mutant` is a seed scenario plus the participants added to it (a
-:class:`~deft_gym.feasible.Layout`). :class:`NonInvasiveMutator` implements Decictor's
+:class:`~deft_gym.search.feasible.Layout`). :class:`NonInvasiveMutator` implements Decictor's
 non-invasive operators - *adding* a static obstacle or a vehicle inside the feasible areas (a
 vehicle's waypoint for every window is sampled from the area reachable from its previous one,
 minus every motion area of that window), *removing* an added participant, and *changing* one
@@ -17,8 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from deft_gym.envs.context import SeedContext
-from deft_gym.envs.vehicles import (
+from deft_gym.search.context import SeedContext
+from deft_gym.search.feasible import Layout, Placed
+from deft_gym.search.vehicles import (
     LENGTH,
     WIDTH,
     Controls,
@@ -29,8 +30,7 @@ from deft_gym.envs.vehicles import (
     sample_window,
     vehicle_spec,
 )
-from deft_gym.feasible import Layout, Placed
-from deft_gym.participants import SIZES
+from deft_gym.world.participants import SIZES
 
 
 @dataclass

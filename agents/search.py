@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 
 from agents.mutation import Mutant, NonInvasiveMutator, RandomMutator
-from deft_gym.envs.context import SeedContext
-from deft_gym.envs.episode import EpisodeRun, run_scenario
-from deft_gym.feasible import Layout
+from deft_gym.search.context import SeedContext
+from deft_gym.search.episode import EpisodeRun, run_scenario
+from deft_gym.search.feasible import Layout
 
 SEARCH_METHODS = ("decictor", "random_delta", "random")
 POPULATION = 4

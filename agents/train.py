@@ -28,7 +28,7 @@ import yaml
 from agents.config import ALGOS, TrainConfig, load_train_config
 from deft_gym.config import ConfigError
 from deft_gym.envs.sink import write_json_atomic
-from deft_gym.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
+from deft_gym.record.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -48,7 +48,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 # -- environments --------------------------------------------------------------------------------
 def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1) -> Any:
     """A thunk building env ``rank`` (own worker id, own episode journal, Monitor-wrapped) in one
-    of ``workers`` env processes (:func:`deft_gym.recorder.init_pool_worker`; 1 when the envs
+    of ``workers`` env processes (:func:`deft_gym.record.recorder.init_pool_worker`; 1 when the envs
     share this process)."""
 
     def thunk() -> Any:

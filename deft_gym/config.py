@@ -13,7 +13,7 @@ from typing import Any, TypeVar, overload
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator
 
-from deft_gym.messages import DEFAULT_TOPICS, ROLES
+from deft_gym.bus.messages import DEFAULT_TOPICS, ROLES
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG_DIR = ROOT / "configs"

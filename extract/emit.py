@@ -10,8 +10,8 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
-from deft_gym.codec import encode
-from deft_gym.recorder import write_atomic
+from deft_gym.bus.codec import encode
+from deft_gym.record.recorder import write_atomic
 from extract.io_filter import PlanningIOFilter
 from extract.runtime import finite_or_none
 from extract.search import FrameChoice

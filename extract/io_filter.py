@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from deft_gym.messages import NS_PER_S
+from deft_gym.bus.messages import NS_PER_S
 from extract.logs import EpisodeLog, LogError, TopicMessages
 from extract.mapping import MappingError, TopicMapping, get_field
 

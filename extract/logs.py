@@ -20,7 +20,7 @@ import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.records import Channel, Chunk, Metadata
 
-from deft_gym.codec import decode
+from deft_gym.bus.codec import decode
 from extract.mapping import get_field
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"

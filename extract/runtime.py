@@ -23,7 +23,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from deft_gym.codec import decode
+from deft_gym.bus.codec import decode
 from deft_gym.planner.base import Frame, Planner, import_object, load_planner
 from extract.oracle import Track, overlapping_points
 from extract.validator import distance

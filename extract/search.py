@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from deft_gym.messages import NS_PER_S
+from deft_gym.bus.messages import NS_PER_S
 from deft_gym.planner.base import Frame, Planner
 from extract.io_filter import Output, PlanningIOFilter
 from extract.mapping import get_field

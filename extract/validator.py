@@ -2,7 +2,7 @@
 
 The default measure is the paper's lock-step Euclidean distance (eq. 2): the reproduced
 trajectory is interpolated at the recorded one's timestamps and the point distances are combined
-as sqrt(sum of squares) (:func:`deft_gym.trajectory.lsed`). Discrete Frechet and Hausdorff
+as sqrt(sum of squares) (:func:`deft_gym.planner.trajectory.lsed`). Discrete Frechet and Hausdorff
 distances can be selected instead. Bit-identical trajectories short-cut to 0.0 without numpy,
 which is what almost every check of the input search is.
 """
@@ -13,7 +13,7 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from deft_gym.trajectory import MEASURES
+from deft_gym.planner.trajectory import MEASURES
 
 #: thresholds every summary reports [m]
 SUMMARY_THETAS = (0.0, 0.1, 1.0, 7.0)

@@ -24,7 +24,7 @@ def float_bits(values: object) -> bytes:
 @pytest.fixture(scope="session")
 def lane_follow_log(tmp_path_factory: pytest.TempPathFactory):
     """One recorded episode of the lane-following seed (jitter seed 7)."""
-    from deft_gym.simulation import run_episode
+    from deft_gym.sim.simulation import run_episode
 
     out = tmp_path_factory.mktemp("lane_follow")
     return run_episode(SCENARIOS / "lane_follow_static.yaml", jitter_seed=7, out_dir=out)

@@ -8,8 +8,8 @@ import pytest
 
 import deft_gym  # noqa: F401  (registers the env)
 from deft_gym.envs.adversary import ALONG, LATERAL, MANOEUVRES, OPS, AdversaryEnv
-from deft_gym.envs.context import seed_context
-from deft_gym.envs.episode import run_scenario
+from deft_gym.search.context import seed_context
+from deft_gym.search.episode import run_scenario
 
 SCN = "lane_follow_static"  # no reactive participants: every mutation must be valid
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from deft_gym.envs.adversary import ALONG, AT_LAST, LATERAL, OPS, AdversaryEnv
-from deft_gym.envs.context import seed_context
-from deft_gym.envs.episode import run_scenario
+from deft_gym.search.context import seed_context
+from deft_gym.search.episode import run_scenario
 
 pytestmark = pytest.mark.slow
 

@@ -1,11 +1,11 @@
-"""Flaky-share bookkeeping of ``deft_gym.calibrate`` (both definitions, resumable run log)."""
+"""Flaky-share bookkeeping of ``deft_gym.cli.calibrate`` (both definitions, resumable run log)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from deft_gym.calibrate import summarise
-from deft_gym.recorder import read_jsonl
+from deft_gym.cli.calibrate import summarise
+from deft_gym.record.recorder import read_jsonl
 
 
 def _runs(name: str, flags: str) -> list[dict]:

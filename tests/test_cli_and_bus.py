@@ -7,15 +7,15 @@ import subprocess
 import sys
 from pathlib import Path
 
-from deft_gym.bus import Bus, Node, header
+from deft_gym.bus.bus import Bus, Node, header
+from deft_gym.bus.jitter import JitterModel
 from deft_gym.config import JitterConfig
-from deft_gym.jitter import JitterModel
 from tests.conftest import ROOT, SCENARIOS
 
 
 def test_run_cli_writes_logs_and_summary(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "deft_gym.run", str(SCENARIOS / "u_turn.yaml"), "--reruns", "2",
+    proc = subprocess.run([sys.executable, "-m", "deft_gym.cli.run", str(SCENARIOS / "u_turn.yaml"), "--reruns", "2",
                            "--out", str(out), "--jitter-seed", "4"], capture_output=True, text=True, cwd=ROOT,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr
@@ -32,7 +32,7 @@ def test_run_cli_writes_logs_and_summary(tmp_path: Path) -> None:
 def test_run_cli_bad_scenario_is_one_line(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: x\nmap: {type: roundabout}\n")
-    proc = subprocess.run([sys.executable, "-m", "deft_gym.run", str(bad), "--out", str(tmp_path / "o")],
+    proc = subprocess.run([sys.executable, "-m", "deft_gym.cli.run", str(bad), "--out", str(tmp_path / "o")],
                           capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert proc.returncode == 2
     lines = [ln for ln in proc.stdout.splitlines() if ln.strip()]
@@ -88,8 +88,8 @@ def test_reliable_topic_is_never_lost() -> None:
     """Routing is published once: a lost delivery would leave the planner without a route for
     the whole run. Deliveries of ``jitter.reliable`` roles that draw a loss are redelivered."""
     from deft_gym.config import load_ads_config
-    from deft_gym.scenario import load_scenario
-    from deft_gym.simulation import Simulation
+    from deft_gym.scenarios.scenario import load_scenario
+    from deft_gym.sim.simulation import Simulation
 
     ads = load_ads_config()
     lossy = ads.model_copy(update={"jitter": ads.jitter.model_copy(update={"drop_prob": 0.6, "reliable": []})})

@@ -8,7 +8,7 @@ import struct
 
 import numpy as np
 
-from deft_gym.codec import decode, encode
+from deft_gym.bus.codec import decode, encode
 
 
 def _bits(x: float) -> bytes:

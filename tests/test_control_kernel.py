@@ -18,12 +18,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from deft_gym.codec import encode
+from deft_gym.bus.codec import encode
 from deft_gym.config import load_ads_config
 from deft_gym.modules import control
 from deft_gym.modules.control import ControlNode, _nearest, _trajectory_lists
-from deft_gym.scenario import list_scenarios, load_scenario
-from deft_gym.simulation import Simulation
+from deft_gym.scenarios.scenario import list_scenarios, load_scenario
+from deft_gym.sim.simulation import Simulation
 from tests.conftest import float_bits
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")  # odd values overflow on purpose

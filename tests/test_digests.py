@@ -2,7 +2,7 @@
 
 A change to the simulation, the modules or the planner that alters what a run publishes fails
 here; if the change is meant to alter behaviour, re-record deliberately with
-``python -m deft_gym.digest --out tests/data/digests.json``. Slow (16 runs, ~15 s) and tied to
+``python -m deft_gym.cli.digest --out tests/data/digests.json``. Slow (16 runs, ~15 s) and tied to
 this platform's floating point (numpy's SIMD kernels), so it is kept out of the default run.
 """
 
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from deft_gym.digest import DEFAULT_SEEDS, compute, differences
-from deft_gym.scenario import list_scenarios
+from deft_gym.cli.digest import DEFAULT_SEEDS, compute, differences
+from deft_gym.scenarios.scenario import list_scenarios
 
 RECORDED = Path(__file__).parent / "data" / "digests.json"
 

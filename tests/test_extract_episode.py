@@ -9,7 +9,7 @@ import pytest
 import yaml
 from test_extract_support import record, short_scenario
 
-from deft_gym.codec import decode
+from deft_gym.bus.codec import decode
 from extract import (
     LogError,
     MappingError,

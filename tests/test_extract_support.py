@@ -13,10 +13,10 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
 
+from agents.record import record_episode
 from deft_gym.planner.lattice import LatticePlanner
-from deft_gym.scenario import load_scenario, scenario_from_dict, scenario_to_dict
-from deft_gym.variants import inject_cut_in, reference_path
-from extract.record import record_episode
+from deft_gym.scenarios.scenario import load_scenario, scenario_from_dict, scenario_to_dict
+from deft_gym.scenarios.variants import inject_cut_in, reference_path
 
 TESTS = Path(__file__).resolve().parent
 

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from deft_gym.interp import interp1
 from deft_gym.modules.control import _nearest
+from deft_gym.world.interp import interp1
 from tests.conftest import float_bits
 
 
@@ -56,7 +56,7 @@ def test_box_gap_is_a_lower_bound_of_the_polygon_distance() -> None:
 
     import shapely
 
-    from deft_gym.geometry import box_gap, box_gap_point
+    from deft_gym.world.geometry import box_gap, box_gap_point
 
     rng = np.random.default_rng(3)
     for _ in range(3000):
@@ -133,7 +133,7 @@ def test_scalar_frenet_matches_numpy_bitwise() -> None:
     bits, NaN and all, on single lanes and on reference lines mixing straight and circular pieces."""
     from highway_env.road.lane import CircularLane, StraightLane
 
-    from deft_gym.geometry import LaneGeom, ReferenceLine
+    from deft_gym.world.geometry import LaneGeom, ReferenceLine
 
     rng = np.random.default_rng(21)
     a = StraightLane([0.0, 0.0], [37.3, 21.9])  # diagonal: products are not exact
@@ -164,8 +164,8 @@ def test_scalar_frenet_matches_numpy_bitwise() -> None:
 
 def test_footprint_is_highway_envs_polygon_bitwise() -> None:
     """The collision check's footprints are ``RoadObject.polygon()``'s arrays, bit for bit."""
-    from deft_gym.scenario import build_world, load_scenario
-    from deft_gym.world import footprint
+    from deft_gym.scenarios.scenario import build_world, load_scenario
+    from deft_gym.world.world import footprint
     from tests.conftest import SCENARIOS
 
     world = build_world(load_scenario(SCENARIOS / "take_exit.yaml"))
@@ -212,9 +212,9 @@ def test_fast_road_neighbours_match_the_plain_search(kind: str) -> None:
     the front gap is ``lane_distance_to``'s."""
     from highway_env.road.road import Road
 
-    from deft_gym.participants import StaticObstacle
-    from deft_gym.road import FastRoad
-    from deft_gym.roadmap import shared_roadmap
+    from deft_gym.world.participants import StaticObstacle
+    from deft_gym.world.road import FastRoad
+    from deft_gym.world.roadmap import shared_roadmap
 
     rm = shared_roadmap({"type": kind})
     road = FastRoad(network=rm.network, np_random=np.random.RandomState(0), record_history=False, geoms=rm.geoms)

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import shapely
 
-from deft_gym.envs.context import seed_context
-from deft_gym.envs.vehicles import LENGTH, WIDTH, Controls, LaneDriver, VState, complete
-from deft_gym.feasible import FeasibleConfig, Layout, Placed, reachable_area
-from deft_gym.geometry import box_gap
-from deft_gym.nods import EGO_LENGTH, EGO_WIDTH
+from deft_gym.search.context import seed_context
+from deft_gym.search.feasible import FeasibleConfig, Layout, Placed, reachable_area
+from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH
+from deft_gym.search.vehicles import LENGTH, WIDTH, Controls, LaneDriver, VState, complete
+from deft_gym.world.geometry import box_gap
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +101,7 @@ def test_lane_driver_does_not_cross_a_solid_line(ctx):
     """Adversary vehicles change lanes only where the map allows it (a striped line)."""
     from highway_env.road.lane import LineType
 
-    from deft_gym.roadmap import RoadMap
+    from deft_gym.world.roadmap import RoadMap
 
     rm = RoadMap(ctx.roadmap.spec)  # a private copy: the shared map stays as it is
     lane = rm.lanes[("a", "b", 1)]

@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from deft_gym.envs.context import seed_context
-from deft_gym.envs.trace import Actor, Trace
-from deft_gym.geometry import box_gap
-from deft_gym.nods import LaneCells, iou, mmd_linear, world_cells
+from deft_gym.search.context import seed_context
+from deft_gym.search.nods import LaneCells, iou, mmd_linear, world_cells
+from deft_gym.search.trace import Actor, Trace
+from deft_gym.world.geometry import box_gap
 
 
 @pytest.fixture(scope="module")

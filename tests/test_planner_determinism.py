@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 from mcap.reader import make_reader
 
-from deft_gym.codec import decode, encode
+from deft_gym.bus.codec import decode, encode
 from deft_gym.planner.base import Frame, load_planner
-from deft_gym.simulation import Simulation
+from deft_gym.sim.simulation import Simulation
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "configs" / "scenarios"
 LATTICE = "deft_gym.planner.lattice:LatticePlanner"

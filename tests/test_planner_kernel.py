@@ -16,11 +16,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from deft_gym.codec import encode
+from deft_gym.bus.codec import encode
 from deft_gym.planner import lattice
 from deft_gym.planner.base import Frame, load_planner
-from deft_gym.scenario import list_scenarios, load_scenario
-from deft_gym.simulation import Simulation
+from deft_gym.scenarios.scenario import list_scenarios, load_scenario
+from deft_gym.sim.simulation import Simulation
 
 pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning")  # odd values overflow on purpose
 LATTICE = "deft_gym.planner.lattice:LatticePlanner"

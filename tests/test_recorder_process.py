@@ -14,11 +14,11 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from deft_gym import recorder
-from deft_gym.messages import DEFAULT_TOPICS, Message
-from deft_gym.recorder import McapRecorder, RecorderError, RecorderProcess
-from deft_gym.recorder_worker import PyBatch
-from deft_gym.simulation import Simulation
+from deft_gym.bus.messages import DEFAULT_TOPICS, Message
+from deft_gym.record import recorder
+from deft_gym.record.recorder import McapRecorder, RecorderError, RecorderProcess
+from deft_gym.record.worker import PyBatch
+from deft_gym.sim.simulation import Simulation
 from tests.conftest import SCENARIOS
 
 SCENARIO = SCENARIOS / "lane_follow_static.yaml"
@@ -114,8 +114,8 @@ def test_forked_child_uses_its_own_recorder_process(tmp_path: Path) -> None:
 def test_simulation_process_dying_leaves_the_tmp(tmp_path: Path) -> None:
     script = (
         "import os, sys\n"
-        "from deft_gym.messages import Message\n"
-        "from deft_gym.recorder import McapRecorder, RecorderProcess\n"
+        "from deft_gym.bus.messages import Message\n"
+        "from deft_gym.record.recorder import McapRecorder, RecorderProcess\n"
         f"rec = McapRecorder({str(tmp_path / 'log.mcap')!r}, {TOPICS!r}, {{}}, background=True)\n"
         "for i in range(1000):\n"
         f"    rec(Message({TOPICS['control']!r}, i, i, {{'v': i}}))\n"
@@ -135,7 +135,7 @@ def test_simulation_process_dying_leaves_the_tmp(tmp_path: Path) -> None:
 
 
 def test_recorder_mode_from_environment_and_cpus(monkeypatch) -> None:
-    from deft_gym import recorder
+    from deft_gym.record import recorder
 
     monkeypatch.delenv(recorder.RECORDER_ENV, raising=False)
     monkeypatch.setattr(recorder, "available_cpus", lambda: 1)

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from deft_gym.messages import DEFAULT_TOPICS
-from deft_gym.simulation import run_episode
+from deft_gym.bus.messages import DEFAULT_TOPICS
+from deft_gym.sim.simulation import run_episode
 
 SCENARIO = Path(__file__).resolve().parent.parent / "configs" / "scenarios" / "cross_intersection.yaml"
 
@@ -59,8 +59,8 @@ def test_recorder_keeps_publish_order_across_batches(tmp_path: Path, monkeypatch
     """Messages handed to the writer in batches keep publish order around metadata and a
     channel registered mid-run, and hold the payload as it was when published (in the
     recorder process and in this one)."""
-    from deft_gym.messages import Message
-    from deft_gym.recorder import McapRecorder
+    from deft_gym.bus.messages import Message
+    from deft_gym.record.recorder import McapRecorder
 
     monkeypatch.setattr(McapRecorder, "BATCH", 3)
     rec = McapRecorder(tmp_path / "x.mcap", {"control": DEFAULT_TOPICS["control"]}, {"k": 1}, background=background)

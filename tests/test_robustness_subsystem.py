@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from deft_gym.robustness.subsystem import FrameCase, FrameReplay, run_subsystem
-from deft_gym.simulation import run_episode
+from deft_gym.sim.simulation import run_episode
 
 ROOT = Path(__file__).resolve().parent.parent
 

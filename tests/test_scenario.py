@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from deft_gym.config import ConfigError, load_ads_config
-from deft_gym.scenario import list_scenarios, load_scenario, scenario_from_dict
+from deft_gym.scenarios.scenario import list_scenarios, load_scenario, scenario_from_dict
 
 SEED = Path(__file__).resolve().parent.parent / "configs" / "scenarios" / "left_turn.yaml"
 

@@ -1,4 +1,4 @@
-"""The compiled payload snapshot (deft_gym/_snapshot_c.c): every plain payload comes back with
+"""The compiled payload snapshot (deft_gym/record/_snapshot_c.c): every plain payload comes back with
 the same types, key order and float bits; anything else goes through pickle; malformed data is
 a ValueError."""
 
@@ -12,13 +12,13 @@ import struct
 import numpy as np
 import pytest
 
-from deft_gym.codec import encode
-from deft_gym.messages import Message
-from deft_gym.recorder_worker import PyBatch, py_read_batch
-from deft_gym.simulation import Simulation
+from deft_gym.bus.codec import encode
+from deft_gym.bus.messages import Message
+from deft_gym.record.worker import PyBatch, py_read_batch
+from deft_gym.sim.simulation import Simulation
 from tests.conftest import SCENARIOS
 
-_snapshot_c = pytest.importorskip("deft_gym._snapshot_c")
+_snapshot_c = pytest.importorskip("deft_gym.record._snapshot_c")
 dumps, loads = _snapshot_c.dumps, _snapshot_c.loads
 
 SCENARIO = SCENARIOS / "lane_follow_static.yaml"

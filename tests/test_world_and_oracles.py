@@ -7,9 +7,14 @@ import pytest
 from highway_env.road.road import Road
 from highway_env.vehicle.behavior import IDMVehicle
 
-from deft_gym.roadmap import shared_roadmap
-from deft_gym.scenario import build_world, load_scenario, scenario_from_dict, scenario_to_dict
-from deft_gym.simulation import run_episode
+from deft_gym.scenarios.scenario import (
+    build_world,
+    load_scenario,
+    scenario_from_dict,
+    scenario_to_dict,
+)
+from deft_gym.sim.simulation import run_episode
+from deft_gym.world.roadmap import shared_roadmap
 from tests.conftest import SCENARIOS
 
 
@@ -155,7 +160,7 @@ def _plain_check_collisions(self, t: float) -> None:
     """The collision check as first written: every present participant's exact polygon distance."""
     import shapely
 
-    from deft_gym.world import Collision
+    from deft_gym.world.world import Collision
 
     ego = self.ego
     ego_poly = shapely.Polygon(ego.polygon())

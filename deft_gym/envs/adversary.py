@@ -3,7 +3,7 @@
 One episode is one simulated scenario: a seed scenario (or a perturbed variant) runs on the full
 jittered ADS stack, and every ``dt`` seconds (2 s) the adversary may add one participant or
 change the motion of one vehicle it added. Every placement is projected onto the non-invasive
-feasible area (:mod:`deft_gym.feasible`, Decictor eq. 3-4), so the action space only reaches
+feasible area (:mod:`deft_gym.search.feasible`, Decictor eq. 3-4), so the action space only reaches
 placements that never enter the ego's reference motion area, nor the areas of the other
 participants - validity by construction. The episode's log can be handed to the DeFT extractor
 (:class:`deft_gym.envs.sink.EpisodeSink`).
@@ -46,10 +46,13 @@ from gymnasium import spaces
 from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.config import load_mapping, validate
-from deft_gym.envs.context import SEED_SCENARIOS, SeedContext, robust, seed_context
 from deft_gym.envs.sink import EpisodeSink
-from deft_gym.envs.trace import TraceRecorder
-from deft_gym.envs.vehicles import (
+from deft_gym.scenarios.scenario import with_participants
+from deft_gym.search.context import SEED_SCENARIOS, SeedContext, robust, seed_context
+from deft_gym.search.feasible import FeasibleConfig, Layout, Placed
+from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH
+from deft_gym.search.trace import TraceRecorder
+from deft_gym.search.vehicles import (
     LENGTH,
     WIDTH,
     Controls,
@@ -61,12 +64,9 @@ from deft_gym.envs.vehicles import (
     vehicle_spec,
     window_feasible,
 )
-from deft_gym.feasible import FeasibleConfig, Layout, Placed
-from deft_gym.geometry import box_gap, box_gap_point
-from deft_gym.nods import EGO_LENGTH, EGO_WIDTH
-from deft_gym.participants import SIZES
-from deft_gym.scenario import with_participants
-from deft_gym.simulation import Simulation
+from deft_gym.sim.simulation import Simulation
+from deft_gym.world.geometry import box_gap, box_gap_point
+from deft_gym.world.participants import SIZES
 
 OPS = ("noop", "cone", "static_vehicle", "vehicle", "change")
 ALONG = (-20.0, -10.0, 0.0, 10.0, 20.0, 30.0, 45.0, 60.0, 80.0)
@@ -515,7 +515,7 @@ class AdversaryEnv(gym.Env):
     def equivalent_scenario(self) -> dict[str, Any]:
         """``{"scenario", "added_at", "jitter_seed"}``: the seed scenario plus every added
         participant with its final motion, and when each was added.
-        ``deft_gym.envs.episode.run_scenario`` with these replays this episode exactly."""
+        ``deft_gym.search.episode.run_scenario`` with these replays this episode exactly."""
         data = with_participants(self.ctx.scenario, f"{self.ctx.name}+adv", [p.spec for p in self.layout.placed])
         return {"scenario": data, "added_at": dict(self.added_at), "jitter_seed": self.jitter_seed}
 

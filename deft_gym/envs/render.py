@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import shapely
 
-from deft_gym.geometry import box_corners
-from deft_gym.render import draw_map
+from deft_gym.viz.plot import draw_map
+from deft_gym.world.geometry import box_corners
 
 
 def _fill(ax: Any, geom: shapely.Geometry, **kw: Any) -> None:

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from deft_gym.recorder import append_jsonl, write_atomic
+from deft_gym.record.recorder import append_jsonl, write_atomic
 
 
 def extractor() -> Any | None:
@@ -34,7 +34,7 @@ def extractor() -> Any | None:
 
 
 def write_json_atomic(path: Path, data: Any) -> Path:
-    """Write ``data`` as indented JSON, atomically (:func:`deft_gym.recorder.write_atomic`)."""
+    """Write ``data`` as indented JSON, atomically (:func:`deft_gym.record.recorder.write_atomic`)."""
     return write_atomic(path, json.dumps(data, indent=1, sort_keys=True, default=str))
 
 

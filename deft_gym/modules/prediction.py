@@ -12,11 +12,11 @@ from typing import Any
 
 import numpy as np
 
-from deft_gym.bus import Node, header
+from deft_gym.bus.bus import Node, header
+from deft_gym.bus.messages import NS_PER_S
 from deft_gym.config import ModuleConfig
-from deft_gym.geometry import wrap_angle
-from deft_gym.messages import NS_PER_S
-from deft_gym.roadmap import RoadMap
+from deft_gym.world.geometry import wrap_angle
+from deft_gym.world.roadmap import RoadMap
 
 STATIC_TYPES = ("CONE", "STATIC_VEHICLE")
 

@@ -9,10 +9,10 @@ from __future__ import annotations
 import random
 from typing import Any
 
-from deft_gym.bus import Node, header
+from deft_gym.bus.bus import Node, header
+from deft_gym.bus.messages import NS_PER_S
 from deft_gym.config import ModuleConfig
-from deft_gym.messages import NS_PER_S
-from deft_gym.world import World
+from deft_gym.world.world import World
 
 
 def _period_ns(cfg: ModuleConfig) -> int:

@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from deft_gym.geometry import ReferenceLine, wrap_angle
 from deft_gym.planner.base import Frame, Planner
-from deft_gym.roadmap import LaneId, shared_roadmap
+from deft_gym.world.geometry import ReferenceLine, wrap_angle
+from deft_gym.world.roadmap import LaneId, shared_roadmap
 
 try:  # the C function behind np.interp: the same results without the Python wrapper's overhead
     from numpy._core.multiarray import interp as _interp

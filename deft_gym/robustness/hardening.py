@@ -20,13 +20,13 @@ import math
 from functools import cache
 from typing import Any
 
-from deft_gym.messages import NS_PER_S, Message
+from deft_gym.bus.messages import NS_PER_S, Message
 from deft_gym.modules.control import ControlNode
 from deft_gym.modules.planning import PlanningNode
 from deft_gym.modules.prediction import PredictionNode
 from deft_gym.planner.base import import_object
-from deft_gym.roadmap import shared_roadmap
 from deft_gym.robustness.sanitize import problem
+from deft_gym.world.roadmap import shared_roadmap
 
 BUILT_IN = {"prediction": "deft_gym.modules.prediction:PredictionNode",
             "planning": "deft_gym.modules.planning:PlanningNode",

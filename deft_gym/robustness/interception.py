@@ -23,7 +23,7 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
-from deft_gym.messages import NS_PER_S, Message, to_ns
+from deft_gym.bus.messages import NS_PER_S, Message, to_ns
 from deft_gym.robustness import paths
 from deft_gym.robustness.dictionary import mutate
 from deft_gym.robustness.testcase import Assignment, TestCase

@@ -40,8 +40,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from deft_gym.bus.messages import NS_PER_S, ROLES
 from deft_gym.config import CONFIG_DIR, ConfigError, load_yaml, validate
-from deft_gym.messages import NS_PER_S, ROLES
 from deft_gym.robustness.expr import BUILTINS, Expr, ExprError, View, wrap
 from deft_gym.robustness.mapquery import MapQuery
 

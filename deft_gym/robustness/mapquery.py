@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import shapely
 
-from deft_gym.geometry import wrap_angle
-from deft_gym.roadmap import RoadMap, shared_roadmap
+from deft_gym.world.geometry import wrap_angle
+from deft_gym.world.roadmap import RoadMap, shared_roadmap
 
 EGO_HALF_LENGTH = 2.4  # [m]
 _FAR = 1e6  # [m] coordinates beyond this are not on any map

@@ -15,9 +15,9 @@ from typing import Any
 
 from mcap.reader import make_reader
 
-from deft_gym.codec import decode
-from deft_gym.messages import NS_PER_S
-from deft_gym.recorder import EPISODE_METADATA, OUTCOME_METADATA
+from deft_gym.bus.codec import decode
+from deft_gym.bus.messages import NS_PER_S
+from deft_gym.record.recorder import EPISODE_METADATA, OUTCOME_METADATA
 from deft_gym.robustness.interception import EVENTS_TOPIC, ORIGINAL_PREFIX
 from deft_gym.robustness.invariants import (
     InvariantMonitor,

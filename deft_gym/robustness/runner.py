@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from deft_gym.codec import encode
+from deft_gym.bus.codec import encode
+from deft_gym.bus.messages import Message, to_ns
 from deft_gym.config import ROOT, AdsConfig, load_ads_config
-from deft_gym.messages import Message, to_ns
 from deft_gym.robustness.hardening import harden_overrides
 from deft_gym.robustness.interception import Interceptor, attach
 from deft_gym.robustness.invariants import (
@@ -37,8 +37,8 @@ from deft_gym.robustness.invariants import (
 )
 from deft_gym.robustness.monitors import Failure, GuardedSupervisor, SilenceMonitor
 from deft_gym.robustness.testcase import TestCase
-from deft_gym.scenario import Scenario, load_scenario
-from deft_gym.simulation import Simulation
+from deft_gym.scenarios.scenario import Scenario, load_scenario
+from deft_gym.sim.simulation import Simulation
 
 ASTAA_METADATA = "deft_gym.astaa"
 
@@ -104,11 +104,11 @@ def _imports(path: Path) -> set[Path]:
 
 
 def foundation_digest() -> str:
-    """A digest of the simulation's source (everything ``deft_gym.simulation`` imports, the module
+    """A digest of the simulation's source (everything ``deft_gym.sim.simulation`` imports, the module
     nodes and planners) and of the default ADS config: runs are guaranteed to replay
     bit-identically only on the foundation they were recorded with."""
     pkg = ROOT / "deft_gym"
-    todo = [pkg / "simulation.py", *sorted((pkg / "modules").glob("*.py")), *sorted((pkg / "planner").glob("*.py"))]
+    todo = [pkg / "sim" / "simulation.py", *sorted((pkg / "modules").glob("*.py")), *sorted((pkg / "planner").glob("*.py"))]
     seen: set[Path] = set()
     while todo:
         f = todo.pop()

@@ -13,7 +13,7 @@ import itertools
 import math
 from typing import Any
 
-from deft_gym.messages import SCHEMAS
+from deft_gym.bus.messages import SCHEMAS
 
 #: magnitude bounds per unit (x-unit); positions are also checked against the map by callers
 UNIT_BOUNDS = {"m": 1e5, "m/s": 100.0, "m/s^2": 100.0, "rad": 100.0, "rad/s": 100.0, "s": 1e7, "": 1e9}

@@ -2,7 +2,7 @@
 
 ASTAA (section 3.1) starts from a description of the system's interfaces: the channels, the
 message type on each and the fields with their types. DeFT-Gym's JSON schemas
-(:data:`deft_gym.messages.SCHEMAS`) already say all of that, so the specification is computed:
+(:data:`deft_gym.bus.messages.SCHEMAS`) already say all of that, so the specification is computed:
 every topic role, its message type (the schema title) and every field reachable in it, as a
 path (:mod:`.paths`) with a type the dictionary knows. Fields marked ``x-brittle`` (stamps,
 sequence numbers, module names - meaning to the middleware rather than to the modules) are
@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
-from deft_gym.messages import DEFAULT_TOPICS, ROLES, SCHEMAS
+from deft_gym.bus.messages import DEFAULT_TOPICS, ROLES, SCHEMAS
 
 #: field types the exceptional-values dictionary covers
 FIELD_TYPES = ("float", "int", "string", "enum", "bool", "array")

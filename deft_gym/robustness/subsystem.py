@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from deft_gym.planner.base import Frame, Planner
-from deft_gym.recorder import write_atomic
+from deft_gym.record.recorder import write_atomic
 from deft_gym.robustness import paths
 from deft_gym.robustness.dictionary import candidates, mutate
 from deft_gym.robustness.generate import case_rng
@@ -137,8 +137,8 @@ class FrameReplay:
     def _sanitise(self, inputs: dict[str, Any], k: int) -> None:
         """What the hardened planning node does: an invalid input is replaced by the last valid
         one (here: the previous frame's input of that role)."""
-        from deft_gym.roadmap import shared_roadmap
         from deft_gym.robustness.sanitize import problem
+        from deft_gym.world.roadmap import shared_roadmap
 
         if k == 0:
             return

@@ -21,9 +21,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from deft_gym.bus.messages import ROLES
 from deft_gym.config import ConfigError, validate
-from deft_gym.messages import ROLES
-from deft_gym.recorder import write_atomic
+from deft_gym.record.recorder import write_atomic
 from deft_gym.robustness.dictionary import lookup
 from deft_gym.robustness.paths import parse
 

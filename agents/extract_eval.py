@@ -1,0 +1,414 @@
+"""Reproduce the DeFT paper's research questions on this testbed.
+
+    python -m agents.extract_eval --out runs/extract/eval                      # all seed scenarios
+    python -m agents.extract_eval --scenarios left_turn u_turn --cut-ins 4 --reruns 10 --out DIR
+
+Scenario pool: every seed scenario plus ``--variants`` perturbations and ``--cut-ins`` cut-in
+variants of it (:mod:`deft_gym.scenarios.variants`), like the output of a test generator. Each scenario
+is run once (S0, logged, planning outputs carrying their input headers so that all three modes
+can be extracted from the same log; the heuristic and last modes never read them) and then
+``--reruns - 1`` more times (S1..S9). Then:
+
+- RQ1 (Table 3): planning outputs reproduced by the module tests of each mode vs by each
+  system rerun (i-th output of S_k against the i-th of S0, lock-step), at theta = 0, 0.1, 0.23,
+  1.62, 6.99, 17.15 m.
+- RQ2 (Figure 7): for scenarios whose S0 collided, collisions reproduced by each rerun vs
+  failure tests failing in each of ``--test-runs`` executions of the generated module tests.
+- RQ3 (Tables 4-6): extraction ms/frame (planner vs overhead) per mode, module-test execution
+  time vs system-test time, and time-to-reproduce-failure (TTRF) of system reruns vs module
+  tests. System reruns and module-test executions are timed interleaved, in this process and
+  in pytest subprocesses respectively, both after imports (warm), so that machine load hits
+  both alike.
+
+Writes ``DIR/report.md``, ``DIR/results.json`` and plots; intermediate results are appended to
+``DIR/records/*.jsonl`` so an interrupted run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+import xml.etree.ElementTree as ET
+from collections import defaultdict
+from collections.abc import Callable
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from agents.extract_report import write_report
+from agents.record import ads_overrides
+from deft_gym.config import load_ads_config
+from deft_gym.planner.trajectory import lsed
+from deft_gym.record.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
+from deft_gym.scenarios.scenario import (
+    list_scenarios,
+    load_scenario,
+    scenario_from_dict,
+    scenario_to_dict,
+)
+from deft_gym.scenarios.variants import inject_cut_in, perturb, reference_path
+from deft_gym.sim.simulation import Simulation
+from extract.batch import extract_directory
+from extract.runtime import load_frames, make_planner, replay
+from extract.search import MODES
+from extract.validator import distance
+
+RQ1_THETAS = (0.0, 0.1, 0.23, 1.62, 6.99, 17.15)
+FAILURE_K = "does_not_plan_into_collision"
+
+
+# -- records (append-only, resumable) ------------------------------------------------------------
+class Records:
+    """JSON lines under ``DIR/records/<name>.jsonl``: appended as work finishes, read on restart."""
+
+    def __init__(self, root: Path, name: str) -> None:
+        self.path = root / "records" / f"{name}.jsonl"
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rows: list[dict[str, Any]] = read_jsonl(self.path)  # a line cut by an interruption is skipped
+
+    def add(self, row: dict[str, Any]) -> None:
+        self.rows.append(row)
+        append_jsonl(self.path, row)
+
+    def keys(self, *fields: str) -> set[tuple[Any, ...]]:
+        return {tuple(r.get(f) for f in fields) for r in self.rows}
+
+
+# -- scenario pool -------------------------------------------------------------------------------
+def scenario_pool(seeds: list[str], variants: int, cut_ins: int, extra: int = 0
+                  ) -> tuple[list[tuple[str, dict[str, Any]]], list[tuple[str, dict[str, Any]]]]:
+    """``(group, scenario dict)`` lists: the pool (each seed scenario, its perturbations and its
+    first ``cut_ins`` cut-ins) and ``extra`` further cut-ins per seed, which join the evaluation
+    only when their S0 collides (as a test generator reports the failures it finds)."""
+    pool, more = [], []
+    for path in seeds:
+        sc = load_scenario(path)
+        group = sc.name
+        items = [sc] + [perturb(sc, seed=v) for v in range(1, variants + 1)]
+        ref = reference_path(sc) if cut_ins or extra else None
+        items += [inject_cut_in(sc, ref, seed=c) for c in range(cut_ins)]
+        pool += [(group, scenario_to_dict(v)) for v in items]
+        more += [(group, scenario_to_dict(inject_cut_in(sc, ref, seed=c))) for c in range(cut_ins, cut_ins + extra)]
+    return pool, more
+
+
+def _dirname(name: str) -> str:
+    return name.replace("~", "-")
+
+
+def _plans(planning: list[dict[str, Any]]) -> list[dict[str, list[float]]]:
+    return [{k: p["trajectory"][k] for k in ("t", "x", "y")} for p in planning]
+
+
+def pin_planner(out: Path) -> tuple[str, str]:
+    """Copy the default planner's source into ``out/pinned`` under a unique module name and make
+    it importable here, in spawned workers and in pytest subprocesses (``PYTHONPATH`` and a
+    ``conftest.py``): every run, extraction and test of one evaluation uses the same planner
+    even while its source is being edited. Returns ``(class path, sha256)``."""
+    pinned = out / "pinned"
+    record = pinned / "planner.json"
+    if record.exists():  # resuming: keep the planner the evaluation started with
+        pin = json.loads(record.read_text())
+        module, name, digest = pin["module"], pin["name"], pin["sha256"]
+    else:
+        cls_path = load_ads_config().planning.planner.cls
+        mod, _, name = cls_path.partition(":")
+        spec = importlib.util.find_spec(mod)
+        if spec is None or spec.origin is None:
+            raise SystemExit(f"cannot locate the planner module {mod!r}")
+        src = Path(spec.origin).read_bytes()
+        digest = hashlib.sha256(src).hexdigest()
+        module = f"deft_eval_planner_{digest[:10]}"
+        write_atomic(pinned / f"{module}.py", src)
+        write_atomic(record, json.dumps({"module": module, "name": name, "sha256": digest, "source": spec.origin}))
+    if str(pinned) not in sys.path:
+        sys.path.insert(0, str(pinned))
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(pinned), *filter(None, [os.environ.get("PYTHONPATH")])])
+    conftest = ("# makes the planner pinned by the evaluation importable for its generated tests\n"
+                f"import sys\n\nsys.path.insert(0, {str(pinned)!r})\n")
+    write_atomic(out / "conftest.py", conftest)
+    return f"{module}:{name}", digest
+
+
+def _timed_run(data: dict[str, Any], seed: int, out_dir: str | None, headers: bool,
+               planner: str | None = None) -> tuple[Any, float]:
+    """One system-level run, timed from construction to the end (log closed)."""
+    sc = scenario_from_dict(data, source=data["name"])
+    ads = load_ads_config(None, ads_overrides(headers=headers, planner_class=planner) or None)
+    t0 = time.perf_counter()
+    res = Simulation(sc, ads, jitter_seed=seed, out_dir=out_dir).run()
+    return res, time.perf_counter() - t0
+
+
+def _s0_job(args: tuple[str, dict[str, Any], int, str, str | None]) -> dict[str, Any]:
+    group, data, seed, out_dir, planner = args
+    res, wall = _timed_run(data, seed, out_dir, headers=True, planner=planner)
+    s = res.summary()
+    plans = _plans(res.planning)
+    write_atomic(Path(out_dir) / "plans.json", json.dumps(plans))
+    return {"name": data["name"], "group": group, "seed": seed, "outcome": s["outcome"],
+            "collision": s["collision_detail"], "wall": wall, "sim_time": s["sim_time"],
+            "outputs": len(plans), "log": s["log"]}
+
+
+def _compare(ref: list[dict[str, Any]], plans: list[dict[str, Any]]) -> dict[str, Any]:
+    """Lock-step LSED of a rerun's outputs against S0's: counts within each RQ1 threshold."""
+    d = np.array([lsed(a, b) for a, b in zip(ref, plans)]) if ref and plans else np.zeros(0)
+    q = np.percentile(d, [0, 25, 50, 75, 100]).tolist() if d.size else [None] * 5
+    return {"pairs": int(d.size), "within": {f"{t:g}": int((d <= t).sum()) for t in RQ1_THETAS},
+            "quantiles": q, "mean": float(d.mean()) if d.size else None}
+
+
+def _rerun_job(args: tuple[str, dict[str, Any], int, int, str, str | None]) -> dict[str, Any]:
+    name, data, k, seed, ref_path, planner = args
+    res, wall = _timed_run(data, seed, None, headers=False, planner=planner)
+    ref = json.loads(Path(ref_path).read_text())
+    coll = res.outcome.collision
+    return {"name": name, "k": k, "seed": seed, "outcome": res.outcome.outcome, "wall": wall,
+            "sim_time": res.sim_time, "collision": coll.participant if coll else None,
+            **_compare(ref, _plans(res.planning))}
+
+
+# -- the evaluation ------------------------------------------------------------------------------
+class Evaluation:
+    """All phases; each skips what its records already hold."""
+
+    def __init__(self, args: argparse.Namespace, console: Console) -> None:
+        self.args, self.console = args, console
+        self.out = Path(args.out).resolve()
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.s0 = Records(self.out, "s0")
+        self.reruns = Records(self.out, "reruns")
+        self.rounds = Records(self.out, "module_rounds")
+        self.full = Records(self.out, "module_full")
+        self.replays = Records(self.out, "replay_check")
+        self.planner, self.planner_sha = pin_planner(self.out) if args.pin_planner else (None, None)
+
+    def progress(self) -> Progress:
+        cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
+        return Progress(*cols, console=self.console, transient=True)
+
+    def _pool_map(self, fn: Callable[[Any], dict[str, Any]], jobs: list[Any], desc: str,
+                  sink: Callable[[dict[str, Any]], None]) -> None:
+        if not jobs:
+            return
+        with self.progress() as prog:
+            task = prog.add_task(desc, total=len(jobs))
+            if self.args.workers > 1:
+                with get_context("spawn").Pool(self.args.workers, init_pool_worker, (self.args.workers,)) as pool:
+                    for row in pool.imap_unordered(fn, jobs):
+                        sink(row)
+                        prog.advance(task)
+            else:
+                for j in jobs:
+                    sink(fn(j))
+                    prog.advance(task)
+
+    # phase 1: S0 of every scenario (logged, with input headers)
+    def run_s0(self, pool: list[tuple[str, dict[str, Any]]], extra: bool = False) -> None:
+        """S0 runs; with ``extra``, a run without a collision is dropped (its log deleted)."""
+        done = self.s0.keys("name")
+        jobs = [(g, d, self.args.jitter_seed, str(self.out / "runs" / _dirname(d["name"]) / "S0"), self.planner)
+                for g, d in pool if (d["name"],) not in done]
+
+        def keep(row: dict[str, Any]) -> None:
+            if extra:
+                row["extra"] = True
+                if not row["collision"]:
+                    row["dropped"] = True
+                    shutil.rmtree(Path(row["log"]).parent.parent, ignore_errors=True)
+            self.s0.add(row)
+
+        self._pool_map(_s0_job, jobs, "S0 runs" + (" (extra cut-ins)" if extra else ""), keep)
+
+    def evaluated(self) -> set[str]:
+        """Names of the scenarios in the evaluation (extra ones only when they collided)."""
+        return {r["name"] for r in self.s0.rows if not r.get("dropped")}
+
+    # phase 2: extraction in every mode
+    def extract(self) -> None:
+        for mode in self.args.modes:
+            with self.progress() as prog:
+                task = prog.add_task(f"extract ({mode})", total=len(self.s0.rows))
+
+                def tick(_: Any, prog: Progress = prog, task: Any = task) -> None:
+                    prog.advance(task)
+
+                extract_directory(self.out / "runs", self.out / "deft" / mode, mode=mode, workers=self.args.workers,
+                                  on_episode=tick)
+
+    def deft_dir(self, mode: str, name: str) -> Path:
+        return self.out / "deft" / mode / _dirname(name) / "S0"
+
+    def summary(self, mode: str, name: str) -> dict[str, Any]:
+        return json.loads((self.deft_dir(mode, name) / "summary.json").read_text())
+
+    # phase 3: reruns of scenarios without a collision in S0 (in parallel; RQ1 only)
+    def rerun_others(self, pool: list[tuple[str, dict[str, Any]]]) -> None:
+        done = self.reruns.keys("name", "k")
+        colliding = {r["name"] for r in self.s0.rows if r["collision"]} | (
+            {d["name"] for _, d in pool} - self.evaluated())
+        jobs = [(d["name"], d, k, self.args.jitter_seed + k,
+                 str(self.out / "runs" / _dirname(d["name"]) / "S0" / "plans.json"), self.planner)
+                for _, d in pool if d["name"] not in colliding
+                for k in range(1, self.args.reruns) if (d["name"], k) not in done]
+        self._pool_map(_rerun_job, jobs, "reruns (no collision in S0)", self.reruns.add)
+
+    # phase 4: collision scenarios - reruns and module-test executions, interleaved and timed
+    def collisions(self, pool: list[tuple[str, dict[str, Any]]]) -> None:
+        data = {d["name"]: d for _, d in pool}
+        names = self.evaluated()
+        coll = [r["name"] for r in self.s0.rows if r["collision"] and r["name"] in names]
+        done = self.reruns.keys("name", "k")
+        n_rounds = max(self.args.test_runs, self.args.reruns - 1)
+        dirs = [self.deft_dir(m, n) for m in self.args.modes for n in coll if (self.deft_dir(m, n)).exists()]
+        covered: dict[int, set[str]] = defaultdict(set)
+        for rec in self.rounds.rows:
+            covered[rec["round"]].update(rec.get("dirs", []))
+        with self.progress() as prog:
+            task = prog.add_task("collision reruns + module-test runs", total=n_rounds)
+            for k in range(1, n_rounds + 1):
+                if k < self.args.reruns:
+                    for name in coll:
+                        if (name, k) not in done:
+                            ref = self.out / "runs" / _dirname(name) / "S0" / "plans.json"
+                            self.reruns.add(_rerun_job((name, data[name], k, self.args.jitter_seed + k, str(ref),
+                                                        self.planner)))
+                todo = [d for d in dirs if str(d) not in covered[k]]
+                if k <= self.args.test_runs and todo:
+                    self.rounds.add({"round": k, "dirs": list(map(str, todo)),
+                                     **self._pytest(todo, f"round{k}-{len(covered[k])}", FAILURE_K)})
+                prog.advance(task)
+        done_full = {d for rec in self.full.rows for d in rec.get("dirs", [])}
+        heur = [d for d in dirs if "/heuristic/" in str(d) and str(d) not in done_full]
+        if heur:
+            self.full.add({"dirs": list(map(str, heur)), **self._pytest(heur, f"full-{len(done_full)}", None)})
+
+    def _pytest(self, dirs: list[Path], tag: str, keyword: str | None) -> dict[str, Any]:
+        """Run the generated tests in a subprocess; per-test outcome and duration from JUnit XML."""
+        xml = self.out / "records" / f"junit_{tag}.xml"
+        cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
+               "--import-mode=importlib", f"--junitxml={xml}", *map(str, dirs)]
+        if keyword:
+            cmd += ["-k", keyword]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=self.out, env={**os.environ})
+        wall = time.perf_counter() - t0
+        cases = []
+        root = ET.parse(xml).getroot() if xml.exists() else None
+        for tc in (root.iter("testcase") if root is not None else []):
+            status = "failed" if tc.find("failure") is not None or tc.find("error") is not None else (
+                "skipped" if tc.find("skipped") is not None else "passed")
+            cases.append({"file": tc.get("file") or tc.get("classname"), "name": tc.get("name"),
+                          "time": float(tc.get("time") or 0.0), "status": status})
+        return {"wall": wall, "returncode": proc.returncode, "cases": cases}
+
+    # phase 5: replay every frames file through the runtime (what the tests do) and compare
+    def replay_check(self) -> None:
+        done = self.replays.keys("mode", "name")
+        names = self.evaluated()
+        for mode in self.args.modes:
+            for r in self.s0.rows:
+                if r["name"] not in names or (mode, r["name"]) in done or \
+                        not (self.deft_dir(mode, r["name"]) / "frames.jsonl").exists():
+                    continue
+                header, frames = load_frames(self.deft_dir(mode, r["name"]) / "frames.jsonl")
+                outs = replay(make_planner(header), frames)
+                same = sum(1 for f, out in zip(frames, outs) if (f["distance"] if f["distance"] is not None else np.inf)
+                           == distance(f["expected"], out, header["measure"]))
+                self.replays.add({"mode": mode, "name": r["name"], "frames": len(frames), "same_distance": same})
+
+    def cold_start(self) -> float:
+        """Seconds a fresh interpreter needs to import the simulation stack (for 'cold' figures)."""
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-c", "import deft_gym.sim.simulation, deft_gym.planner.lattice, extract.runtime"],
+                       check=True)
+        return time.perf_counter() - t0
+
+
+def _git_state() -> dict[str, Any]:
+    """Commit and a digest of the uncommitted changes (provenance of the results)."""
+    def git(*a: str) -> str:
+        try:
+            return subprocess.run(["git", *a], capture_output=True, text=True, check=True).stdout
+        except (OSError, subprocess.CalledProcessError):
+            return ""
+    return {"commit": git("rev-parse", "HEAD").strip() or None,
+            "diff_sha256": hashlib.sha256(git("diff").encode()).hexdigest()}
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="python -m agents.extract_eval", description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="\n\n".join(__doc__.split("\n\n")[1:3]))
+    ap.add_argument("--scenarios", nargs="*", default=None,
+                    help="seed scenarios (default: all in configs/scenarios except bench_*)")
+    ap.add_argument("--variants", type=int, default=1, help="perturbed variants per seed (default 1)")
+    ap.add_argument("--cut-ins", type=int, default=8, help="cut-in variants per seed (default 8)")
+    ap.add_argument("--extra-cut-ins", type=int, default=0,
+                    help="further cut-ins per seed that join only when their S0 collides (default 0)")
+    ap.add_argument("--reruns", type=int, default=10, help="system runs per scenario incl. S0 (default 10)")
+    ap.add_argument("--test-runs", type=int, default=10, help="executions of the generated tests (default 10)")
+    ap.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES), help="input-search modes")
+    ap.add_argument("--jitter-seed", type=int, default=1000, help="S_k uses jitter seed S+k (default 1000)")
+    ap.add_argument("--workers", type=int, default=2, help="parallel processes for S0, extraction, reruns (default 2)")
+    ap.add_argument("--out", default="runs/extract/eval", help="output folder (default runs/extract/eval)")
+    ap.add_argument("--report-only", action="store_true", help="re-render report.md, results.json and plots "
+                    "from the records of OUT")
+    ap.add_argument("--no-pin-planner", dest="pin_planner", action="store_false",
+                    help="use the planner module in place instead of a copy pinned at the start")
+    args = ap.parse_args(argv)
+    if args.reruns < 2:
+        ap.error("--reruns must be at least 2 (S0 and one rerun)")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    console = Console(width=None if sys.stdout.isatty() else 120, highlight=False)
+    seeds = args.scenarios or [str(p) for p in list_scenarios() if not p.name.startswith("bench")]
+    t0 = time.perf_counter()
+    ev = Evaluation(args, console)
+    if args.report_only:
+        previous = ev.out / "results.json"
+        old = json.loads(previous.read_text()) if previous.exists() else {}
+        results = write_report(ev, ev.evaluated(), old.get("cold_start_s") or ev.cold_start(),
+                               old.get("elapsed_s", 0.0), old.get("provenance"))
+        console.print(f"wrote {ev.out / 'report.md'} and {ev.out / 'results.json'} from the records")
+        return 0
+    console.print(f"building the scenario pool from {len(seeds)} seed scenario(s) ...")
+    pool, more = scenario_pool(seeds, args.variants, args.cut_ins, args.extra_cut_ins)
+    console.print(f"{len(pool)} scenarios (+{len(more)} candidates kept if they collide); S0 runs ...")
+    ev.run_s0(pool)
+    ev.run_s0(more, extra=True)
+    pool += more
+    names = ev.evaluated() & {d["name"] for _, d in pool}
+    n_coll = sum(1 for r in ev.s0.rows if r["collision"] and r["name"] in names)
+    console.print(f"{n_coll} of {len(names)} scenarios collided in S0; extracting ({', '.join(args.modes)}) ...")
+    ev.extract()
+    ev.rerun_others(pool)
+    ev.collisions(pool)
+    ev.replay_check()
+    cold = ev.cold_start()
+    previous = ev.out / "results.json"
+    before = json.loads(previous.read_text()).get("elapsed_s", 0.0) if previous.exists() else 0.0
+    results = write_report(ev, names, cold, before + time.perf_counter() - t0,
+                           {"planner": ev.planner, "planner_sha256": ev.planner_sha, "git": _git_state()})
+    console.print(results["headline_text"])
+    console.print(f"wrote {ev.out / 'report.md'} and {ev.out / 'results.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

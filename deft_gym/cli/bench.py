@@ -1,0 +1,156 @@
+"""Speed benchmark: the full stack against bare highway-env, recording on and off.
+
+    python -m deft_gym.cli.bench [--scenario configs/scenarios/bench_highway.yaml] [--repeats 3]
+
+Measures simulated seconds per wall second (one simulation process) of
+
+1. the full DeFT-Gym stack (world + all ADS modules on the jittered bus) with MCAP recording,
+   written by the recorder process (the default) and by the writer in the simulation's process;
+2. the same without recording;
+3. highway-env's own ``highway-v0`` stepped with the same vehicle count and simulation
+   frequency (its default observation and action types), as the reference;
+
+and prints both, their ratio, the recording overhead (wall time, and CPU time of both
+processes) and where the stack's time goes.
+Each figure is the median over ``--repeats`` runs; the runs of the three kinds are interleaved.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.progress import track
+from rich.table import Table
+
+from deft_gym.bus.bus import TimingSupervisor
+from deft_gym.config import load_ads_config
+from deft_gym.planner import lattice
+from deft_gym.record.recorder import write_atomic
+from deft_gym.scenarios.scenario import SCENARIO_DIR, load_scenario
+from deft_gym.sim.simulation import Simulation
+
+
+def stack_speed(scenario: Any, recorder: str | None, seed: int, breakdown: bool = False) -> dict[str, Any]:
+    """One full-stack run: sim seconds, wall and CPU seconds of this process and (optionally)
+    per-node wall time. ``recorder``: None (no log), ``"process"`` (the recorder process) or
+    ``"inline"`` (the MCAP writer in this process). Wall time runs until the log is complete
+    and in place, so a recorder process that lags is charged for it."""
+    ads = load_ads_config()
+    with tempfile.TemporaryDirectory() as tmp:
+        sim = Simulation(scenario, ads, jitter_seed=seed, out_dir=tmp if recorder else None, keep_planning=False,
+                         recorder_process=recorder == "process")
+        sup = None
+        if breakdown:
+            sup = TimingSupervisor()
+            sim.bus.supervisor = sup
+        t0, c0 = time.perf_counter(), time.process_time()
+        r = sim.run()
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    out = {"sim": r.sim_time, "wall": wall, "cpu": cpu, "speed": r.sim_time / wall, "messages": r.messages,
+           "recorder_cpu": sim.recorder.process_seconds if recorder else 0.0}
+    if sup is not None:
+        out["nodes"] = {k: v for k, v in sup.seconds.items()}
+    return out
+
+
+def highway_speed(vehicles: int, frequency: float, sim_seconds: float, seed: int) -> dict[str, Any]:
+    """highway-v0 stepped for ``sim_seconds`` with ``vehicles`` other vehicles at ``frequency`` Hz."""
+    import gymnasium as gym
+    import highway_env  # noqa: F401 - registers the envs
+
+    env = gym.make("highway-v0", config={"vehicles_count": vehicles, "simulation_frequency": int(frequency),
+                                         "duration": 10_000})
+    env.reset(seed=seed)
+    policy_hz = env.unwrapped.config["policy_frequency"]
+    steps = int(sim_seconds * policy_hz)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        _, _, term, trunc, _ = env.step(1)  # IDLE
+        if term or trunc:
+            env.reset()
+    wall = time.perf_counter() - t0
+    env.close()
+    return {"sim": steps / policy_hz, "wall": wall, "speed": steps / policy_hz / wall}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m deft_gym.cli.bench", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenario", default=str(SCENARIO_DIR / "bench_highway.yaml"),
+                    help="scenario with the participants to benchmark (default: 5 reactive vehicles)")
+    ap.add_argument("--repeats", type=int, default=3, help="runs per measurement; the median is shown")
+    ap.add_argument("--out", default=None, help="also write the figures to this JSON file")
+    args = ap.parse_args(argv)
+    console = Console(width=None if sys.stdout.isatty() else 110)
+    sc = load_scenario(args.scenario)
+    ads = load_ads_config()
+    n_part = len(sc.participants)
+    evaluation = "numpy" if lattice._lattice_c is None else "compiled (C)"
+    console.print(f"scenario {sc.name}: {n_part} participants, world {ads.world_hz:g} Hz, "
+                  f"{sc.duration:g} s simulated per run, {args.repeats} runs each; "
+                  f"lattice planner evaluation step: {evaluation}")
+    # the per-module breakdown times every callback, which costs time itself: it is a run of
+    # its own (also warming up caches), not one of the timed runs
+    first = stack_speed(sc, "process", seed=0, breakdown=True)
+    # interleaved (one of each per repeat), so drifting machine load biases no measurement
+    rec, inline, norec, hw = [], [], [], []
+    for i in track(range(args.repeats), description="benchmark", console=console, transient=True):
+        rec.append(stack_speed(sc, "process", seed=i))
+        inline.append(stack_speed(sc, "inline", seed=i))
+        norec.append(stack_speed(sc, None, seed=i))
+        hw.append(highway_speed(n_part, ads.world_hz, sc.duration, seed=i))
+    runs = {"stack_recording": rec, "stack_recording_inline": inline, "stack_no_recording": norec, "highway_v0": hw}
+    med = {name: statistics.median(r["speed"] for r in rs) for name, rs in runs.items()}
+    # recording on and off of one repeat share the jitter seed (the same messages): the median
+    # of their wall-time ratios is robust to load that drifts between repeats
+    overhead = {
+        "wall": statistics.median(r["wall"] / n["wall"] for r, n in zip(rec, norec, strict=True)) - 1.0,
+        "wall_inline": statistics.median(r["wall"] / n["wall"] for r, n in zip(inline, norec, strict=True)) - 1.0,
+        # CPU of both processes: what recording costs where cores are scarce
+        "cpu_both": statistics.median((r["cpu"] + r["recorder_cpu"]) / n["cpu"]
+                                      for r, n in zip(rec, norec, strict=True)) - 1.0,
+    }
+    recorder_ms = statistics.median(1e3 * r["recorder_cpu"] / r["sim"] for r in rec)
+    ratio = med["stack_recording"] / med["highway_v0"]
+    t = Table(title="simulated seconds per wall second (median)", title_justify="left")
+    t.add_column("what")
+    t.add_column("x real time", justify="right")
+    t.add_row("DeFT-Gym full stack, recording on (recorder process)", f"{med['stack_recording']:.1f}")
+    t.add_row("DeFT-Gym full stack, recording on (in-process writer)", f"{med['stack_recording_inline']:.1f}")
+    t.add_row("DeFT-Gym full stack, recording off", f"{med['stack_no_recording']:.1f}")
+    t.add_row(f"highway-v0, {n_part} vehicles, {ads.world_hz:g} Hz", f"{med['highway_v0']:.1f}")
+    console.print(t)
+    console.print(f"full stack / highway-v0 = {ratio:.2f}x   recording overhead = {100 * overhead['wall']:.1f} %   "
+                  f"targets: >= 100x real time, >= 1.0x highway-v0, <= 10 % overhead")
+    console.print(f"recording overhead with the in-process writer = {100 * overhead['wall_inline']:.1f} %; "
+                  f"CPU of both processes = {100 * overhead['cpu_both']:.1f} % "
+                  f"(the recorder process: {recorder_ms:.2f} ms CPU per sim s)")
+    nodes = first["nodes"]
+    wall0, sim0 = first["wall"], first["sim"]
+    bt = Table(title="where the time goes (a recorded run with per-module timing)", title_justify="left")
+    for c in ("module", "ms per sim s", "share"):
+        bt.add_column(c, justify="right" if c != "module" else "left")
+    for name, sec in sorted(nodes.items(), key=lambda kv: -kv[1]):
+        bt.add_row(name, f"{1e3 * sec / sim0:.2f}", f"{100 * sec / wall0:.0f} %")
+    rest = wall0 - sum(nodes.values())
+    bt.add_row("bus, jitter, recording", f"{1e3 * rest / sim0:.2f}", f"{100 * rest / wall0:.0f} %")
+    console.print(bt)
+    if args.out:
+        write_atomic(Path(args.out), json.dumps({"median_speed": med, "ratio_vs_highway": ratio,
+                                                 "recording_overhead": overhead,
+                                                 "recorder_process_ms_per_sim_s": recorder_ms,
+                                                 "planner_evaluation": evaluation,
+                                                 "runs": {**runs, "breakdown": first}},
+                                                indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

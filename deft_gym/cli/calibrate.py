@@ -1,0 +1,159 @@
+"""How flaky are collisions? Rerun scenario variants and count the non-deterministic ones.
+
+    python -m deft_gym.cli.calibrate --variants 10 --reruns 10 --out runs/calibration
+
+For every seed scenario, ``--variants`` perturbations of it, ``--cut-ins`` variants with a
+vehicle cutting in ahead of the ego and ``--brakes`` variants with a leader braking hard
+(:mod:`deft_gym.scenarios.variants`), the scenario is run ``--reruns`` times with jitter seeds S, S+1, ...;
+the first of them is the *initial execution* S0.
+
+Two shares are reported:
+
+- **paper definition** (DeFT section 5.2: 187 of 658 = 28 % in Apollo): a *collision scenario*
+  collides in its initial execution S0; it is *flaky* when some rerun does not reproduce it;
+- **any-rerun definition**: a collision scenario collides in at least one rerun; it is flaky when
+  it does not collide in all of them (counts every scenario that *can* collide, so it is higher).
+
+Every finished run is appended to ``OUT/runs.jsonl``; an interrupted calibration resumes from it
+(runs already there are not repeated). The summary goes to ``OUT/calibration.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from deft_gym.config import load_ads_config
+from deft_gym.record.recorder import append_jsonl, read_jsonl, write_atomic
+from deft_gym.scenarios.scenario import (
+    list_scenarios,
+    load_scenario,
+    scenario_from_dict,
+    scenario_to_dict,
+)
+from deft_gym.scenarios.variants import inject_cut_in, inject_hard_brake, perturb, reference_path
+from deft_gym.sim.simulation import run_episode
+
+
+def _job(args: tuple[dict[str, Any], int, str | None, str]) -> dict[str, Any]:
+    data, seed, ads_path, key = args
+    sc = scenario_from_dict(data, source=data["name"])
+    r = run_episode(sc, load_ads_config(ads_path), jitter_seed=seed, keep_planning=False)
+    s = r.summary()
+    return {"key": key, "name": sc.name, "seed": seed, "outcome": s["outcome"], "collision": s["collision"],
+            "with": s["collision_detail"]["participant"] if s["collision"] else None,
+            "sim_time": s["sim_time"], "wall_time": s["wall_time"]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m deft_gym.cli.calibrate", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenarios", nargs="*", default=None, help="seed scenarios (default: all in configs/scenarios except bench_*)")
+    ap.add_argument("--variants", type=int, default=10, help="perturbed variants per seed (default 10)")
+    ap.add_argument("--reruns", type=int, default=10, help="reruns per variant (default 10)")
+    ap.add_argument("--strength", type=float, default=1.0, help="perturbation strength (default 1.0)")
+    ap.add_argument("--cut-ins", type=int, default=6, help="cut-in variants per seed (default 6)")
+    ap.add_argument("--brakes", type=int, default=6, help="hard-braking-leader variants per seed (default 6)")
+    ap.add_argument("--jitter-seed", type=int, default=1000, help="rerun i uses jitter seed S+i (default 1000)")
+    ap.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
+    ap.add_argument("--ads-config", default=None, help="ADS config YAML (default configs/ads/default.yaml)")
+    ap.add_argument("--out", default="runs/calibration", help="output folder")
+    args = ap.parse_args(argv)
+    console = Console(width=None if sys.stdout.isatty() else 120)
+    paths = args.scenarios or [str(p) for p in list_scenarios() if not p.name.startswith("bench")]
+    jobs = []
+    for path in paths:
+        seed_sc = load_scenario(path)
+        variants = [perturb(seed_sc, seed=v, strength=args.strength) if v else seed_sc
+                    for v in range(args.variants)]
+        if args.cut_ins or args.brakes:
+            path = reference_path(seed_sc)
+            variants += [inject_cut_in(seed_sc, path, seed=c) for c in range(args.cut_ins)]
+            variants += [inject_hard_brake(seed_sc, path, seed=c) for c in range(args.brakes)]
+        for var in variants:
+            data = scenario_to_dict(var)
+            key = hashlib.sha256(json.dumps([data, args.ads_config], sort_keys=True).encode()).hexdigest()[:16]
+            jobs += [(data, args.jitter_seed + r, args.ads_config, key) for r in range(args.reruns)]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log_path = out / "runs.jsonl"
+    ads_name = args.ads_config or "configs/ads/default.yaml"
+    results = read_jsonl(log_path)  # the same scenario data and ADS config -> the same key
+    done = {(r.get("key"), r["seed"]) for r in results}
+    todo = [j for j in jobs if (j[3], j[1]) not in done]
+    if done:
+        console.print(f"resuming: {len(jobs) - len(todo)} of {len(jobs)} runs already in {log_path}")
+    cols = [TextColumn("[bold]calibration"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
+    with Progress(*cols, console=console, transient=True) as progress, \
+            get_context("spawn").Pool(args.workers) as pool:
+        task = progress.add_task("runs", total=len(todo))
+        for res in pool.imap_unordered(_job, todo, chunksize=2):
+            append_jsonl(log_path, res)
+            results.append(res)
+            progress.advance(task)
+    wanted = {(j[3], j[1]) for j in jobs}
+    doc = summarise([r for r in results if (r.get("key"), r["seed"]) in wanted])
+    doc.update({"reruns": args.reruns, "variants": args.variants, "cut_ins": args.cut_ins,
+                "brakes": args.brakes, "strength": args.strength, "jitter_seed": args.jitter_seed,
+                "ads_config": ads_name})
+    write_atomic(out / "calibration.json", json.dumps(doc, indent=2))
+    for s in sorted(doc["scenarios"], key=lambda s: s["name"]):
+        if any(s["collided"]):
+            flags = "".join("X" if c else "." for c in s["collided"])
+            console.print(f"  {s['name']:34s} {flags}  {sum(s['collided']):2d}/{len(s['collided'])}"
+                          f"{'  (flaky)' if s['flaky_collision'] else ''}")
+    console.print("  (X = collision; first column = initial execution S0)")
+    for label, key in (("paper definition (collision in S0)", "paper"), ("any-rerun definition", "any_rerun")):
+        d = doc[key]
+        share = "-" if d["share"] is None else f"{100 * d['share']:.0f} %"
+        console.print(f"{label}: {d['flaky']} of {d['collision_scenarios']} collision scenarios flaky ({share})")
+    if doc["reproduced_per_rerun"]:
+        rep = doc["reproduced_per_rerun"]
+        console.print(f"reruns 1-{len(rep)} reproduce {min(rep)}-{max(rep)} of the "
+                      f"{doc['paper']['collision_scenarios']} collisions of S0")
+    console.print(f"{doc['total_scenarios']} scenarios; outcome differs across reruns in "
+                  f"{doc['outcome_flaky_scenarios']}; wrote {out / 'calibration.json'}")
+    return 0
+
+
+def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per-scenario collision flags in jitter-seed order, and the flaky shares under both
+    definitions (see the module docstring)."""
+    by: dict[str, list[dict[str, Any]]] = {}
+    for r in results:
+        by.setdefault(r["name"], []).append(r)
+    scenarios = []
+    for name, rs in by.items():
+        rs = sorted(rs, key=lambda r: r["seed"])
+        collided = [bool(r["collision"]) for r in rs]
+        scenarios.append({"name": name, "seeds": [r["seed"] for r in rs], "collided": collided,
+                          "outcomes": sorted({r["outcome"] for r in rs}),
+                          "flaky_collision": any(collided) and not all(collided)})
+
+    def share(coll: list[dict[str, Any]]) -> dict[str, Any]:
+        flaky = sum(s["flaky_collision"] for s in coll)
+        return {"collision_scenarios": len(coll), "flaky": flaky,
+                "share": flaky / len(coll) if coll else None}
+
+    s0 = [s for s in scenarios if s["collided"][0]]  # the paper's collision scenarios
+    n_reruns = min((len(s["collided"]) for s in s0), default=0)
+    return {"scenarios": scenarios,
+            "paper": share(s0),
+            # of the collisions in S0, how many each rerun reproduces (the paper's Figure 7)
+            "reproduced_per_rerun": [sum(s["collided"][k] for s in s0) for k in range(1, n_reruns)],
+            "any_rerun": share([s for s in scenarios if any(s["collided"])]),
+            "outcome_flaky_scenarios": sum(len(s["outcomes"]) > 1 for s in scenarios),
+            "total_scenarios": len(scenarios),
+            "sim_seconds": sum(r["sim_time"] for r in results),
+            "wall_seconds": sum(r["wall_time"] for r in results)}
+
+
+if __name__ == "__main__":
+    sys.exit(main())

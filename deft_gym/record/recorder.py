@@ -1,0 +1,299 @@
+"""Episode logs: every bus message at its publish time in an MCAP file, plus the truth file.
+
+The MCAP file (unchunked by default, zstd chunks with ``compress``) has one channel per topic (JSON encoding, a JSON schema per topic) and metadata
+records ``deft_gym.episode`` (scenario, seeds, configuration; written first) and
+``deft_gym.outcome`` (written last). It is written to ``<name>.tmp`` and renamed when complete,
+so a finished log is never partial; a crashed run leaves the ``.tmp`` for inspection.
+
+Messages are snapshot when published and written by a recorder process of their own
+(:mod:`deft_gym.record.worker`), as Apollo's ``cyber_recorder`` is a process of its own: JSON
+encoding and the MCAP writer's per-message Python then run beside the simulation instead of
+inside it. Set ``DEFT_GYM_RECORDER=inline`` (or pass ``background=False``) to encode and write
+in the simulation's process; both write the same bytes. That is the default where the process
+may use only one CPU (``auto``), and in the workers of a pool of simulation processes that fill the
+CPUs (:func:`init_pool_worker`: training envs, evaluation, extraction accuracy, robustness).
+
+The truth file (``truth.jsonl``) lists, per planning output, the sequence numbers of the
+messages the planner actually consumed and its frame time. It is for measuring extraction
+accuracy only.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import itertools
+import json
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import orjson
+
+from deft_gym.bus.codec import encode
+from deft_gym.bus.messages import SCHEMAS, Message
+from deft_gym.record.worker import Batch, Entry, EpisodeLog, read_frame, write_frame
+
+EPISODE_METADATA = "deft_gym.episode"
+OUTCOME_METADATA = "deft_gym.outcome"
+RECORDER_ENV = "DEFT_GYM_RECORDER"
+
+
+def available_cpus() -> int:
+    """How many CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def recorder_in_process() -> bool:
+    """Whether logs are written in the simulation's process (``DEFT_GYM_RECORDER``: ``process``,
+    ``inline``, or ``auto``, the default: inline when this process may use only one CPU, where
+    a recorder process would compete with the simulation instead of running beside it)."""
+    mode = os.environ.get(RECORDER_ENV, "auto")
+    if mode not in ("auto", "process", "inline"):
+        raise ValueError(f"{RECORDER_ENV}={mode!r}: expected auto, process or inline")
+    return mode == "inline" or (mode == "auto" and available_cpus() < 2)
+
+
+def init_pool_worker(workers: int) -> None:
+    """Initializer of a worker of a pool of ``workers`` simulation processes: when they are at
+    least as many as the CPUs, each writes its logs in its own process (``DEFT_GYM_RECORDER``
+    defaults to ``inline`` there; a value the user set stands), since a recorder process per
+    worker would compete with the workers instead of running beside them."""
+    if workers >= available_cpus():
+        os.environ.setdefault(RECORDER_ENV, "inline")
+
+
+def _meta(values: dict[str, Any]) -> dict[str, str]:
+    """MCAP metadata values are strings: JSON-encode everything that is not one."""
+    return {k: v if isinstance(v, str) else json.dumps(v, sort_keys=True) for k, v in values.items()}
+
+
+class RecorderError(RuntimeError):
+    """The recorder process could not write a log (or is gone)."""
+
+
+class RecorderProcess:
+    """This process's recorder process: started on first use, shared by all its logs, replaced
+    after a fork (a forked child never writes to its parent's pipe) or after it died."""
+
+    _current: RecorderProcess | None = None
+    PIPE_BYTES = 1 << 20
+
+    @classmethod
+    def get(cls) -> RecorderProcess:
+        """The running recorder process of this process (started if needed)."""
+        cur = cls._current
+        if cur is None or cur.pid != os.getpid() or cur.proc.poll() is not None:
+            if cur is not None:
+                cur.stop()
+            cur = cls._current = cls()
+        return cur
+
+    def __init__(self) -> None:
+        self.pid = os.getpid()
+        # the package's own directory first on the path: the process imports this deft_gym
+        root = str(Path(__file__).resolve().parents[2])
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH"))))}
+        self.proc = subprocess.Popen([sys.executable, "-m", "deft_gym.record.worker"], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, close_fds=True, env=env)
+        self._ids = itertools.count(1)
+        self._lock = threading.Lock()
+        atexit.register(self.stop)
+        # a pipe buffer that holds several batches: a send then never waits for the recorder
+        # process to be scheduled (Linux; elsewhere the default buffer is kept)
+        with contextlib.suppress(ImportError, AttributeError, OSError):
+            import fcntl
+
+            fcntl.fcntl(self.proc.stdin.fileno(), fcntl.F_SETPIPE_SZ, self.PIPE_BYTES)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """End the recorder process (its open logs stay ``.tmp``), wait for it, close the pipes."""
+        if self.pid != os.getpid():
+            return
+        for pipe in (self.proc.stdin, self.proc.stdout):
+            with contextlib.suppress(OSError):  # unsent data of a process that is gone
+                pipe.close()
+        try:
+            self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+    def new_id(self) -> int:
+        """A log id not used before in this recorder process."""
+        return next(self._ids)
+
+    def send(self, *cmd: Any) -> None:
+        """Send a command without waiting."""
+        with self._lock:
+            self._send(cmd)
+
+    def request(self, *cmd: Any) -> tuple[Any, ...]:
+        """Send a command and wait for its answer; an ``error`` answer raises :class:`RecorderError`."""
+        with self._lock:
+            self._send(cmd)
+            reply = read_frame(self.proc.stdout)
+        if reply is None:
+            raise RecorderError(f"the recorder process exited (code {self.proc.wait()}) before answering {cmd[0]!r}")
+        if reply[0] == "error":
+            raise RecorderError(reply[1])
+        return reply
+
+    def _send(self, cmd: tuple[Any, ...]) -> None:
+        try:
+            write_frame(self.proc.stdin, cmd)
+        except (BrokenPipeError, ValueError) as exc:
+            raise RecorderError(f"the recorder process is gone (code {self.proc.poll()})") from exc
+
+
+class McapRecorder:
+    """A bus tap writing every message to an MCAP episode log (:attr:`tap` is the tap itself,
+    without the method call of calling the recorder).
+
+    Each message's payload is snapshot (for the recorder process: ``background``, by default
+    unless :func:`recorder_in_process`; see :class:`deft_gym.record.worker.Batch`) or
+    JSON-encoded (for a log written in this process) when it is published, so the log holds the
+    payload as it was then; messages are handed on in batches of :attr:`BATCH`.
+    :meth:`close` returns once the log is complete and in place, and raises
+    :class:`RecorderError` if it could not be written.
+    """
+
+    BATCH = 256
+
+    def __init__(self, path: Path | str, topics: dict[str, str], metadata: dict[str, Any],
+                 compress: bool = False, background: bool | None = None) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if background is None:
+            background = not recorder_in_process()
+        channels = [(topic, role, SCHEMAS[role]["title"], json.dumps(SCHEMAS[role]).encode())
+                    for role, topic in topics.items()]
+        args = (str(self.path), channels, EPISODE_METADATA, _meta(metadata), compress)
+        self._log: EpisodeLog | None = None
+        self._proc: RecorderProcess | None = None
+        self._pending: list[Entry] = []
+        self._batch: Batch | None = None
+        self.tap: Callable[[Message], None] = self._encode
+        if background:
+            self._proc = RecorderProcess.get()
+            self._id = self._proc.new_id()
+            self._request("open", *args)
+            self.tap = self._batch = Batch(self.BATCH, self.flush)
+        else:
+            self._log = EpisodeLog(*args)
+        self._count = 0
+        self.closed = False
+        self.process_seconds = 0.0  # CPU time the recorder process spent on this log (after close)
+
+    def _request(self, op: str, *args: Any, wait: bool = True) -> tuple[Any, ...] | None:
+        """A command about this log to the recorder process; its errors name the log."""
+        try:
+            if wait:
+                return self._proc.request(op, self._id, *args)
+            self._proc.send(op, self._id, *args)
+            return None
+        except RecorderError as exc:
+            raise RecorderError(f"MCAP log {self.path}: {exc}") from None
+
+    def __call__(self, msg: Message) -> None:
+        self.tap(msg)
+
+    @property
+    def count(self) -> int:
+        """Messages recorded so far."""
+        return self._batch.total if self._batch is not None else self._count
+
+    def _encode(self, msg: Message) -> None:
+        # the tap of a log written here: the payload encoded as it is now
+        self._pending.append((msg.topic, msg.publish_ns, encode(msg.payload), msg.seq))
+        self._count += 1
+        if len(self._pending) >= self.BATCH:
+            self.flush()
+
+    def flush(self) -> None:
+        """Hand the messages held back (their payload snapshots) to the log, in publish order."""
+        if self._batch is not None:
+            if self._batch.count:
+                self._request("write", self._batch.take(), wait=False)
+        elif self._pending:
+            self._log.write(self._pending)
+            self._pending = []
+
+    def add_metadata(self, name: str, values: dict[str, Any]) -> None:
+        """Add a metadata record (values that are not strings are JSON-encoded)."""
+        self.flush()
+        if self._proc is not None:
+            self._request("meta", name, _meta(values), wait=False)
+        else:
+            self._log.add_metadata(name, _meta(values))
+
+    def close(self, outcome: dict[str, Any] | None = None) -> Path:
+        """Write the outcome record, finish the file and move it into place."""
+        if self.closed:
+            return self.path
+        self.closed = True
+        self.flush()
+        args = (OUTCOME_METADATA, _meta(outcome)) if outcome is not None else (None, None)
+        if self._proc is not None:
+            _, _, self.process_seconds = self._request("close", *args)
+        else:
+            self._log.close(*args)
+        return self.path
+
+
+def write_atomic(path: Path | str, data: str | bytes) -> Path:
+    """Write a file (text as UTF-8, or bytes) via ``<name>.tmp`` and rename, so readers never
+    see half of it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
+    os.replace(tmp, path)
+    return path
+
+
+def append_jsonl(path: Path | str, record: Any, fsync: bool = False) -> None:
+    """Append one JSON line to ``path`` in a single write of the whole line (no torn lines on
+    a crash); ``fsync`` also forces it to disk."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    line = json.dumps(record, sort_keys=True) + "\n"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    try:
+        os.write(fd, line.encode())
+        if fsync:
+            os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def read_jsonl(path: Path | str) -> list[Any]:
+    """The records of an append-only JSON-lines file (none if it does not exist); a line cut
+    by an interruption is skipped."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return out
+
+
+def write_truth(path: Path | str, records: list[dict[str, Any]], topics: dict[str, str]) -> Path:
+    """``truth.jsonl``: one JSON object per planning output (inputs keyed by topic name, keys
+    sorted)."""
+    dumps, sort = orjson.dumps, orjson.OPT_SORT_KEYS
+    lines = [dumps({"planning_seq": r["seq"], "publish_ns": r["publish_ns"], "frame_ns": r["frame_ns"],
+                    "frame_time": r["frame_time"], "inputs": {topics[role]: seq for role, seq in r["inputs"].items()}},
+                   option=sort) for r in records]
+    return write_atomic(path, b"\n".join(lines) + (b"\n" if lines else b""))

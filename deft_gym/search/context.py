@@ -1,0 +1,127 @@
+"""A seed scenario ready for adversarial testing: its reference run and everything derived from it.
+
+:class:`SeedContext` bundles the scenario, its cached reference run, the road map, the motion
+areas, the reference-path frame and the decision oracle; :func:`seed_context` builds it once per
+process. :func:`resolve_scenario` turns a name (``left_turn``), a path, or a held-out variant
+name (``left_turn~v1000003``: :func:`deft_gym.scenarios.variants.perturb` with that seed) into a scenario.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from deft_gym.config import AdsConfig, ConfigError, load_ads_config
+from deft_gym.scenarios.scenario import Scenario, list_scenarios, load_scenario
+from deft_gym.search.feasible import FeasibleConfig, MotionAreas, motion_areas
+from deft_gym.search.nods import DecisionOracle
+from deft_gym.search.refpath import RefPath
+from deft_gym.search.trace import CACHE_DIR, Trace, content_key, record_run, reference_run
+from deft_gym.world.roadmap import RoadMap, shared_roadmap
+
+SEED_SCENARIOS = ("left_turn", "right_turn", "lane_follow_static", "u_turn", "cross_intersection",
+                  "take_exit", "blocked_red_light")
+VARIANT_STRENGTH = 1.0
+
+
+def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRENGTH) -> Scenario:
+    """A scenario from a name, a YAML path or ``<name>~v<seed>`` (a perturbed variant)."""
+    if isinstance(spec, Scenario):
+        return spec
+    text = str(spec)
+    if "~v" in text:
+        from deft_gym.scenarios.variants import perturb
+
+        base, seed = text.rsplit("~v", 1)
+        try:
+            vseed = int(seed)
+        except ValueError:
+            raise ConfigError(f"scenario {text!r}: expected '<name>~v<integer seed>'") from None
+        return perturb(resolve_scenario(base), vseed, strength)
+    path = Path(text)
+    if path.exists() or path.suffix:
+        return load_scenario(path)
+    names = [p.stem for p in list_scenarios()]
+    if text not in names:
+        raise ConfigError(f"scenario {text!r}: not a file and not one of {names}")
+    return load_scenario(text)
+
+
+@dataclass
+class SeedContext:
+    """A seed scenario with its reference run and derived geometry."""
+
+    scenario: Scenario
+    ads: AdsConfig
+    ref: Trace
+    roadmap: RoadMap
+    areas: MotionAreas
+    path: RefPath
+    oracle: DecisionOracle
+    feasible: FeasibleConfig
+
+    @property
+    def name(self) -> str:
+        return self.scenario.name
+
+
+_CTX: dict[Any, SeedContext] = {}
+
+
+def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = None, ads: AdsConfig | None = None,
+                 reference_seed: int = 0, grid: str = "lane", threshold: float = 0.6) -> SeedContext:
+    """Build (or reuse) the :class:`SeedContext` of a scenario. Raises ``ValueError`` when the
+    scenario's reference run does not complete (then it is no optimal-decision seed)."""
+    sc = resolve_scenario(spec)
+    ads = ads or load_ads_config()
+    feasible = feasible or FeasibleConfig()
+    key = (content_key(sc, ads, reference_seed), feasible, grid, threshold)
+    ctx = _CTX.get(key)
+    if ctx is None:
+        ref = reference_run(sc, ads, reference_seed)
+        rm = shared_roadmap(sc.map)
+        areas = motion_areas(ref, rm, feasible, sc.duration)
+        oracle = DecisionOracle(ref, rm, threshold=threshold, grid_kind=grid)  # type: ignore[arg-type]
+        if len(_CTX) > 256:
+            _CTX.clear()
+        ctx = _CTX[key] = SeedContext(sc, ads, ref, rm, areas, RefPath(ref, rm), oracle, feasible)
+    return ctx
+
+
+def robust(ctx: SeedContext, runs: int = 8, cache_dir: Path | str | None = CACHE_DIR) -> bool:
+    """Is the scenario an optimal-decision seed under timing noise? Its unmutated runs with jitter
+    seeds 1..``runs`` (8) must all complete without a collision and stay consistent with the reference
+    (IoU above the threshold). A variant that fails this would report failures the adversary did
+    not cause. Cached on disk next to the reference."""
+    key = f"{ctx.name}-{content_key(ctx.scenario, ctx.ads, 0)}-robust{runs}-{ctx.oracle.grid_kind}"
+    path = Path(cache_dir) / f"{key}.json" if cache_dir else None
+    if path is not None and path.exists():
+        return bool(json.loads(path.read_text())["robust"])
+    ok = True
+    for js in range(1, runs + 1):
+        tr = record_run(ctx.scenario, ctx.ads, js)
+        if tr.outcome != "completed" or ctx.oracle.iou(tr.xy) <= ctx.oracle.threshold:
+            ok = False
+            break
+    if path is not None:
+        from deft_gym.envs.sink import write_json_atomic
+
+        write_json_atomic(path, {"robust": ok, "runs": runs})
+    return ok
+
+
+def held_out_variants(seed_name: str, count: int, base: int = 1_000_000, tries: int = 20) -> list[str]:
+    """The first ``count`` robust perturbed variants ``<seed>~v<base + i>`` of a seed scenario."""
+    out: list[str] = []
+    for i in range(tries):
+        if len(out) >= count:
+            break
+        name = f"{seed_name}~v{base + i}"
+        try:
+            if robust(seed_context(name)):
+                out.append(name)
+        except (ValueError, ConfigError):
+            continue
+    return out

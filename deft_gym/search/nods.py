@@ -1,0 +1,326 @@
+"""Decictor's oracles and feedback for non-optimal decisions (NoDS), on ground-truth traces.
+
+- **Task check**: a collision is a safety failure; a timeout or a stuck ego is a task failure;
+  neither is a non-optimal decision.
+- **Consistency check** (paper eq. 5-6): the ego paths of the reference run and of a mutated run
+  are mapped to the 2 m cells they cover; the scenario is a NoDS when the task completed and the
+  IoU of the two cell sets is <= ``threshold`` (0.6). Cells are lane-aligned by default
+  (``grid="lane"``: each lane cut into 2 m slices across its full width, as Decictor's
+  implementation does), so a path drifting inside its lane never changes cells and the check does
+  not depend on where a square grid happens to fall; ``grid="world"`` is the paper's literal
+  square grid over (x, y).
+- **Feedback** (eq. 7-9): ``f_p`` the mean distance of the mutated path to the reference path
+  (exact point-to-polyline distance), ``f_b`` the linear-kernel MMD of the ego's behaviour
+  (heading, speed, acceleration) per reference lane. With a linear kernel the MMD is exactly the
+  squared distance of the feature means, computed in O(n) instead of O(n^2); heading enters as
+  (cos, sin) so that it has no wrap-around jump at +-pi.
+- **Validity** (%Mutation): the reference ego path is replayed against the participants of the
+  mutated run; any overlap of the reference ego box with a participant box makes the mutation
+  invasive.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import shapely
+
+from deft_gym.search.trace import Trace
+from deft_gym.world.geometry import box_gap, box_polygon
+from deft_gym.world.roadmap import RoadMap
+from deft_gym.world.world import EgoVehicle
+
+GRID = 2.0  # [m] cell size
+THRESHOLD = 0.6  # IoU <= threshold: non-optimal
+_SLICES = 100_000  # cell id = lane index * _SLICES + slice
+
+
+# -- cells --------------------------------------------------------------------------------------
+class LaneCells:
+    """Maps positions to lane-aligned cells (and lane memberships) of one road map."""
+
+    def __init__(self, roadmap: RoadMap, grid: float = GRID) -> None:
+        self.roadmap, self.grid = roadmap, grid
+        self.geoms = [roadmap.geoms[i] for i in roadmap.lane_ids]
+        boxes = []
+        for g in self.geoms:
+            pts = g.xy(np.linspace(0.0, g.length, max(2, int(g.length / 2.0) + 1)))
+            r = g.width / 2 + 0.5
+            boxes.append((pts[:, 0].min() - r, pts[:, 1].min() - r, pts[:, 0].max() + r, pts[:, 1].max() + r))
+        self.boxes = np.array(boxes)
+
+    def membership(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every (point, lane) pair with the point on the lane surface: ``(point_idx, lane_idx,
+        s)`` arrays."""
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        if not len(xy):
+            e = np.zeros(0, dtype=np.int64)
+            return e, e, np.zeros(0)
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        b = self.boxes
+        cand = np.flatnonzero((b[:, 0] <= hi[0]) & (b[:, 2] >= lo[0]) & (b[:, 1] <= hi[1]) & (b[:, 3] >= lo[1]))
+        pi, li, ss = [], [], []
+        for j in cand:
+            g = self.geoms[j]
+            s, d = g.frenet(xy)
+            on = (s >= 0.0) & (s <= g.length) & (np.abs(d) <= g.width / 2)
+            if on.any():
+                idx = np.flatnonzero(on)
+                pi.append(idx)
+                li.append(np.full(len(idx), j))
+                ss.append(s[idx])
+        if not pi:
+            e = np.zeros(0, dtype=np.int64)
+            return e, e, np.zeros(0)
+        return np.concatenate(pi), np.concatenate(li), np.concatenate(ss)
+
+    def cells(self, xy: np.ndarray) -> np.ndarray:
+        """Sorted unique cell ids covered by the points."""
+        _, li, s = self.membership(xy)
+        return np.unique(li.astype(np.int64) * _SLICES + np.floor(s / self.grid).astype(np.int64))
+
+
+def world_cells(xy: np.ndarray, grid: float = GRID) -> np.ndarray:
+    """The paper's square grid: sorted unique ids of the (x, y) cells of the points."""
+    ij = np.floor(np.asarray(xy, dtype=float).reshape(-1, 2) / grid).astype(np.int64)
+    return np.unique(ij[:, 0] * 1_000_003 + ij[:, 1])
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two sorted unique id arrays (1.0 when both are empty)."""
+    inter = len(np.intersect1d(a, b, assume_unique=True))
+    union = len(a) + len(b) - inter
+    return 1.0 if union == 0 else inter / union
+
+
+# -- feedback -----------------------------------------------------------------------------------
+BEHAVIOUR_WEIGHTS = (1.0, 0.5, 0.5)  # heading, speed, acceleration (as Decictor's code)
+SPEED_RANGE, ACCEL_RANGE = 12.0, 10.0  # normalisation [m/s], [m/s^2] (as Decictor's code)
+
+
+def behaviour_features(ego: np.ndarray) -> np.ndarray:
+    """Normalised, weighted behaviour features (cos h, sin h, v, a) of ego rows."""
+    wh, wv, wa = BEHAVIOUR_WEIGHTS
+    h = ego[:, 2]
+    return np.stack([0.5 * wh * np.cos(h), 0.5 * wh * np.sin(h), wv * ego[:, 3] / SPEED_RANGE,
+                     wa * ego[:, 4] / ACCEL_RANGE], axis=1)
+
+
+def mmd_linear(x: np.ndarray, y: np.ndarray) -> float:
+    """Linear-kernel MMD^2 of two samples = squared distance of their means (exact)."""
+    return float(np.sum((x.mean(axis=0) - y.mean(axis=0)) ** 2))
+
+
+# -- validity -----------------------------------------------------------------------------------
+EGO_LENGTH, EGO_WIDTH = EgoVehicle.LENGTH, EgoVehicle.WIDTH
+
+
+def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None) -> list[str]:
+    """Participants of ``trace`` that overlap the reference ego replayed at the same ticks.
+    Static participants are extended to the end of the reference run."""
+    parts = trace.parts
+    if not len(parts):
+        return []
+    last_ref = int(ref.ticks[-1])
+    ticks = parts[:, 0].astype(np.int64)
+    rows = parts[ticks <= last_ref]
+    # statics are there for good: check them against the whole reference path
+    static = [i for i, a in enumerate(trace.actors) if a.kind == "static"]
+    extra = []
+    if static:
+        first = {i: rows[rows[:, 1] == i][:1] for i in static}
+        for i, r in first.items():
+            if len(r):
+                n = len(ref.ticks)
+                extra.append(np.column_stack([ref.ticks, np.full(n, i), np.repeat(r[:, 2:], n, axis=0)]))
+        rows = np.concatenate([rows[~np.isin(rows[:, 1], static)], *extra]) if extra else rows
+    if until_tick is not None:
+        rows = rows[rows[:, 0] <= until_tick]
+    if not len(rows):
+        return []
+    tick_index = np.searchsorted(ref.ticks, rows[:, 0].astype(np.int64))
+    tick_index = np.clip(tick_index, 0, len(ref.ticks) - 1)
+    ok = ref.ticks[tick_index] == rows[:, 0]
+    rows, tick_index = rows[ok], tick_index[ok]
+    e = ref.ego[tick_index]
+    idx = rows[:, 1].astype(np.int64)
+    dims = np.array([(a.length, a.width) for a in trace.actors])
+    gap = box_gap(e[:, 0], e[:, 1], e[:, 2], EGO_LENGTH, EGO_WIDTH, rows[:, 2], rows[:, 3], rows[:, 4],
+                  dims[idx, 0], dims[idx, 1])
+    # the SAT gap is a lower bound: confirm candidate overlaps exactly with shapely
+    hit = np.flatnonzero(gap <= 0.0)
+    bad: list[str] = []
+    for k in hit:
+        i = int(idx[k])
+        aid = trace.actors[i].id
+        if aid in bad:
+            continue
+        pa = box_polygon(e[k, 0], e[k, 1], e[k, 2], EGO_LENGTH, EGO_WIDTH)
+        pb = box_polygon(rows[k, 2], rows[k, 3], rows[k, 4], dims[i, 0], dims[i, 1])
+        if pa.intersects(pb):
+            bad.append(aid)
+    return bad
+
+
+# -- verdict ------------------------------------------------------------------------------------
+@dataclass
+class Verdict:
+    """Everything the oracles say about one mutated episode."""
+
+    outcome: str
+    collision: bool
+    nods: bool
+    iou: float
+    f_p: float
+    f_b: float
+    valid: bool
+    invasive: list[str] = field(default_factory=list)
+    signature: str = ""
+    collision_detail: dict[str, Any] | None = None
+    ego_at_fault: bool = False  # the ego was moving and the other party was not behind it
+
+    @property
+    def failure(self) -> str | None:
+        """'collision' | 'nods' | None, counting only valid (non-invasive) mutations and only
+        collisions the ego drove into (not a participant running into a standing ego or into its
+        back)."""
+        if not self.valid:
+            return None
+        if self.collision:
+            return "collision" if self.ego_at_fault else None
+        return "nods" if self.nods else None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"outcome": self.outcome, "collision": self.collision, "ego_at_fault": self.ego_at_fault,
+                "nods": self.nods,
+                "iou": round(self.iou, 4), "f_p": round(self.f_p, 4), "f_b": round(self.f_b, 4),
+                "valid": self.valid, "invasive": self.invasive, "failure": self.failure,
+                "signature": self.signature, "collision_detail": self.collision_detail}
+
+
+class DecisionOracle:
+    """The consistency check, feedback and validity check against one reference run."""
+
+    def __init__(self, ref: Trace, roadmap: RoadMap, threshold: float = THRESHOLD, grid: float = GRID,
+                 grid_kind: Literal["lane", "world"] = "lane") -> None:
+        self.ref, self.roadmap = ref, roadmap
+        self.threshold, self.grid, self.grid_kind = threshold, grid, grid_kind
+        self.lanes = LaneCells(roadmap, grid)
+        self.ref_cells = self.cells(ref.xy)
+        self.ref_line = shapely.LineString(ref.xy)
+        shapely.prepare(self.ref_line)
+        # behaviour per reference lane (lanes holding >= 5 % of the reference points)
+        pi, li, _ = self.lanes.membership(ref.xy)
+        feats = behaviour_features(ref.ego)
+        self.ref_lanes: dict[int, np.ndarray] = {}
+        for j in np.unique(li):
+            pts = pi[li == j]
+            if len(pts) >= 0.05 * len(ref.xy):
+                self.ref_lanes[int(j)] = feats[pts].mean(axis=0)
+
+    def cells(self, xy: np.ndarray) -> np.ndarray:
+        return self.lanes.cells(xy) if self.grid_kind == "lane" else world_cells(xy, self.grid)
+
+    def iou(self, xy: np.ndarray) -> float:
+        return iou(self.ref_cells, self.cells(xy))
+
+    def f_p(self, xy: np.ndarray) -> float:
+        """Eq. 7: mean over the path's points of the exact distance to the reference path [m]."""
+        if len(xy) == 0:
+            return 0.0
+        return float(shapely.distance(shapely.points(np.asarray(xy).reshape(-1, 2)), self.ref_line).mean())
+
+    def f_b(self, ego: np.ndarray) -> float:
+        """Mean over reference lanes of the linear MMD of behaviour features (x10, as Decictor)."""
+        if not self.ref_lanes:
+            return 0.0
+        pi, li, _ = self.lanes.membership(ego[:, :2])
+        feats = behaviour_features(ego)
+        vals = []
+        for j, mu_ref in self.ref_lanes.items():
+            pts = pi[li == j]
+            mu = feats[pts].mean(axis=0) if len(pts) else np.zeros_like(mu_ref)
+            vals.append(float(np.sum((mu - mu_ref) ** 2)))
+        return 10.0 * float(np.mean(vals))
+
+    def judge(self, trace: Trace, collision: dict[str, Any] | None = None) -> Verdict:
+        """Task check, consistency check, feedback, validity and a failure signature."""
+        outcome = trace.outcome
+        xy = trace.xy
+        io, fp, fb = self.iou(xy), self.f_p(xy), self.f_b(trace.ego)
+        bad = invasive_actors(self.ref, trace)
+        is_collision = outcome == "collision"
+        nods = outcome == "completed" and io <= self.threshold
+        v = Verdict(outcome, is_collision, nods, io, fp, fb, not bad, bad, collision_detail=collision,
+                    ego_at_fault=bool(is_collision and collision and ego_at_fault(trace, collision)))
+        v.signature = self.signature(v, trace, collision)
+        return v
+
+    def signature(self, v: Verdict, trace: Trace, collision: dict[str, Any] | None) -> str:
+        """Failure identity for de-duplication: kind, location (5 m cell) and participant."""
+        if v.collision and collision:
+            who = _actor_key(trace, collision.get("participant", ""))
+            return f"collision@{_cell5(collision['x'], collision['y'])}:{who}"
+        if v.nods:
+            xy = trace.xy
+            d = shapely.distance(shapely.points(xy), self.ref_line)
+            off = np.flatnonzero(d > self.roadmap.spec.lane_width / 2)
+            k = int(off[0]) if len(off) else int(np.argmax(d))
+            side = _side(self.ref.xy, xy[k])
+            who = _nearest_added(trace, int(trace.ticks[k]), xy[k])
+            return f"nods@{_cell5(*xy[k])}:{side}:{who}"
+        return ""
+
+
+def ego_at_fault(trace: Trace, collision: dict[str, Any]) -> bool:
+    """The ego was moving and the participant's centre was not behind the ego's rear end - the
+    ego drove into it (or cut across it), rather than being run into from behind or standing."""
+    if not collision.get("ego_moving", True):
+        return False
+    tick = round(float(collision["time"]) / trace.world_dt)
+    i = int(np.clip(np.searchsorted(trace.ticks, tick), 0, len(trace.ticks) - 1))
+    ex, ey, eh = trace.ego[i, :3]
+    try:
+        a = trace.actor_index(str(collision["participant"]))
+    except StopIteration:
+        return True
+    rows = trace.parts[(trace.parts[:, 1] == a) & (trace.parts[:, 0] <= tick)]
+    if not len(rows):
+        return True
+    px, py = rows[-1, 2], rows[-1, 3]
+    lon = (px - ex) * math.cos(eh) + (py - ey) * math.sin(eh)
+    return bool(lon > -EGO_LENGTH / 2)
+
+
+def _cell5(x: float, y: float) -> str:
+    return f"{math.floor(x / 5.0)},{math.floor(y / 5.0)}"
+
+
+def _actor_key(trace: Trace, pid: str) -> str:
+    for a in trace.actors:
+        if a.id == pid:
+            return f"{'added' if a.added else 'seed:' + a.id}:{a.kind}:{a.obstacle_type}"
+    return pid
+
+
+def _side(ref_xy: np.ndarray, p: np.ndarray) -> str:
+    i = int(np.argmin(np.hypot(*(ref_xy - p).T)))
+    j = min(i + 1, len(ref_xy) - 1)
+    i = j - 1 if j > 0 else i
+    t = ref_xy[j] - ref_xy[i]
+    cross = t[0] * (p[1] - ref_xy[i, 1]) - t[1] * (p[0] - ref_xy[i, 0])
+    return "right" if cross > 0 else "left"  # y points down: positive cross is to the right
+
+
+def _nearest_added(trace: Trace, tick: int, p: np.ndarray) -> str:
+    rows = trace.parts[trace.parts[:, 0] == tick]
+    best, key = math.inf, "none"
+    for r in rows:
+        a = trace.actors[int(r[1])]
+        dist = math.hypot(r[2] - p[0], r[3] - p[1])
+        if dist < best:
+            best, key = dist, f"{'added' if a.added else 'seed:' + a.id}:{a.kind}:{a.obstacle_type}"
+    return key

@@ -1,0 +1,86 @@
+"""System-level oracles: collision, task completion, timeout and stuck.
+
+The collision check itself runs in the world at every step (ego polygon against every
+participant); :class:`EpisodeOracle` turns the world state into the episode outcome.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from deft_gym.world.world import Collision, World
+
+OUTCOMES = ("collision", "completed", "timeout", "stuck")
+
+
+@dataclass
+class Outcome:
+    """How an episode ended."""
+
+    outcome: str
+    sim_time: float
+    collision: Collision | None
+    min_distance: float
+
+    @property
+    def task_completed(self) -> bool:
+        return self.outcome == "completed"
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"outcome": self.outcome, "sim_time": self.sim_time,
+                "collision": self.collision.as_dict() if self.collision else None,
+                "task_completed": self.task_completed,
+                "min_distance": self.min_distance if math.isfinite(self.min_distance) else None}
+
+
+class EpisodeOracle:
+    """Watches the world after every step and decides when the episode is over.
+
+    ``reach_radius`` [m]: the destination counts as reached within this distance;
+    ``stuck_time`` [s]: moving less than ``stuck_distance`` [m] for this long is stuck.
+    """
+
+    def __init__(self, world: World, destination: np.ndarray, duration: float,
+                 reach_radius: float = 3.0, stuck_time: float = 30.0, stuck_distance: float = 0.5,
+                 stop_on_collision: bool = True) -> None:
+        self.world = world
+        self.destination = np.asarray(destination, dtype=float)
+        self.duration = duration
+        self.reach_radius = reach_radius
+        self.stuck_time = stuck_time
+        self.stuck_distance = stuck_distance
+        self.stop_on_collision = stop_on_collision
+        self._track: deque[tuple[float, float, float]] = deque()
+        self.result: str | None = None
+
+    def check(self) -> str | None:
+        """The outcome if the episode is over now, else None."""
+        w = self.world
+        t = w.time
+        if w.collision is not None and self.stop_on_collision:
+            self.result = "collision"
+        else:
+            ex, ey = w.ego.position
+            if math.hypot(ex - self.destination[0], ey - self.destination[1]) <= self.reach_radius:
+                self.result = "completed"
+            else:
+                tr = self._track
+                tr.append((t, ex, ey))
+                while tr and tr[0][0] < t - self.stuck_time:
+                    tr.popleft()
+                t0, x0, y0 = tr[0]
+                if t - t0 >= self.stuck_time - 1e-9 and math.hypot(ex - x0, ey - y0) < self.stuck_distance:
+                    self.result = "stuck"
+                elif t >= self.duration - 1e-9:
+                    self.result = "timeout"
+        return self.result
+
+    def outcome(self) -> Outcome:
+        w = self.world
+        return Outcome(self.result or ("collision" if w.collision else "timeout"), w.time,
+                       w.collision, w.min_distance)
