@@ -39,8 +39,8 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.config import ConfigError, load_mapping, validate
-from deft_gym.envs.sink import write_json_atomic
-from deft_gym.record.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
+from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
+from deft_gym.record.recorder import init_pool_worker
 from deft_gym.search.context import SEED_SCENARIOS
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")

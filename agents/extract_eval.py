@@ -48,17 +48,18 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from agents.extract_report import write_report
 from agents.record import ads_overrides
-from deft_gym.config import load_ads_config
+from deft_gym.bus.ads import load_ads_config
+from deft_gym.files import append_jsonl, read_jsonl, write_atomic
 from deft_gym.planner.trajectory import lsed
-from deft_gym.record.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
+from deft_gym.record.recorder import init_pool_worker
 from deft_gym.scenarios.scenario import (
     list_scenarios,
     load_scenario,
     scenario_from_dict,
     scenario_to_dict,
 )
-from deft_gym.scenarios.variants import inject_cut_in, perturb, reference_path
-from deft_gym.sim.simulation import Simulation
+from deft_gym.scenarios.variants import inject_cut_in, perturb
+from deft_gym.sim.simulation import Simulation, reference_path
 from extract.batch import extract_directory
 from extract.runtime import load_frames, make_planner, replay
 from extract.search import MODES

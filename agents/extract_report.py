@@ -11,15 +11,35 @@ import math
 import statistics
 from collections import defaultdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from deft_gym.record.recorder import write_atomic
+from deft_gym.files import write_atomic
 from extract.runtime import read_header
 
-if TYPE_CHECKING:
-    from agents.extract_eval import Evaluation
+
+class RecordFile(Protocol):
+    """An append-only record file read back as rows."""
+
+    rows: list[dict[str, Any]]
+
+
+class Evaluation(Protocol):
+    """What the report reads of a finished evaluation (:class:`agents.extract_eval.Evaluation`):
+    its arguments, output folder and record files. A protocol, so this module never imports the
+    one that runs things."""
+
+    args: Any
+    out: Path
+    s0: RecordFile
+    reruns: RecordFile
+    rounds: RecordFile
+    full: RecordFile
+    replays: RecordFile
+
+    def deft_dir(self, mode: str, name: str) -> Path: ...
+
 
 RQ1_THETAS = (0.0, 0.1, 0.23, 1.62, 6.99, 17.15)
 

@@ -18,7 +18,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from deft_gym.config import ConfigError, deep_merge, load_ads_config
+from deft_gym.bus.ads import load_ads_config
+from deft_gym.config import ConfigError, deep_merge
 from deft_gym.scenarios.scenario import Scenario, load_scenario
 from deft_gym.sim.simulation import EpisodeResult, Simulation
 from extract.mapping import MappingError, load_mapping

@@ -27,8 +27,8 @@ import yaml
 
 from agents.config import ALGOS, TrainConfig, load_train_config
 from deft_gym.config import ConfigError
-from deft_gym.envs.sink import write_json_atomic
-from deft_gym.record.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
+from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
+from deft_gym.record.recorder import init_pool_worker
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -14,7 +14,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from deft_gym.record.recorder import write_atomic
+from deft_gym.files import write_atomic
 from extract.emit import slug
 from extract.episode import ExtractionResult, extract_episode
 from extract.logs import LogError

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from deft_gym.bus.codec import encode
-from deft_gym.record.recorder import write_atomic
+from deft_gym.files import write_atomic
 from extract.io_filter import PlanningIOFilter
 from extract.runtime import finite_or_none
 from extract.search import FrameChoice

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.files import write_atomic
 from deft_gym.planner.base import load_planner
-from deft_gym.record.recorder import write_atomic
 from extract.emit import slug, test_module, write_frames
 from extract.io_filter import PlanningIOFilter
 from extract.logs import EpisodeLog, LogError, read_log

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from deft_gym.record.recorder import read_jsonl
+from deft_gym.files import read_jsonl
 from extract.io_filter import PlanningIOFilter
 from extract.search import FrameChoice
 

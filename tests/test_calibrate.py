@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from deft_gym.cli.calibrate import summarise
-from deft_gym.record.recorder import read_jsonl
+from deft_gym.files import read_jsonl
 
 
 def _runs(name: str, flags: str) -> list[dict]:

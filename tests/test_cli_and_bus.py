@@ -7,9 +7,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+from deft_gym.bus.ads import JitterConfig
 from deft_gym.bus.bus import Bus, Node, header
 from deft_gym.bus.jitter import JitterModel
-from deft_gym.config import JitterConfig
 from tests.conftest import ROOT, SCENARIOS
 
 
@@ -50,7 +50,7 @@ def _bus(**jitter) -> tuple[Bus, list]:
     bus = Bus(JitterModel(JitterConfig(**jitter), seed=1))
     seen: list = []
     bus.taps.append(lambda m: seen.append((m.topic, m.seq, m.publish_ns, m.payload.get("got"))))
-    from deft_gym.config import Duration
+    from deft_gym.bus.ads import Duration
 
     bus.add(_Echo("echo", ["in"], trigger="in", processing=Duration(mean_ms=5.0)))
     bus.start()
@@ -87,7 +87,7 @@ def test_dropped_deliveries_are_counted() -> None:
 def test_reliable_topic_is_never_lost() -> None:
     """Routing is published once: a lost delivery would leave the planner without a route for
     the whole run. Deliveries of ``jitter.reliable`` roles that draw a loss are redelivered."""
-    from deft_gym.config import load_ads_config
+    from deft_gym.bus.ads import load_ads_config
     from deft_gym.scenarios.scenario import load_scenario
     from deft_gym.sim.simulation import Simulation
 

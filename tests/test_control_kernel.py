@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from deft_gym.bus.ads import load_ads_config
 from deft_gym.bus.codec import encode
-from deft_gym.config import load_ads_config
 from deft_gym.modules import control
 from deft_gym.modules.control import ControlNode, _nearest, _trajectory_lists
 from deft_gym.scenarios.scenario import list_scenarios, load_scenario

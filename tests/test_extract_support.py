@@ -16,7 +16,8 @@ from typing import Any
 from agents.record import record_episode
 from deft_gym.planner.lattice import LatticePlanner
 from deft_gym.scenarios.scenario import load_scenario, scenario_from_dict, scenario_to_dict
-from deft_gym.scenarios.variants import inject_cut_in, reference_path
+from deft_gym.scenarios.variants import inject_cut_in
+from deft_gym.sim.simulation import reference_path
 
 TESTS = Path(__file__).resolve().parent
 

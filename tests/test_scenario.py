@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from deft_gym.config import ConfigError, load_ads_config
+from deft_gym.bus.ads import load_ads_config
+from deft_gym.config import ConfigError
 from deft_gym.scenarios.scenario import list_scenarios, load_scenario, scenario_from_dict
 
 SEED = Path(__file__).resolve().parent.parent / "configs" / "scenarios" / "left_turn.yaml"

@@ -12,7 +12,7 @@ import math
 import random
 import secrets
 
-from deft_gym.config import Duration, JitterConfig
+from deft_gym.bus.ads import Duration, JitterConfig
 
 _NS_PER_MS = 1_000_000
 

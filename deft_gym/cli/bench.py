@@ -30,10 +30,10 @@ from rich.console import Console
 from rich.progress import track
 from rich.table import Table
 
+from deft_gym.bus.ads import load_ads_config
 from deft_gym.bus.bus import TimingSupervisor
-from deft_gym.config import load_ads_config
+from deft_gym.files import write_atomic
 from deft_gym.planner import lattice
-from deft_gym.record.recorder import write_atomic
 from deft_gym.scenarios.scenario import SCENARIO_DIR, load_scenario
 from deft_gym.sim.simulation import Simulation
 

@@ -31,16 +31,16 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from deft_gym.config import load_ads_config
-from deft_gym.record.recorder import append_jsonl, read_jsonl, write_atomic
+from deft_gym.bus.ads import load_ads_config
+from deft_gym.files import append_jsonl, read_jsonl, write_atomic
 from deft_gym.scenarios.scenario import (
     list_scenarios,
     load_scenario,
     scenario_from_dict,
     scenario_to_dict,
 )
-from deft_gym.scenarios.variants import inject_cut_in, inject_hard_brake, perturb, reference_path
-from deft_gym.sim.simulation import run_episode
+from deft_gym.scenarios.variants import inject_cut_in, inject_hard_brake, perturb
+from deft_gym.sim.simulation import reference_path, run_episode
 
 
 def _job(args: tuple[dict[str, Any], int, str | None, str]) -> dict[str, Any]:

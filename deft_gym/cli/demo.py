@@ -22,7 +22,7 @@ from rich.table import Table
 
 from deft_gym.bus.jitter import os_seed
 from deft_gym.cli.run import divergence_stats
-from deft_gym.record.recorder import write_atomic
+from deft_gym.files import write_atomic
 from deft_gym.scenarios.scenario import list_scenarios, load_scenario
 from deft_gym.sim.simulation import run_episode
 

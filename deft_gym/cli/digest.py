@@ -25,7 +25,7 @@ from rich.console import Console
 from rich.progress import track
 
 from deft_gym.config import ConfigError
-from deft_gym.record.recorder import write_atomic
+from deft_gym.files import write_atomic
 from deft_gym.scenarios.scenario import Scenario, list_scenarios, load_scenario
 from deft_gym.sim.simulation import run_episode
 

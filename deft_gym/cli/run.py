@@ -23,10 +23,11 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from deft_gym.bus.ads import load_ads_config
 from deft_gym.bus.jitter import os_seed
-from deft_gym.config import ConfigError, load_ads_config
+from deft_gym.config import ConfigError
+from deft_gym.files import write_atomic
 from deft_gym.planner.trajectory import lockstep_divergence
-from deft_gym.record.recorder import write_atomic
 from deft_gym.scenarios.scenario import load_scenario
 from deft_gym.sim.simulation import Simulation
 

@@ -14,14 +14,13 @@ one file per worker process, so parallel workers never interleave) and then:
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from deft_gym.record.recorder import append_jsonl, write_atomic
+from deft_gym.files import append_jsonl, write_json_atomic
 
 
 def extractor() -> Any | None:
@@ -31,11 +30,6 @@ def extractor() -> Any | None:
     except ImportError:
         return None
     return extract_episode
-
-
-def write_json_atomic(path: Path, data: Any) -> Path:
-    """Write ``data`` as indented JSON, atomically (:func:`deft_gym.record.recorder.write_atomic`)."""
-    return write_atomic(path, json.dumps(data, indent=1, sort_keys=True, default=str))
 
 
 class EpisodeSink:

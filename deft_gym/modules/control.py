@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.bus.ads import ModuleConfig
 from deft_gym.bus.bus import Node, header
 from deft_gym.bus.messages import NS_PER_S
-from deft_gym.config import ModuleConfig
 from deft_gym.world.interp import interp1
 
 try:  # the plan conversion compiled (setup.py): _trajectory_lists' result for the usual case, None

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 from typing import Any
 
+from deft_gym.bus.ads import PlanningConfig
 from deft_gym.bus.bus import Node, header
 from deft_gym.bus.messages import NS_PER_S, Message
-from deft_gym.config import PlanningConfig
 from deft_gym.planner.base import Frame, Planner
 
 

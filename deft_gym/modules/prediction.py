@@ -12,9 +12,9 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.bus.ads import ModuleConfig
 from deft_gym.bus.bus import Node, header
 from deft_gym.bus.messages import NS_PER_S
-from deft_gym.config import ModuleConfig
 from deft_gym.world.geometry import wrap_angle
 from deft_gym.world.roadmap import RoadMap
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
+from deft_gym.bus.ads import ModuleConfig
 from deft_gym.bus.bus import Node, header
 from deft_gym.bus.messages import NS_PER_S
-from deft_gym.config import ModuleConfig
 from deft_gym.world.roadmap import LaneId, RoadMap
 
 

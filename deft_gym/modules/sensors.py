@@ -9,9 +9,9 @@ from __future__ import annotations
 import random
 from typing import Any
 
+from deft_gym.bus.ads import ModuleConfig
 from deft_gym.bus.bus import Node, header
 from deft_gym.bus.messages import NS_PER_S
-from deft_gym.config import ModuleConfig
 from deft_gym.world.world import World
 
 

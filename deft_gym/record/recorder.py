@@ -36,6 +36,7 @@ import orjson
 
 from deft_gym.bus.codec import encode
 from deft_gym.bus.messages import SCHEMAS, Message
+from deft_gym.files import write_atomic
 from deft_gym.record.worker import Batch, Entry, EpisodeLog, read_frame, write_frame
 
 EPISODE_METADATA = "deft_gym.episode"
@@ -246,47 +247,6 @@ class McapRecorder:
         else:
             self._log.close(*args)
         return self.path
-
-
-def write_atomic(path: Path | str, data: str | bytes) -> Path:
-    """Write a file (text as UTF-8, or bytes) via ``<name>.tmp`` and rename, so readers never
-    see half of it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data.encode() if isinstance(data, str) else data)
-    os.replace(tmp, path)
-    return path
-
-
-def append_jsonl(path: Path | str, record: Any, fsync: bool = False) -> None:
-    """Append one JSON line to ``path`` in a single write of the whole line (no torn lines on
-    a crash); ``fsync`` also forces it to disk."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    line = json.dumps(record, sort_keys=True) + "\n"
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-    try:
-        os.write(fd, line.encode())
-        if fsync:
-            os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def read_jsonl(path: Path | str) -> list[Any]:
-    """The records of an append-only JSON-lines file (none if it does not exist); a line cut
-    by an interruption is skipped."""
-    path = Path(path)
-    if not path.exists():
-        return []
-    out = []
-    for line in path.read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    return out
 
 
 def write_truth(path: Path | str, records: list[dict[str, Any]], topics: dict[str, str]) -> Path:

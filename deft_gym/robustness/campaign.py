@@ -29,7 +29,8 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, load_mapping, validate
-from deft_gym.record.recorder import append_jsonl, init_pool_worker, read_jsonl, write_atomic
+from deft_gym.files import append_jsonl, read_jsonl, write_atomic
+from deft_gym.record.recorder import init_pool_worker
 from deft_gym.robustness.faults import PLANTED_FAULTS, SIGNATURES
 from deft_gym.robustness.generate import GenerationConfig, case_rng, describe, generate_policies
 from deft_gym.robustness.minimise import Minimised, minimise

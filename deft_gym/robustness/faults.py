@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from deft_gym.config import ModuleConfig
+from deft_gym.bus.ads import ModuleConfig
 from deft_gym.modules.control import ControlNode
 from deft_gym.modules.prediction import PredictionNode
 

@@ -24,9 +24,10 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.bus.codec import encode
 from deft_gym.bus.messages import Message, to_ns
-from deft_gym.config import ROOT, AdsConfig, load_ads_config
+from deft_gym.config import ROOT
 from deft_gym.robustness.hardening import harden_overrides
 from deft_gym.robustness.interception import Interceptor, attach
 from deft_gym.robustness.invariants import (

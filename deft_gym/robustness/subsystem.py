@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.files import write_atomic
 from deft_gym.planner.base import Frame, Planner
-from deft_gym.record.recorder import write_atomic
 from deft_gym.robustness import paths
 from deft_gym.robustness.dictionary import candidates, mutate
 from deft_gym.robustness.generate import case_rng

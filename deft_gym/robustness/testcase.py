@@ -23,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from deft_gym.bus.messages import ROLES
 from deft_gym.config import ConfigError, validate
-from deft_gym.record.recorder import write_atomic
+from deft_gym.files import write_atomic
 from deft_gym.robustness.dictionary import lookup
 from deft_gym.robustness.paths import parse
 

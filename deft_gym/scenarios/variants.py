@@ -60,22 +60,6 @@ def perturb(sc: Scenario, seed: int, strength: float = 1.0) -> Scenario:
     return scenario_from_dict(data, source=f"{sc.source or sc.name} (variant {seed})")
 
 
-def reference_path(sc: Scenario, jitter_seed: int = 0) -> np.ndarray:
-    """The ego's path in one run of ``sc``: rows ``(t, x, y, heading, speed)`` at every step."""
-    from deft_gym.sim.simulation import Simulation  # local: simulation imports scenario modules
-
-    sim = Simulation(sc, jitter_seed=jitter_seed, keep_planning=False)
-    rows: list[tuple[float, float, float, float, float]] = []
-
-    def grab(s: Any) -> None:
-        e = s.world.ego
-        rows.append((s.world.time, float(e.position[0]), float(e.position[1]), float(e.heading), float(e.speed)))
-
-    sim.on_step.append(grab)
-    sim.run()
-    return np.array(rows)
-
-
 def inject_cut_in(sc: Scenario, path: np.ndarray, seed: int) -> Scenario:
     """``sc`` plus a scripted vehicle that cuts in ahead of the ego (from its left or right) at a
     random moment of the reference path ``path`` - the manoeuvre a constant-velocity predictor

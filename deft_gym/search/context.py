@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from deft_gym.config import AdsConfig, ConfigError, load_ads_config
+from deft_gym.bus.ads import AdsConfig, load_ads_config
+from deft_gym.config import ConfigError
 from deft_gym.scenarios.scenario import Scenario, list_scenarios, load_scenario
 from deft_gym.search.feasible import FeasibleConfig, MotionAreas, motion_areas
 from deft_gym.search.nods import DecisionOracle
@@ -106,7 +107,7 @@ def robust(ctx: SeedContext, runs: int = 8, cache_dir: Path | str | None = CACHE
             ok = False
             break
     if path is not None:
-        from deft_gym.envs.sink import write_json_atomic
+        from deft_gym.files import write_json_atomic
 
         write_json_atomic(path, {"robust": ok, "runs": runs})
     return ok

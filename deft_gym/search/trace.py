@@ -21,8 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from deft_gym.config import ROOT, AdsConfig, load_ads_config
-from deft_gym.record.recorder import write_atomic
+from deft_gym.bus.ads import AdsConfig, load_ads_config
+from deft_gym.config import ROOT
+from deft_gym.files import write_atomic
 from deft_gym.scenarios.scenario import Scenario, scenario_to_dict
 
 CACHE_DIR = ROOT / "runs" / "cache" / "reference"

@@ -18,17 +18,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.bus.bus import Bus, Node, header
 from deft_gym.bus.jitter import JitterModel
 from deft_gym.bus.messages import NS_PER_S, to_ns
-from deft_gym.config import AdsConfig, load_ads_config
+from deft_gym.files import write_atomic
 from deft_gym.modules.control import ControlNode
 from deft_gym.modules.planning import PlanningNode
 from deft_gym.modules.prediction import PredictionNode
 from deft_gym.modules.routing import RoutingNode
 from deft_gym.modules.sensors import LocalizationNode, PerceptionNode, TrafficLightNode
 from deft_gym.planner.base import import_object, load_planner, planner_fingerprint
-from deft_gym.record.recorder import McapRecorder, write_atomic, write_truth
+from deft_gym.record.recorder import McapRecorder, write_truth
 from deft_gym.scenarios.scenario import (
     Scenario,
     build_world,
@@ -259,3 +262,17 @@ def run_episode(scenario: Scenario | str | Path, ads: AdsConfig | None = None, j
 
 
 __all__ = ["EpisodeResult", "Simulation", "run_episode", "write_atomic"]
+
+
+def reference_path(sc: Scenario, jitter_seed: int = 0) -> np.ndarray:
+    """The ego's path in one run of ``sc``: rows ``(t, x, y, heading, speed)`` at every step."""
+    sim = Simulation(sc, jitter_seed=jitter_seed, keep_planning=False)
+    rows: list[tuple[float, float, float, float, float]] = []
+
+    def grab(s: Any) -> None:
+        e = s.world.ego
+        rows.append((s.world.time, float(e.position[0]), float(e.position[1]), float(e.heading), float(e.speed)))
+
+    sim.on_step.append(grab)
+    sim.run()
+    return np.array(rows)

@@ -1,0 +1,119 @@
+"""ADS configuration: module rates, timing-noise magnitudes, topics and the planner to load.
+
+Loaded from YAML (``configs/ads/default.yaml``) and validated with pydantic; any error names the
+file and the field. Everything that shapes timing lives here, so the jitter is configuration,
+not code.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pydantic import ConfigDict, Field, field_validator
+
+from deft_gym.bus.messages import DEFAULT_TOPICS, ROLES
+from deft_gym.config import CONFIG_DIR, Strict, deep_merge, load_mapping, validate
+
+DEFAULT_ADS_CONFIG = CONFIG_DIR / "ads" / "default.yaml"
+
+
+def _known_roles(cls: type, v: list[str]) -> list[str]:
+    """Validator of a list of topic roles."""
+    bad = [r for r in v if r not in ROLES]
+    if bad:
+        raise ValueError(f"unknown topic role(s) {bad}; expected some of {list(ROLES)}")
+    return v
+
+
+class Duration(Strict):
+    """A processing-time distribution [ms]: lognormal with the given mean and std, clipped to
+    ``min_ms``, and with probability ``spike_prob`` multiplied by ``spike_factor`` (a scheduling
+    hiccup). With jitter disabled the duration is exactly ``mean_ms``."""
+
+    mean_ms: float = Field(ge=0.0)
+    std_ms: float = Field(default=0.0, ge=0.0)
+    min_ms: float = Field(default=0.0, ge=0.0)
+    spike_prob: float = Field(default=0.0, ge=0.0, le=1.0)
+    spike_factor: float = Field(default=1.0, ge=1.0)
+
+
+class JitterConfig(Strict):
+    """Magnitudes of the timing noise. All draws come from the jitter RNG (its own seed)."""
+
+    enabled: bool = True
+    delivery: Duration = Duration(mean_ms=1.0, std_ms=0.6)
+    drop_prob: float = Field(default=0.001, ge=0.0, lt=1.0)
+    reliable: list[str] = Field(default_factory=lambda: ["routing"],
+                                description="topic roles whose deliveries are never lost (a drawn loss is "
+                                "redelivered), as Apollo's routing response is latched (transient local)")
+    _roles = field_validator("reliable")(_known_roles)
+    timer_ms: float = Field(default=0.5, ge=0.0, description="std of timer wake-up lateness")
+    dispatch: Duration = Duration(mean_ms=0.3, std_ms=0.2)
+    shuffle_simultaneous: bool = True
+
+
+class ModuleConfig(Strict):
+    """A bus node: either periodic (``rate_hz``) or triggered by a topic role (``trigger``)."""
+
+    rate_hz: float | None = Field(default=None, gt=0.0)
+    trigger: str | None = None
+    processing: Duration = Duration(mean_ms=1.0)
+    params: dict[str, Any] = Field(default_factory=dict)
+    node: str | None = Field(default=None, description="'module:Class' replacing the built-in node "
+                             "class (same constructor arguments), e.g. a fault-injecting or hardened variant")
+
+
+class PlannerSpec(Strict):
+    """Which planner class to load (``module:Class``) and its parameters."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    cls: str = Field(default="deft_gym.planner.lattice:LatticePlanner", alias="class")
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class PlanningConfig(ModuleConfig):
+    subscribe: list[str] = ["routing", "localization", "traffic_light", "prediction"]
+    trigger: str | None = "prediction"
+    planner: PlannerSpec = PlannerSpec()
+    publish_input_headers: bool = False
+
+    _roles = field_validator("subscribe")(_known_roles)
+
+
+class AdsConfig(Strict):
+    """The whole ADS: world step, module timing, topic names, planner."""
+
+    world_hz: float = Field(default=20.0, gt=0.0)
+    chassis_hz: float = Field(default=20.0, gt=0.0)
+    topics: dict[str, str] = Field(default_factory=lambda: dict(DEFAULT_TOPICS))
+    jitter: JitterConfig = JitterConfig()
+    routing: ModuleConfig = ModuleConfig(processing=Duration(mean_ms=5.0))
+    localization: ModuleConfig = ModuleConfig(rate_hz=20.0)
+    perception: ModuleConfig = ModuleConfig(rate_hz=10.0)
+    traffic_light: ModuleConfig = ModuleConfig(rate_hz=10.0)
+    prediction: ModuleConfig = ModuleConfig(trigger="perception_obstacles")
+    planning: PlanningConfig = PlanningConfig()
+    control: ModuleConfig = ModuleConfig(rate_hz=20.0)
+
+    @field_validator("topics")
+    @classmethod
+    def _all_roles(cls, v: dict[str, str]) -> dict[str, str]:
+        unknown = sorted(set(v) - set(ROLES))
+        if unknown:
+            raise ValueError(f"unknown topic role(s) {unknown}; expected {list(ROLES)}")
+        return {**DEFAULT_TOPICS, **v}
+
+    def topic(self, role: str) -> str:
+        """Bus topic name of a role."""
+        return self.topics[role]
+
+
+def load_ads_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None) -> AdsConfig:
+    """Load and validate an ADS config; ``overrides`` is deep-merged on top of the file."""
+    path = Path(path) if path else DEFAULT_ADS_CONFIG
+    data = load_mapping(path)
+    if overrides:
+        data = deep_merge(data, overrides)
+    return validate(AdsConfig, data, path)
