@@ -34,4 +34,4 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf $(VENV) runs/demo build deft_gym/planner/*.so deft_gym/modules/*.so deft_gym/*.so
+	rm -rf $(VENV) runs/demo build deft_gym/*/*.so
