@@ -64,8 +64,8 @@ def test_snapshot_and_restore_return_to_the_same_state() -> None:
 
 def test_different_parameters_give_a_different_plan() -> None:
     map_spec, frames, live = _record_frames("lane_follow_static", seed=1)
-    planner = load_planner(LATTICE, map_spec, {"lat_buffer_soft": 2.0})
-    diffs = [np.abs(np.array(planner.plan(f)["trajectory"]["y"]) - np.array(o["trajectory"]["y"])).max()
+    planner = load_planner(LATTICE, map_spec, {"w_speed": 2.0})
+    diffs = [np.abs(np.array(planner.plan(f)["trajectory"]["x"]) - np.array(o["trajectory"]["x"])).max()
              for f, o in zip(frames, live)]
     assert max(diffs) > 0.01
 

@@ -34,7 +34,7 @@ enum { /* per call: desired speed, reference line and lateral options; then plan
         * (LatticePlanner._kernel_params fills them in this order) */
     P_V_DES, P_S_FIRST, P_VLIM_MIN, P_VLIM_MAX, P_BAND_LO, P_BAND_HI, P_W_LAT,
     P_W_SPEED_K, P_W_ACC, P_W_JERK, P_EGO_W2, P_EDGE, P_HARD_LAT, P_W_LAT_ACC, P_W_OBS, P_SOFT,
-    P_LA, P_WA, P_LH, P_WH, P_BATCH, N_PARAMS
+    P_LA, P_WA, P_LH, P_WH, P_TAN_HEAD, P_LAT_SLACK, P_BATCH, N_PARAMS
 };
 
 /* np.maximum / np.minimum on two doubles: NaN in either propagates, and of two equal values
@@ -442,17 +442,19 @@ static PyObject *evaluate(PyObject *self, PyObject *const *args, Py_ssize_t narg
     /* pairs: walls and lateral acceleration, then the base cost */
     Py_ssize_t n_ok = 0;
     for (Py_ssize_t l = 0; l < L; l++) {
-        const double *dd2 = ddd + l * K;
+        const double *dd2 = ddd + l * K, *dl = d + l * K;
         double wall = (walls ? walls[l] : wall_all) + 0.05;
         for (Py_ssize_t p = 0; p < P; p++) {
-            const double *krp = kr + p * K, *v = lv + p * K;
+            const double *krp = kr + p * K, *v = lv + p * K, *sp = ls + p * K;
             double amax = 0.0;
+            int head = 1;
             for (Py_ssize_t k = 0; k < K; k++) {
                 double a_k = fabs(krp[k] * v[k] * v[k] + dd2[k]);
                 amax = k ? npmax(amax, a_k) : a_k;
+                if (!(fabs(dl[k] - dl[0]) <= prm[P_TAN_HEAD] * (sp[k] - sp[0]) + prm[P_LAT_SLACK])) head = 0;
             }
             int feasible = (ls_max[p] <= wall) && (amax <= prm[P_HARD_LAT]) && ok_lon[p] != 0.0 &&
-                           ok_lat[l] != 0.0;
+                           ok_lat[l] != 0.0 && head;
             double b = feasible ? (c_lat[l] + c_lon[p]) + prm[P_W_LAT_ACC] * amax : INFINITY;
             Py_ssize_t i = l * P + p;
             base[i] = b;

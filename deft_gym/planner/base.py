@@ -54,6 +54,13 @@ class Planner(ABC):
     def plan(self, frame: Frame) -> dict[str, Any] | None:
         """Plan one cycle; return ``{"trajectory": {...}, "decision": {...}}`` or None."""
 
+    @classmethod
+    def hard_clearance(cls, params: Mapping[str, Any]) -> float:
+        """The lateral clearance [m] this planner (with ``params``) always keeps from obstacles.
+        Search tools never place objects closer than this to the optimal path: a planner may
+        rightly refuse a path that violates its own hard constraint. 0 when it declares none."""
+        return 0.0
+
     def snapshot(self) -> Any:
         """A copy of the mutable state."""
         return copy.deepcopy(self.state)

@@ -33,6 +33,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.planner.base import Frame, Planner
+from deft_gym.planner.decision import LaneDecider
 from deft_gym.world.geometry import ReferenceLine, wrap_angle
 from deft_gym.world.roadmap import LaneId, shared_roadmap
 
@@ -67,6 +68,7 @@ class LatticeParams(BaseModel):
     speed_times: tuple[float, ...] = (2.5, 5.0)
     stop_time_factors: tuple[float, ...] = (1.0, 1.5)
     lane_change_time: float = 3.5
+    change_offsets: tuple[float, ...] = (-0.4, 0.4)  #: offsets [m] in the target lane of a lane change
     nudge_time: float = 2.5
     recentre_time: float = 1.5  #: a quicker return to the lane centre (after a wide turn, a swerve)
     default_cruise: float = 10.0
@@ -74,6 +76,10 @@ class LatticeParams(BaseModel):
     emergency_decel: float = 7.0
     max_lat_accel: float = 2.5
     hard_lat_accel: float = 5.0
+    max_rel_heading: float = Field(0.5, gt=0.0, lt=1.5, description="[rad] a car cannot move sideways "
+                                   "faster than it moves on: lateral displacement <= tan(this) x distance + slack")
+    lateral_slack: float = Field(0.15, ge=0.0, description="[m] the slack of that bound (small corrections "
+                                 "while standing are allowed)")
     yellow_decel: float = 3.0
     ego_length: float = 4.8
     ego_width: float = 2.0
@@ -104,6 +110,23 @@ class LatticeParams(BaseModel):
     w_hysteresis: float = 1.0
     ref_step: float = 0.25
     publish_debug: bool = False
+    # lane-level decisions (deft_gym.planner.decision): path bounds, comfort, gap acceptance, home lane
+    decisions: bool = True
+    block_lookahead: float = Field(50.0, ge=0.0, description="[m] static objects this far ahead of the ego's front can block its lane")
+    impact_buffer: float = Field(0.2, ge=0.0, description="[m] lateral growth of a static object's SL boundary in the path bounds")
+    parked_impact_buffer: float = Field(0.6, ge=0.0, description="[m] the same for parked vehicles and vehicles predicted static")
+    corridor_clearance: float = Field(0.4, ge=0.0, description="[m] free width asked for each side of the ego between objects (the hard buffer then decides the exact path)")
+    parallel_gap: float = Field(4.8, ge=0.0, description="[m] objects closer than this along s form one cluster (parallel obstacles)")
+    comfort_gap: float = Field(1.0, ge=0.0, description="[m] lateral gap to static objects below which a lane is uncomfortable")
+    tight_length: float = Field(12.0, gt=0.0, description="[m] uncomfortable length from which a lane is tight")
+    w_tight: float = 6.0
+    rear_gap_min: float = Field(8.0, ge=0.0, description="[m] smallest accepted gap to the follower in the target lane")
+    rear_time_gap: float = Field(1.5, ge=0.0, description="[s] accepted gap to the follower: its speed times this")
+    front_gap_min: float = Field(4.0, ge=0.0, description="[m] smallest accepted gap to the leader in the target lane")
+    junction_no_change: float = Field(20.0, ge=0.0, description="[m] no lane change starts this close to a junction")
+    w_home: float = 4.0
+    w_reject: float = 1000.0
+    w_abort: float = 10.0
 
 
 @dataclass
@@ -115,6 +138,9 @@ class LatticeState:
     offset: float = 0.0
     lane: LaneId | None = None
     cycles: int = 0
+    home: LaneId | None = None  #: the lane the route wants the ego in (lane decisions)
+    changing_to: LaneId | None = None  #: target of the lane change in progress
+    change_kind: str = ""  #: "borrow" (leaving home) or "return"
 
 
 @dataclass
@@ -184,7 +210,7 @@ class _Poses:
         np.subtract(_interp(s, ref.s, ref.x), d * sh, out=xy[0])
         np.add(_interp(s, ref.s, ref.y), d * ch, out=xy[1])
         vs = v * (1.0 - kr * d)
-        return _Poses(hr, xy, vs, np.arctan2(dd, np.maximum(vs, 1e-3)))
+        return _Poses(hr, xy, vs, _atan2(dd, np.maximum(vs, 1e-3)))
 
     def row(self, j: int) -> _Poses:
         return _Poses(self.h[j], self.xy[:, j], self.vs[j], self.rel[j])
@@ -246,13 +272,15 @@ class LatticePlanner(Planner):
         # bounding-circle radius of the ego grown by the hard buffers, plus the soft buffer
         self._reach_ego = math.hypot(la + p.lon_buffer_hard, wa + p.lat_buffer_hard) + p.lat_buffer_soft
         self._penalty = {"BRAKE": p.w_brake, "BLOCKED": p.w_blocked}
+        self._tan_head = math.tan(p.max_rel_heading)
         #: the compiled evaluation step (None: numpy); its parameters, per call (7), constant, then
         #: the batch size (set per call), in the order of the P_* enum in _lattice_c.c
         self.kernel = _lattice_c
         self._kernel_params = np.array(
             [0.0] * 7 + [p.w_speed * self._inv_k, self._w_acc, self._w_jerk, p.ego_width / 2, p.edge_margin,
                          p.hard_lat_accel, p.w_lat_accel, self._w_obs, p.lat_buffer_soft, la, wa,
-                         p.lon_buffer_hard, p.lat_buffer_hard, self.BATCH])
+                         p.lon_buffer_hard, p.lat_buffer_hard, self._tan_head, p.lateral_slack,
+                         self.BATCH])
         # Profiles with a fixed duration are linear in their start/end values, so their shapes
         # are computed once: cruise rows (speed factor x duration) and lateral durations.
         t = self.tk[None, :]
@@ -282,9 +310,15 @@ class LatticePlanner(Planner):
                                    (0.0, 0.0, 1.0, np.zeros((1, 1)), 0.0, 0.0),
                                    (0.0, 0.0, 0.0, np.ones((1, 1)), 0.0, 0.0))]
         self.state = LatticeState()
+        self.decider = LaneDecider(self) if p.decisions else None
 
     def reset(self) -> None:
         self.state = LatticeState()
+
+    @classmethod
+    def hard_clearance(cls, params: Any) -> float:
+        """The hard lateral buffer ``lat_buffer_hard`` [m]."""
+        return LatticeParams.model_validate(dict(params)).lat_buffer_hard
 
     # =========================================================================================
     def plan(self, frame: Frame) -> dict[str, Any] | None:
@@ -317,8 +351,19 @@ class LatticePlanner(Planner):
         b0, b1, b2, b3 = lat.basis
         lat_d = d0 * b0 + vd0 * b1 + ad0 * b2 + b3  # (d, d', d'') x option x time
         walls, wall_s = self._walls(frame.get("traffic_light"), ref, route, lane, s0, vs0, lat)
-        lon = self._longitudinal(s0, vs0, as0, v_des, ref, wall_s, obs, lat)
         c_route = self._route_cost(lat, ref, route, lane, s0)
+        dec, blocked_s = None, set()
+        if self.decider is not None:
+            dec = self.decider.decide(lane, route, ref, lat, obs, s0, vs0)
+            if np.isfinite(dec.walls).any():
+                walls = np.minimum(walls, dec.walls)
+                blocked_s = {x for x in dec.walls.tolist() if math.isfinite(x)} - set(wall_s)
+                wall_s = sorted(set(wall_s) | blocked_s)
+            c_route = c_route + dec.cost
+        # a wall the ego is already past (it stopped a little late) holds it where it is, rather
+        # than leaving no feasible plan
+        walls = np.maximum(walls, s0) if isinstance(walls, np.ndarray) else max(walls, s0)
+        lon = self._longitudinal(s0, vs0, as0, v_des, ref, wall_s, obs, lat, blocked_s)
         best, cost, poses = self._evaluate(ref, lat, lat_d, lon, obs, walls, v_des, c_route)
         if best is None:
             s, v, acc = lon["sva"][:, -1]  # the emergency brake, the last profile
@@ -331,8 +376,13 @@ class LatticePlanner(Planner):
             out = self._to_xy(poses, t0, lat_d[1, li], lon["sva"][2, pi], h0)
             target, off = lat.target[li], float(lat.offset[li])
             behavior = self._behavior(lane, target, off, lon["label"][pi])
+        reason = self.decider.commit(dec, lane, target if best is not None else None) if dec is not None else ""
         self._commit(out, target, off, lane)
-        return self._payload(out, behavior, lane, target, stitched, cost)
+        payload = self._payload(out, behavior, lane, target, stitched, cost)
+        if dec is not None:
+            st = self.state
+            payload["decision"].update(self.decider.published(dec, reason))
+        return payload
 
     # -- frame parsing ------------------------------------------------------------------------
     def _route(self, routing: dict[str, Any]) -> _Route:
@@ -468,13 +518,18 @@ class LatticePlanner(Planner):
         if not pred or not pred.get("obstacles"):
             return None
         K = self.K
-        statics = []
+        statics, kinds = [], []
         groups: dict[tuple[float, float, int], list[dict[str, Any]]] = {}
         for ob in pred["obstacles"]:
             if len(ob["x"]) == 1:  # static: one point, constant over the horizon
                 statics.append((ob["x"][0], ob["y"][0], ob["heading"][0], 0.5 * ob["length"], 0.5 * ob["width"], 0.0))
+                kinds.append(ob.get("type", ""))
             else:  # moving: grouped by time base, resampled together
                 groups.setdefault((float(ob["t0"]), float(ob["dt"]), len(ob["x"])), []).append(ob)
+        still = [True] * len(statics)
+        for obs_g in groups.values():
+            kinds += [ob.get("type", "") for ob in obs_g]
+            still += [False] * len(obs_g)
         n = len(statics) + sum(len(g) for g in groups.values())
         oxy = np.empty((2, n, K))  # centre (x, y) over time
         oh = np.empty((n, K))  # heading over time
@@ -525,6 +580,7 @@ class LatticePlanner(Planner):
         fes = hl * c + hw * sn
         fed0 = hl[:, 0] * sn[:, 0] + hw[:, 0] * c[:, 0]
         fs_l, fes_l, fd0_l = sf.tolist(), fes.tolist(), df_l[0::2]  # d now: the even points
+        fd1_l = df_l[1::2]  # d at the end of the horizon (lane decisions: predicted lane changes)
         # a follower in the ego's own lane is responsible for keeping its distance
         behind = s0 - self.p.ego_length / 2
         keep = [o for o in range(n) if near[o] and not (fs_l[o][0] + fes_l[o][0] < behind
@@ -535,6 +591,7 @@ class LatticePlanner(Planner):
             oxy, oh, dims = oxy.take(keep, axis=1), oh.take(keep, axis=0), dims.take(keep, axis=0)
             hl, hw, fed0 = dims[:, :1], dims[:, 1:2], fed0.take(keep)
             fs_l, fes_l, fd0_l = [fs_l[o] for o in keep], [fes_l[o] for o in keep], [fd0_l[o] for o in keep]
+            kinds, still, fd1_l = [kinds[o] for o in keep], [still[o] for o in keep], [fd1_l[o] for o in keep]
         n = len(keep)
         ocs = np.empty((2, n * K))  # cos, sin of the heading, flat (obstacle, time)
         np.cos(oh.ravel(), out=ocs[0])
@@ -544,7 +601,9 @@ class LatticePlanner(Planner):
                 "start": np.arange(n) * K,  # flat (obstacle, time) index of time 0
                 # per obstacle, for choosing leaders: Frenet s (now, end), extent along s (now,
                 # end), d now, extent along d now, speed
-                "fs": fs_l, "fes": fes_l, "fd": fd0_l, "fed": fed0.tolist(), "v": dims[:, 2].tolist()}
+                "fs": fs_l, "fes": fes_l, "fd": fd0_l, "fed": fed0.tolist(), "v": dims[:, 2].tolist(),
+                # per obstacle, for lane decisions: perceived type and whether it is predicted static
+                "kind": kinds, "still": still, "fd_end": fd1_l}
 
     # -- lateral options ----------------------------------------------------------------------
     def _continues(self, lid: LaneId, route: _Route) -> bool:
@@ -563,8 +622,8 @@ class LatticePlanner(Planner):
                                                              (lane, 0.0, 0.0, p.recentre_time)]
         targets += [(lane, 0.0, off, p.nudge_time) for off in p.nudges]
         nbs = self.map.changeable_neighbours(lane)
-        for nb in nbs:
-            targets.append((nb, w * (nb[2] - lane[2]), 0.0, p.lane_change_time))  # ids grow rightwards
+        for nb in nbs:  # ids grow rightwards; the target lane's centre and offsets in it
+            targets += [(nb, w * (nb[2] - lane[2]), off, p.lane_change_time) for off in (0.0, *p.change_offsets)]
         offset = np.array([t[2] for t in targets])
         change = np.array([t[0] != lane for t in targets])
         compat = np.array([self._continues(t[0], route) for t in targets])
@@ -631,12 +690,15 @@ class LatticePlanner(Planner):
 
     # -- longitudinal profiles ----------------------------------------------------------------
     def _longitudinal(self, s0: float, v0: float, a0: float, v_des: float, ref: _Ref,
-                      wall_s: list[float], obs: dict[str, Any] | None, lat: _Lateral) -> dict[str, Any]:
+                      wall_s: list[float], obs: dict[str, Any] | None, lat: _Lateral,
+                      blocked_s: set[float] = frozenset()) -> dict[str, Any]:  # type: ignore[assignment]
         """Speed profiles: cruise quartics, and quintics reaching (s, v) targets - stops at walls
-        (``wall_s``), slowing for curves, keeping a gap behind leaders - plus an emergency brake."""
+        (``wall_s``; those in ``blocked_s`` are in front of a blocked lane's obstacles and cost
+        like stopping behind a static leader), slowing for curves, keeping a gap behind leaders -
+        plus an emergency brake."""
         p = self.p
         v_des = min(v_des, ref.min_vlim(s0, s0 + 8.0))
-        targets = [(lim, 0.0, "STOP") for lim in wall_s]
+        targets = [(lim, 0.0, "BLOCKED" if lim in blocked_s else "STOP") for lim in wall_s]
         s_c, v_c = self._curve_target(ref, s0, v0)
         if s_c is not None:
             targets.append((s_c, v_c, "CRUISE"))
@@ -796,9 +858,13 @@ class LatticePlanner(Planner):
         # pairs: walls and lateral acceleration (Frenet: kappa v^2 + d''); the largest |a| is
         # exactly max(max a, -min a)
         a_lat = np.abs((kr * lv * lv)[None] + ddd[:, None]).max(axis=-1)
+        # no sideways motion without forward motion: lateral displacement within tan(max heading)
+        # x distance travelled + slack
+        ok_head = (np.abs(d - d[:, :1])[:, None, :]
+                   <= self._tan_head * (ls - ls[:, :1])[None] + p.lateral_slack).all(axis=-1)
         wall = walls[:, None] + 0.05 if isinstance(walls, np.ndarray) else walls + 0.05
         feasible = ((ls.max(axis=-1)[None, :] <= wall) & (a_lat <= p.hard_lat_accel)
-                    & ok_lon[None, :] & ok_lat[:, None])
+                    & ok_lon[None, :] & ok_lat[:, None] & ok_head)
         base = c_lat[:, None] + c_lon[None, :] + p.w_lat_accel * a_lat
         base = np.where(feasible, base, np.inf).ravel()
         order = base.argsort(kind="stable")
@@ -884,7 +950,10 @@ class LatticePlanner(Planner):
         hr, vs = poses.h, poses.vs
         moving = (np.abs(vs) > 1e-3) | (np.abs(dd) > 1e-3)
         h_rel0 = (h0 - float(hr[0]) + math.pi) % (2 * math.pi) - math.pi
-        phi = np.where(moving, poses.rel, h_rel0)
+        # the heading never turns further from the reference than a car can (a sideways step at a
+        # crawl would otherwise publish a heading of up to +-90 degrees)
+        lim = self.p.max_rel_heading
+        phi = np.where(moving, np.minimum(np.maximum(poses.rel, -lim), lim), h_rel0)
         return {"t": t0 + self.tk, "x": poses.xy[0], "y": poses.xy[1], "v": np.hypot(vs, dd),
                 "hu": hr + phi, "a": np.asarray(a, dtype=float)}
 
@@ -916,6 +985,14 @@ class LatticePlanner(Planner):
                     "target_lane": list(target) if target else [], "stitched": stitched,
                     "cost": cost if math.isfinite(cost) else -1.0}
         return {"trajectory": traj, "decision": decision}
+
+
+def _atan2(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``np.arctan2`` computed by the C library's ``atan2``, as the compiled step does: numpy's
+    own SIMD ``arctan2`` (AVX-512 machines) differs from it in the last bit for about 1 % of
+    arguments, which made the compiled and the numpy evaluation disagree there."""
+    y, x = np.broadcast_arrays(np.asarray(y, dtype=float), np.asarray(x, dtype=float))
+    return np.array(list(map(math.atan2, y.ravel().tolist(), x.ravel().tolist())), dtype=float).reshape(y.shape)
 
 
 def _perp(u: np.ndarray) -> np.ndarray:
