@@ -305,7 +305,7 @@ class AdversaryEnv(gym.Env):
         sigma_e, _ = self._ego_sigma()
         length, width = SIZES[obstacle]
         side = np.sign(lateral) if lateral else 1.0
-        steps = np.arange(0, 21) * 0.15
+        steps = np.arange(0, 61) * 0.05
         lats = [lateral + side * steps] if lateral else [steps + 0.5, -(steps + 0.5)]
         cands = [(sigma_e + along + ds, lat) for ds in (0.0, 3.0, -3.0, 6.0, -6.0) for ls in lats for lat in ls]
         sig = np.array([c[0] for c in cands])

@@ -15,6 +15,7 @@ from typing import Any
 
 from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.config import ConfigError
+from deft_gym.planner.base import import_object
 from deft_gym.scenarios.scenario import Scenario, list_scenarios, load_scenario
 from deft_gym.search.feasible import FeasibleConfig, MotionAreas, motion_areas
 from deft_gym.search.nods import DecisionOracle
@@ -81,10 +82,15 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
     key = (content_key(sc, ads, reference_seed), feasible, grid, threshold)
     ctx = _CTX.get(key)
     if ctx is None:
+        hard = import_object(ads.planning.planner.cls).hard_clearance(ads.planning.planner.params)
+        if feasible.margin < hard:
+            raise ConfigError(f"feasible.margin: {feasible.margin} m is below the planner's own hard clearance "
+                              f"{hard} m (planning.planner.params); objects that close invade the optimal path")
         ref = reference_run(sc, ads, reference_seed)
         rm = shared_roadmap(sc.map)
         areas = motion_areas(ref, rm, feasible, sc.duration)
-        oracle = DecisionOracle(ref, rm, threshold=threshold, grid_kind=grid)  # type: ignore[arg-type]
+        oracle = DecisionOracle(ref, rm, threshold=threshold, grid_kind=grid,  # type: ignore[arg-type]
+                                clearance=feasible.margin)
         if len(_CTX) > 256:
             _CTX.clear()
         ctx = _CTX[key] = SeedContext(sc, ads, ref, rm, areas, RefPath(ref, rm), oracle, feasible)

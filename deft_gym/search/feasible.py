@@ -38,11 +38,20 @@ class FeasibleConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     dt: float = Field(2.0, gt=0.0, le=10.0, description="window length (paper: 2 s)")
-    margin: float = Field(0.3, ge=0.0, le=3.0, description="inflation of the ego's reference motion area")
-    participant_margin: float = Field(0.3, ge=0.0, le=3.0, description="inflation of other participants' areas")
-    idm_zones: bool = Field(True, description="reactive participants also claim the rest of their lane "
-                            "ahead of them, 1 m wider on each side: highway-env's IDM reacts to anything there")
+    margin: float = Field(0.5, ge=0.0, le=3.0, description="[m] inflation of the ego's reference motion area: "
+                          "the paper's safe distance; never below the planner's own hard buffer")
+    tolerance: float = Field(0.05, ge=0.0, le=0.5, description="[m] extra inflation of the ego's motion area "
+                             "covering what sampling its poses every sample_dt can miss, so that a feasible "
+                             "placement keeps the full margin from every pose")
+    participant_margin: float = Field(0.3, ge=0.0, le=3.0, description="[m] inflation of other participants' areas")
+    idm_zones: bool = Field(True, description="reactive participants also claim the stretch of their lane "
+                            "ahead that their car-following reacts to within the window: what they can "
+                            "reach in it plus the IDM gap (jam distance + time gap x speed)")
+    idm_gap: float = Field(10.0, ge=0.0, le=50.0, description="[m] IDM jam distance (highway-env: 5 m + length)")
+    idm_time_gap: float = Field(1.5, ge=0.0, le=5.0, description="[s] IDM time gap (highway-env: 1.5 s)")
     roi: float = Field(15.0, gt=0.0, le=100.0, description="placements within this distance of the reference path")
+    shoulder: float = Field(1.0, ge=0.0, le=5.0, description="[m] static objects may stand this far beyond the "
+                            "drivable area (on the shoulder, where cones and parked cars are found)")
     sample_dt: float = Field(0.25, gt=0.0, le=1.0, description="pose sampling of swept areas")
     spawn_distance: float = Field(15.0, ge=0.0, le=100.0, description="min distance of a new participant to the ego")
 
@@ -83,7 +92,7 @@ class MotionAreas:
     def __init__(self, ref: Trace, roadmap: RoadMap, cfg: FeasibleConfig, horizon: float) -> None:
         self.ref, self.roadmap, self.cfg = ref, roadmap, cfg
         self.n_windows = max(1, math.ceil(horizon / cfg.dt - 1e-9))
-        dt, m, pm = cfg.dt, cfg.margin, cfg.participant_margin
+        dt, m, pm = cfg.dt, cfg.margin + cfg.tolerance, cfg.participant_margin
         t = ref.t
         e = ref.ego
         self.ego: list[shapely.Geometry] = []
@@ -107,7 +116,7 @@ class MotionAreas:
                     j = np.array([len(tt) - 1]) if tt[-1] < t0 else np.array([0])
                 parts.append(swept_area(tr[j, 1], tr[j, 2], tr[j, 3], a.length + 2 * pm, a.width + 2 * pm))
                 if a.kind == "reactive" and cfg.idm_zones:
-                    parts.extend(self._idm_zone(tr[j]))
+                    parts.extend(self._idm_zone(tr[j], ref.world_dt, a.length))
             self.seed.append(shapely.union_all(parts) if parts else shapely.Polygon())
         self.forbidden = [shapely.union(a, b) for a, b in zip(self.ego, self.seed)]
         for g in self.forbidden:
@@ -115,21 +124,31 @@ class MotionAreas:
         self.static_forbidden = shapely.union_all(self.forbidden)
         shapely.prepare(self.static_forbidden)
         self.ref_line = shapely.LineString(ref.xy)
-        self.roi = shapely.intersection(roadmap.drivable_area, self.ref_line.buffer(cfg.roi))
+        self.ground = roadmap.drivable_area.buffer(cfg.shoulder) if cfg.shoulder > 0 else roadmap.drivable_area
+        self.roi = shapely.intersection(self.ground, self.ref_line.buffer(cfg.roi))
         shapely.prepare(self.roi)
-        shapely.prepare(roadmap.drivable_area)
+        shapely.prepare(self.ground)
 
-    def _idm_zone(self, rows: np.ndarray) -> list[shapely.Geometry]:
-        """What a reactive (IDM) participant at these poses ``(tick, x, y, h)`` reacts to: every
-        road member whose centre is on its current lane ahead of it, within half the lane width
-        plus 1 m (highway-env's on-lane test) - so that area is claimed too."""
-        first: dict[tuple[str, str, int], float] = {}
+    def _idm_zone(self, rows: np.ndarray, world_dt: float, length: float) -> list[shapely.Geometry]:
+        """What a reactive (IDM) participant at these poses ``(tick, x, y, h)`` reacts to in the
+        window: its lane from where it is to where it gets by the end of the window plus its IDM
+        gap (jam distance + time gap x speed), 1 m wider on each side (highway-env's on-lane
+        test) - so that area is claimed too."""
+        cfg = self.cfg
+        if len(rows) >= 2:
+            span = max(float(rows[-1, 0] - rows[0, 0]) * world_dt, 1e-6)
+            v = float(np.hypot(rows[-1, 1] - rows[0, 1], rows[-1, 2] - rows[0, 2])) / span
+        else:
+            v = 0.0
+        ahead = length / 2 + cfg.idm_gap + cfg.idm_time_gap * v
+        first: dict[tuple[str, str, int], tuple[float, float]] = {}
         for _, x, y, h in rows:
             loc = self.roadmap.locate(np.array([x, y]), float(h))
             if loc is not None:
                 lane, s, _ = loc
-                first[lane] = min(first.get(lane, math.inf), float(s))
-        return [_lane_strip(self.roadmap, lane, s0) for lane, s0 in first.items()]
+                lo, hi = first.get(lane, (math.inf, -math.inf))
+                first[lane] = (min(lo, float(s)), max(hi, float(s)))
+        return [_lane_strip(self.roadmap, lane, lo, hi + ahead) for lane, (lo, hi) in first.items()]
 
     def window(self, t: float) -> int:
         return min(max(math.floor(t / self.cfg.dt + 1e-9), 0), self.n_windows - 1)
@@ -138,14 +157,16 @@ class MotionAreas:
 _STRIPS: dict[tuple[Any, ...], shapely.Geometry] = {}
 
 
-def _lane_strip(roadmap: RoadMap, lane: tuple[str, str, int], s0: float) -> shapely.Geometry:
-    """Lane surface from ``s0`` (rounded down to 1 m) to the lane end, 1 m wider on each side."""
-    key = (id(roadmap), lane, math.floor(s0))
+def _lane_strip(roadmap: RoadMap, lane: tuple[str, str, int], s0: float, s1: float) -> shapely.Geometry:
+    """Lane surface from ``s0`` to ``s1`` (rounded out to 1 m, clipped to the lane), 1 m wider on
+    each side."""
+    geom = roadmap.geom(lane)
+    a = min(max(math.floor(s0), 0.0), geom.length)
+    b = min(max(math.ceil(s1), a), geom.length)
+    key = (id(roadmap), lane, a, b)
     g = _STRIPS.get(key)
     if g is None:
-        geom = roadmap.geom(lane)
-        a = min(max(math.floor(s0), 0.0), geom.length)
-        ss = np.linspace(a, geom.length, max(2, int((geom.length - a) / 2.0) + 2))
+        ss = np.linspace(a, b, max(2, int((b - a) / 2.0) + 2))
         g = lane_surface(geom, ss, geom.width / 2 + 1.0)
         if len(_STRIPS) > 20000:
             _STRIPS.clear()
@@ -238,14 +259,15 @@ class Layout:
     def static_ok(self, x: np.ndarray, y: np.ndarray, h: np.ndarray, length: float, width: float,
                   on_road: bool = True) -> np.ndarray:
         """Boolean per candidate box: never intersects the reference motion areas (all windows)
-        nor any added participant, and (``on_road``) has its centre on the drivable area."""
+        nor any added participant, and (``on_road``) has its centre on the drivable area or its
+        shoulder."""
         polys = shapely.polygons(box_corners(x, y, h, length, width))
         ok = ~shapely.intersects(polys, self.areas.static_forbidden)
         other = self._added_any()
         if other is not None:
             ok &= ~shapely.intersects(polys, other)
         if on_road:
-            ok &= shapely.contains_xy(self.areas.roadmap.drivable_area, x, y)
+            ok &= shapely.contains_xy(self.areas.ground, x, y)
         return ok
 
     def first_conflict(self, t: np.ndarray, x: np.ndarray, y: np.ndarray, h: np.ndarray, length: float,

@@ -9,14 +9,19 @@
   implementation does), so a path drifting inside its lane never changes cells and the check does
   not depend on where a square grid happens to fall; ``grid="world"`` is the paper's literal
   square grid over (x, y).
+- **Local check** (a separate column, never merged into the headline): the longest stretch of
+  the mutated path farther than half a lane from the reference path (``off_length`` [m]); a
+  completed run with ``off_length >= local_length`` (20 m) is a *local* non-optimal decision.
 - **Feedback** (eq. 7-9): ``f_p`` the mean distance of the mutated path to the reference path
-  (exact point-to-polyline distance), ``f_b`` the linear-kernel MMD of the ego's behaviour
-  (heading, speed, acceleration) per reference lane. With a linear kernel the MMD is exactly the
-  squared distance of the feature means, computed in O(n) instead of O(n^2); heading enters as
-  (cos, sin) so that it has no wrap-around jump at +-pi.
+  (exact point-to-polyline distance), ``f_b`` the maximum mean discrepancy between the
+  distributions of the ego's behaviour (heading, speed, acceleration) per reference lane, with a
+  Gaussian kernel whose bandwidth is the median pairwise distance of the reference behaviour
+  (fixed per seed, so children compare on one scale); heading enters as (cos, sin) so that it
+  has no wrap-around jump at +-pi.
 - **Validity** (%Mutation): the reference ego path is replayed against the participants of the
-  mutated run; any overlap of the reference ego box with a participant box makes the mutation
-  invasive.
+  mutated run; a participant closer than ``clearance`` (0.5 m, the paper's safe distance and
+  the planner's own hard buffer) to the reference ego box at the same instant (a static one at
+  any instant) makes the mutation invasive.
 """
 
 from __future__ import annotations
@@ -35,6 +40,8 @@ from deft_gym.world.world import EgoVehicle
 
 GRID = 2.0  # [m] cell size
 THRESHOLD = 0.6  # IoU <= threshold: non-optimal
+CLEARANCE = 0.5  # [m] validity: the reference path keeps this far from every added object
+LOCAL_LENGTH = 20.0  # [m] local check: this long farther than half a lane from the reference
 _SLICES = 100_000  # cell id = lane index * _SLICES + slice
 
 
@@ -114,13 +121,48 @@ def mmd_linear(x: np.ndarray, y: np.ndarray) -> float:
     return float(np.sum((x.mean(axis=0) - y.mean(axis=0)) ** 2))
 
 
+MMD_POINTS = 200  # behaviour samples per side (evenly strided), bounding the O(n^2) kernel cost
+
+
+def _thin(x: np.ndarray, n: int = MMD_POINTS) -> np.ndarray:
+    """At most ``n`` rows of ``x``, evenly strided (deterministic)."""
+    if len(x) <= n:
+        return x
+    return x[np.round(np.linspace(0, len(x) - 1, n)).astype(np.int64)]
+
+
+def median_bandwidth(x: np.ndarray) -> float:
+    """The median pairwise distance of the rows of ``x`` (the usual MMD bandwidth; 1 if zero)."""
+    x = _thin(x)
+    if len(x) < 2:
+        return 1.0
+    d = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(-1))
+    med = float(np.median(d[np.triu_indices(len(x), 1)]))
+    return med if med > 1e-9 else 1.0
+
+
+def mmd_rbf(x: np.ndarray, y: np.ndarray, bandwidth: float) -> float:
+    """Biased MMD^2 of two samples with the Gaussian kernel ``exp(-|a-b|^2 / (2 bw^2))``, in
+    [0, 2]: 0 for equal distributions; an empty sample is as far as it gets (1)."""
+    if not len(x) or not len(y):
+        return 1.0
+    x, y = _thin(x), _thin(y)
+    g = -0.5 / (bandwidth * bandwidth)
+
+    def k(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.exp(g * ((a[:, None, :] - b[None, :, :]) ** 2).sum(-1)).mean())
+
+    return max(k(x, x) + k(y, y) - 2.0 * k(x, y), 0.0)
+
+
 # -- validity -----------------------------------------------------------------------------------
 EGO_LENGTH, EGO_WIDTH = EgoVehicle.LENGTH, EgoVehicle.WIDTH
 
 
-def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None) -> list[str]:
-    """Participants of ``trace`` that overlap the reference ego replayed at the same ticks.
-    Static participants are extended to the end of the reference run."""
+def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None,
+                    clearance: float = CLEARANCE) -> list[str]:
+    """Participants of ``trace`` closer than ``clearance`` [m] to the reference ego replayed at
+    the same ticks. Static participants are extended to the end of the reference run."""
     parts = trace.parts
     if not len(parts):
         return []
@@ -150,8 +192,8 @@ def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None) -> 
     dims = np.array([(a.length, a.width) for a in trace.actors])
     gap = box_gap(e[:, 0], e[:, 1], e[:, 2], EGO_LENGTH, EGO_WIDTH, rows[:, 2], rows[:, 3], rows[:, 4],
                   dims[idx, 0], dims[idx, 1])
-    # the SAT gap is a lower bound: confirm candidate overlaps exactly with shapely
-    hit = np.flatnonzero(gap <= 0.0)
+    # the SAT gap is a lower bound of the distance: confirm candidates exactly with shapely
+    hit = np.flatnonzero(gap < clearance)
     bad: list[str] = []
     for k in hit:
         i = int(idx[k])
@@ -160,7 +202,7 @@ def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None) -> 
             continue
         pa = box_polygon(e[k, 0], e[k, 1], e[k, 2], EGO_LENGTH, EGO_WIDTH)
         pb = box_polygon(rows[k, 2], rows[k, 3], rows[k, 4], dims[i, 0], dims[i, 1])
-        if pa.intersects(pb):
+        if pa.distance(pb) < clearance:
             bad.append(aid)
     return bad
 
@@ -181,6 +223,8 @@ class Verdict:
     signature: str = ""
     collision_detail: dict[str, Any] | None = None
     ego_at_fault: bool = False  # the ego was moving and the other party was not behind it
+    off_length: float = 0.0  # [m] longest stretch farther than half a lane from the reference
+    nods_local: bool = False  # completed with off_length >= the local length (separate column)
 
     @property
     def failure(self) -> str | None:
@@ -193,11 +237,19 @@ class Verdict:
             return "collision" if self.ego_at_fault else None
         return "nods" if self.nods else None
 
+    @property
+    def task_failure(self) -> str | None:
+        """'timeout' | 'stuck' of a valid mutation (the ego never finished: its own column), or
+        None."""
+        return self.outcome if self.valid and self.outcome in ("timeout", "stuck") else None
+
     def as_dict(self) -> dict[str, Any]:
         return {"outcome": self.outcome, "collision": self.collision, "ego_at_fault": self.ego_at_fault,
                 "nods": self.nods,
                 "iou": round(self.iou, 4), "f_p": round(self.f_p, 4), "f_b": round(self.f_b, 4),
                 "valid": self.valid, "invasive": self.invasive, "failure": self.failure,
+                "task_failure": self.task_failure, "off_length": round(self.off_length, 2),
+                "nods_local": self.nods_local,
                 "signature": self.signature, "collision_detail": self.collision_detail}
 
 
@@ -205,9 +257,11 @@ class DecisionOracle:
     """The consistency check, feedback and validity check against one reference run."""
 
     def __init__(self, ref: Trace, roadmap: RoadMap, threshold: float = THRESHOLD, grid: float = GRID,
-                 grid_kind: Literal["lane", "world"] = "lane") -> None:
+                 grid_kind: Literal["lane", "world"] = "lane", clearance: float = CLEARANCE,
+                 local_length: float = LOCAL_LENGTH) -> None:
         self.ref, self.roadmap = ref, roadmap
         self.threshold, self.grid, self.grid_kind = threshold, grid, grid_kind
+        self.clearance, self.local_length = clearance, local_length
         self.lanes = LaneCells(roadmap, grid)
         self.ref_cells = self.cells(ref.xy)
         self.ref_line = shapely.LineString(ref.xy)
@@ -215,11 +269,12 @@ class DecisionOracle:
         # behaviour per reference lane (lanes holding >= 5 % of the reference points)
         pi, li, _ = self.lanes.membership(ref.xy)
         feats = behaviour_features(ref.ego)
+        self.bandwidth = median_bandwidth(feats)
         self.ref_lanes: dict[int, np.ndarray] = {}
         for j in np.unique(li):
             pts = pi[li == j]
             if len(pts) >= 0.05 * len(ref.xy):
-                self.ref_lanes[int(j)] = feats[pts].mean(axis=0)
+                self.ref_lanes[int(j)] = feats[pts]
 
     def cells(self, xy: np.ndarray) -> np.ndarray:
         return self.lanes.cells(xy) if self.grid_kind == "lane" else world_cells(xy, self.grid)
@@ -234,28 +289,39 @@ class DecisionOracle:
         return float(shapely.distance(shapely.points(np.asarray(xy).reshape(-1, 2)), self.ref_line).mean())
 
     def f_b(self, ego: np.ndarray) -> float:
-        """Mean over reference lanes of the linear MMD of behaviour features (x10, as Decictor)."""
+        """Eq. 8: mean over reference lanes of the Gaussian-kernel MMD^2 between the reference
+        behaviour on that lane and the mutated run's (x10, the scale of Decictor's code)."""
         if not self.ref_lanes:
             return 0.0
         pi, li, _ = self.lanes.membership(ego[:, :2])
         feats = behaviour_features(ego)
-        vals = []
-        for j, mu_ref in self.ref_lanes.items():
-            pts = pi[li == j]
-            mu = feats[pts].mean(axis=0) if len(pts) else np.zeros_like(mu_ref)
-            vals.append(float(np.sum((mu - mu_ref) ** 2)))
+        vals = [mmd_rbf(ref_feats, feats[pi[li == j]], self.bandwidth) for j, ref_feats in self.ref_lanes.items()]
         return 10.0 * float(np.mean(vals))
+
+    def off_length(self, xy: np.ndarray) -> float:
+        """Longest stretch [m] of the path farther than half a lane from the reference path."""
+        if len(xy) < 2:
+            return 0.0
+        far = shapely.distance(shapely.points(xy), self.ref_line) > self.roadmap.spec.lane_width / 2
+        step = np.hypot(*np.diff(xy, axis=0).T)
+        best = run = 0.0
+        for i in range(1, len(xy)):
+            run = run + step[i - 1] if (far[i] and far[i - 1]) else 0.0
+            best = max(best, run)
+        return float(best)
 
     def judge(self, trace: Trace, collision: dict[str, Any] | None = None) -> Verdict:
         """Task check, consistency check, feedback, validity and a failure signature."""
         outcome = trace.outcome
         xy = trace.xy
         io, fp, fb = self.iou(xy), self.f_p(xy), self.f_b(trace.ego)
-        bad = invasive_actors(self.ref, trace)
+        bad = invasive_actors(self.ref, trace, clearance=self.clearance)
         is_collision = outcome == "collision"
         nods = outcome == "completed" and io <= self.threshold
+        off = self.off_length(xy)
         v = Verdict(outcome, is_collision, nods, io, fp, fb, not bad, bad, collision_detail=collision,
-                    ego_at_fault=bool(is_collision and collision and ego_at_fault(trace, collision)))
+                    ego_at_fault=bool(is_collision and collision and ego_at_fault(trace, collision)),
+                    off_length=off, nods_local=outcome == "completed" and off >= self.local_length)
         v.signature = self.signature(v, trace, collision)
         return v
 
