@@ -22,8 +22,8 @@ from deft_gym.sim.simulation import reference_path
 TESTS = Path(__file__).resolve().parent
 
 #: cut-in variants that collided with the reference planner, tried in order
-COLLISION_CANDIDATES = [("cross_intersection", 3, 1000), ("take_exit", 1, 1000), ("u_turn", 4, 1000),
-                        ("u_turn", 0, 1000), ("blocked_red_light", 1, 1000)]
+COLLISION_CANDIDATES = [("cross_intersection", 0, 1000), ("take_exit", 0, 1000), ("right_turn", 0, 1000),
+                        ("left_turn", 7, 1000), ("blocked_red_light", 0, 1000)]
 
 
 def short_scenario(name: str, duration: float) -> Any:
