@@ -16,6 +16,7 @@ from typing import Any
 from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.config import ConfigError
 from deft_gym.planner.base import import_object
+from deft_gym.scenarios.generate import resolve as resolve_generated
 from deft_gym.scenarios.scenario import Scenario, list_scenarios, load_scenario
 from deft_gym.search.feasible import FeasibleConfig, MotionAreas, motion_areas
 from deft_gym.search.nods import DecisionOracle
@@ -29,10 +30,14 @@ VARIANT_STRENGTH = 1.0
 
 
 def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRENGTH) -> Scenario:
-    """A scenario from a name, a YAML path or ``<name>~v<seed>`` (a perturbed variant)."""
+    """A scenario from a name, a YAML path, ``gen:<seed>`` (a generated scenario,
+    :mod:`deft_gym.scenarios.generate`) or ``<name>~v<seed>`` (a perturbed variant)."""
     if isinstance(spec, Scenario):
         return spec
     text = str(spec)
+    generated = resolve_generated(text)  # gen:<seed>
+    if generated is not None:
+        return generated
     if "~v" in text:
         from deft_gym.scenarios.variants import perturb
 
