@@ -3,34 +3,32 @@
 A :class:`Mutant` is a seed scenario plus the participants added to it (a
 :class:`~deft_gym.search.feasible.Layout`). :class:`NonInvasiveMutator` implements Decictor's
 non-invasive operators - *adding* a static obstacle or a vehicle inside the feasible areas (a
-vehicle's waypoint for every window is sampled from the area reachable from its previous one,
-minus every motion area of that window), *removing* an added participant, and *changing* one
-(remove, then add) - and :class:`RandomMutator` the unconstrained ones of the Random baseline
+vehicle's waypoint for every window sampled from the area reachable from its previous one, minus
+every motion area of that window), *removing* an added participant, and *changing* one (remove,
+then add) - and :class:`RandomMutator` the unconstrained ones of the Random baseline
 (participants anywhere on the road near the ego's path, no feasibility check).
+
+Where an added object goes is asked for as a point of the region of interest (uniform in the
+drivable area within ``roi`` of the optimal path) and granted by the shared
+:class:`~deft_gym.search.placement.Placer` under the evaluation's placement rule, exactly as the
+RL env's requests are.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import shapely
 
 from deft_gym.search.context import SeedContext
 from deft_gym.search.feasible import Layout, Placed
-from deft_gym.search.vehicles import (
-    LENGTH,
-    WIDTH,
-    Controls,
-    LaneDriver,
-    Trajectory,
-    VState,
-    complete,
-    sample_window,
-    vehicle_spec,
-)
+from deft_gym.search.placement import Placer
+from deft_gym.search.vehicles import Controls, Trajectory, VState, start_state, vehicle_spec
 from deft_gym.world.participants import SIZES
+
+MANOEUVRES = ("keep", "keep", "toward", "away", "left", "right")  # first-window manoeuvres, drawn uniformly
 
 
 @dataclass
@@ -52,6 +50,20 @@ class Mutant:
     def specs(self) -> list[dict[str, Any]]:
         return [p.spec for p in self.layout.placed]
 
+    def key(self) -> frozenset[tuple[Any, ...]]:
+        """What makes two mutants near-duplicates: the same kinds of objects at the same places
+        (statics to 0.5 m, vehicles by where and when they appear to 1 m / 1 s)."""
+        out = []
+        for p in self.layout.placed:
+            s = p.spec
+            if p.kind == "static":
+                out.append((s["obstacle"], round(s["x"] / 0.5), round(s["y"] / 0.5)))
+            else:
+                w0, w1 = s["waypoints"][0], s["waypoints"][-1]
+                out.append(("vehicle", round(w0["t"]), round(w0["x"]), round(w0["y"]), round(w1["x"] / 5.0),
+                            round(w1["y"] / 5.0)))
+        return frozenset(out)
+
     def new_id(self, kind: str) -> str:
         self.n_ids += 1
         return f"mut_{kind}_{self.n_ids}"
@@ -60,13 +72,12 @@ class Mutant:
 class NonInvasiveMutator:
     """Decictor's non-invasive mutation delta: add / remove / change, one per call."""
 
-    constrained = True
-
-    def __init__(self, ctx: SeedContext, rng: np.random.Generator, max_added: int = 8, max_tries: int = 30,
-                 p_static: float = 0.5) -> None:
+    def __init__(self, ctx: SeedContext, rng: np.random.Generator, rule: str = "closest", max_added: int = 8,
+                 max_tries: int = 30, p_static: float = 0.5) -> None:
         self.ctx, self.rng = ctx, rng
         self.max_added, self.max_tries, self.p_static = max_added, max_tries, p_static
-        self.driver = LaneDriver(ctx.roadmap, ctx.feasible.dt, ctx.feasible.sample_dt)
+        self.placer = Placer(ctx, rule, rng)
+        self.driver = self.placer.driver
         self.roi = ctx.areas.roi
         self.bounds = self.roi.bounds
         self.t_end = float(ctx.ref.t[-1])
@@ -102,11 +113,9 @@ class NonInvasiveMutator:
             return self.add_static(m, obstacle)
         return self.add_vehicle(m)
 
-    # -- sampling ---------------------------------------------------------------------------
+    # -- requests ---------------------------------------------------------------------------
     def _point(self) -> tuple[float, float]:
         """A uniform random point of the region of interest (drivable area near the path)."""
-        import shapely
-
         x0, y0, x1, y1 = self.bounds
         for _ in range(200):
             x, y = self.rng.uniform(x0, x1), self.rng.uniform(y0, y1)
@@ -115,18 +124,10 @@ class NonInvasiveMutator:
         c = self.roi.representative_point()
         return float(c.x), float(c.y)
 
-    def _lane_pose(self) -> tuple[VState, float, float, float] | None:
-        x, y = self._point()
-        loc = self.ctx.roadmap.locate(np.array([x, y]))
-        if loc is None:
-            return None
-        lane, s, d = loc
-        g = self.ctx.roadmap.geom(lane)
-        if not 0.0 <= s <= g.length:
-            return None
-        d = float(np.clip(d, -g.width / 2, g.width / 2))
-        xy = g.xy(np.array(s), d)
-        return VState(lane, float(s), d, 0.0), float(xy[0]), float(xy[1]), float(g.heading_point(s))
+    def _request(self) -> tuple[float, float]:
+        """A requested point in the path frame: ``(sigma, lateral)`` of a uniform ROI point."""
+        sigma, lateral, _ = self.ctx.path.project(np.array(self._point()))
+        return sigma, lateral
 
     def _ego_at(self, t: float) -> np.ndarray:
         ref = self.ctx.ref
@@ -134,62 +135,32 @@ class NonInvasiveMutator:
         return ref.xy[i]
 
     def add_static(self, m: Mutant, obstacle: str) -> bool:
-        length, width = SIZES[obstacle]
         start = self._ego_at(0.0)
         for _ in range(self.max_tries):
-            pose = self._lane_pose()
-            if pose is None:
-                continue
-            _, x, y, h = pose
-            if self.constrained:
-                if math.hypot(x - start[0], y - start[1]) < self.ctx.feasible.spawn_distance:
-                    continue
-                if not m.layout.static_ok(np.array([x]), np.array([y]), np.array([h]), length, width)[0]:
-                    continue
-            pid = m.new_id("cone" if obstacle == "CONE" else "static")
-            spec = {"id": pid, "type": "static", "obstacle": obstacle, "x": x, "y": y, "heading": h}
-            m.layout.add(Placed(pid, "static", spec, area=m.layout.static_footprint(x, y, h, length, width)))
-            return True
+            pose = self.placer.static(m.layout, obstacle, *self._request(), ego_xy=start)
+            if pose is not None:
+                self.placer.add_static(m.layout, m.new_id("cone" if obstacle == "CONE" else "static"), obstacle, pose)
+                return True
         return False
 
     def add_vehicle(self, m: Mutant) -> bool:
         dt = self.ctx.feasible.dt
         n_win = max(1, int(self.t_end / dt))
-        for _ in range(self.max_tries):
-            pose = self._lane_pose()
-            if pose is None:
-                continue
-            st, x, y, _ = pose
+        for _ in range(self.max_tries // 3):
             t0 = float(self.rng.integers(0, n_win)) * dt
-            if self.constrained:
-                ego = self._ego_at(t0)
-                if math.hypot(x - ego[0], y - ego[1]) < self.ctx.feasible.spawn_distance:
-                    continue
-            v0 = float(self.rng.uniform(0.0, self.driver.v_max(st.lane)))
-            st = VState(st.lane, st.s, st.d, v0)
-            turn = str(self.rng.choice(["straight", "straight", "left", "right"]))
-            traj = self._drive(m, st, t0, turn)
-            if traj is None:
-                continue
-            pid = m.new_id("veh")
-            m.layout.add(Placed(pid, "scripted", vehicle_spec(pid, traj), m.layout.window_areas(
-                traj.t, traj.x, traj.y, traj.h, LENGTH, WIDTH), traj=traj))
-            return True
+            speed = float(self.rng.uniform(0.0, self.driver.v_max_factor))
+            man = MANOEUVRES[int(self.rng.integers(len(MANOEUVRES)))]
+            traj = self.placer.vehicle(m.layout, t0, *self._request(), speed, man, ego_xy=self._ego_at(t0),
+                                       rng=self.rng)
+            if traj is not None:
+                self.placer.add_vehicle(m.layout, m.new_id("veh"), traj)
+                return True
         return False
-
-    def _drive(self, m: Mutant, st: VState, t0: float, turn: str) -> Trajectory | None:
-        ctx = self.ctx
-        first = sample_window(self.driver, m.layout, st, t0, turn, ctx.path.xy, None, self.rng)
-        if first is None:
-            return None
-        return complete(self.driver, m.layout, first, ctx.scenario.duration, ctx.path.xy, rng=self.rng)
 
 
 class RandomMutator(NonInvasiveMutator):
     """The Random baseline: add / remove participants anywhere on the road near the ego's path,
-    with no feasibility constraint."""
-
-    constrained = False
+    with no feasibility constraint (and so no placement rule)."""
 
     def mutate(self, m: Mutant) -> Mutant | None:
         child = m.copy()
@@ -202,9 +173,48 @@ class RandomMutator(NonInvasiveMutator):
         child.history.append("add" if add else "remove")
         return child
 
-    def _drive(self, m: Mutant, st: VState, t0: float, turn: str) -> Trajectory | None:
+    def add_static(self, m: Mutant, obstacle: str) -> bool:
+        x, y = self._point()
+        loc = self.ctx.roadmap.locate(np.array([x, y]))
+        h = float(self.ctx.roadmap.geom(loc[0]).heading_point(loc[1])) if loc is not None else 0.0
+        pid = m.new_id("cone" if obstacle == "CONE" else "static")
+        spec = {"id": pid, "type": "static", "obstacle": obstacle, "x": x, "y": y, "heading": h}
+        length, width = SIZES[obstacle]
+        m.layout.add(Placed(pid, "static", spec, area=m.layout.static_footprint(x, y, h, length, width)))
+        return True
+
+    def add_vehicle(self, m: Mutant) -> bool:
+        dt = self.ctx.feasible.dt
+        for _ in range(self.max_tries):
+            x, y = self._point()
+            st = start_state(self.ctx.roadmap, x, y, 0.0, 0.0) or self._on_lane(x, y)
+            if st is None:
+                continue
+            t0 = float(self.rng.integers(0, max(1, int(self.t_end / dt)))) * dt
+            turn = str(self.rng.choice(["straight", "straight", "left", "right"]))
+            traj = self._drive(st, t0, turn)
+            if traj is None:
+                continue
+            pid = m.new_id("veh")
+            spec = vehicle_spec(pid, traj)
+            m.layout.add(Placed(pid, "scripted", spec, {}, traj=traj))
+            return True
+        return False
+
+    def _on_lane(self, x: float, y: float) -> VState | None:
+        loc = self.ctx.roadmap.locate(np.array([x, y]))
+        if loc is None:
+            return None
+        lane, s, d = loc
+        g = self.ctx.roadmap.geom(lane)
+        if not 0.0 <= s <= g.length:
+            return None
+        return VState(lane, float(s), float(np.clip(d, -g.width / 2, g.width / 2)), 0.0)
+
+    def _drive(self, st: VState, t0: float, turn: str) -> Trajectory | None:
         traj: Trajectory | None = None
         t, horizon = t0, self.ctx.scenario.duration
+        st = VState(st.lane, st.s, st.d, float(self.rng.uniform(0.0, self.driver.v_max(st.lane))))
         while t < horizon - 1e-9:
             c = Controls(float(self.rng.uniform(0.0, self.driver.v_max(st.lane))),
                          int(self.rng.choice([0, 0, 0, -1, 1])), float(self.rng.uniform(-0.6, 0.6)), turn)

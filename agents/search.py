@@ -1,15 +1,22 @@
 """Search baselines at a budget of simulated scenarios (Decictor Algorithm 1).
 
-- ``decictor``: Decictor-GA - population 4 initialised with the seed; every generation mutates
-  each individual once with the non-invasive operators, simulates the offspring, files
-  collisions and non-optimal decisions, keeps the valid offspring that passed both checks and
-  selects the 4 fittest of parents + offspring by the feedback D = f_p + f_b.
-- ``random_delta``: the same loop and non-invasive mutation, but random selection (Decictor's
-  F-Random / Random-delta: no feedback).
+- ``decictor``: Decictor-GA as published - a population of N = 4 initialised with the seed;
+  every generation mutates each individual once with the non-invasive operators (add / remove /
+  change, :mod:`agents.mutation`), simulates each child, files its failures, keeps the children
+  that passed the task check and the consistency check, and selects the N fittest of parents +
+  children by the feedback D = f_p + f_b (eq. 7-9: mean distance to the optimal path plus the MMD
+  of the behaviour distributions).
+- ``random_delta``: the same loop and non-invasive mutation, random selection (the paper's
+  Random-delta / F-Random: no feedback).
 - ``random``: the same loop with unconstrained add / remove mutations and random selection.
 
-Every simulated scenario is one unit of budget and produces one record (see
-:func:`record_of`).
+Common to all three (and to the RL adversary in :mod:`agents.evaluate`): every primary
+simulation is one unit of budget and yields one record (:func:`record_of`); a child that is a
+near-duplicate of one already simulated is redrawn before it costs a simulation; every failure
+(NoDS, ego-at-fault collision) and task failure is re-checked on a second jitter seed
+(:func:`confirm`) and counts only when it reproduces - that run is reported (``sims``, time)
+but is not a unit of budget. Task failures of valid mutations (timeout, stuck) are findings of
+their own column; as in Algorithm 1 they do not join the population.
 """
 
 from __future__ import annotations
@@ -25,54 +32,83 @@ from agents.mutation import Mutant, NonInvasiveMutator, RandomMutator
 from deft_gym.search.context import SeedContext
 from deft_gym.search.episode import EpisodeRun, run_scenario
 from deft_gym.search.feasible import Layout
+from deft_gym.search.nods import Verdict
 
 SEARCH_METHODS = ("decictor", "random_delta", "random")
 POPULATION = 4
+REDRAWS = 10  # near-duplicate or roomless mutations redrawn before giving up on novelty
 
 
-def record_of(run: EpisodeRun, index: int, seconds: float, extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """One line of a method's log: the verdict of one simulated scenario."""
-    v = run.verdict
+def confirm(ctx: SeedContext, verdict: Verdict, specs: list[dict[str, Any]], jitter_seed: int,
+            added_at: dict[str, float] | None = None) -> tuple[bool | None, float, float]:
+    """Re-run a failing scenario with another jitter seed: ``(reproduced, wall s, cpu s)``;
+    ``reproduced`` is None when there is nothing to confirm (no failure, no task failure)."""
+    if verdict.failure is None and verdict.task_failure is None:
+        return None, 0.0, 0.0
+    w0, c0 = time.perf_counter(), time.process_time()
+    again = run_scenario(ctx, specs, jitter_seed, added_at=added_at).verdict
+    same = (again.failure == verdict.failure) if verdict.failure else (again.task_failure is not None)
+    return bool(same), time.perf_counter() - w0, time.process_time() - c0
+
+
+def record_of(v: Verdict, index: int, seconds: float, cpu_seconds: float, sims: int,
+              confirmed: bool | None, jitter_seed: int, added: int, sim_time: float,
+              extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """One line of a method's log: the verdict of one simulated scenario (the evaluation's record
+    schema; see agents/evaluate.py)."""
     rec = {"index": index, **{k: val for k, val in v.as_dict().items() if k != "collision_detail"},
-           "added": sum(1 for a in run.trace.actors if a.added), "sim_time": round(run.result.sim_time, 3),
-           "seconds": round(seconds, 4), "jitter_seed": run.result.jitter_seed}
+           "confirmed": confirmed, "added": added, "sim_time": round(sim_time, 3),
+           "seconds": round(seconds, 4), "cpu_seconds": round(cpu_seconds, 4), "sims": sims,
+           "jitter_seed": jitter_seed}
     if v.failure:
-        rec["scenario_equivalent"] = run.scenario
         rec["collision_detail"] = v.collision_detail
     return {**rec, **(extra or {})}
 
 
+def _run_record(ctx: SeedContext, run: EpisodeRun, index: int, t_mut: float, c_mut: float, rng: np.random.Generator,
+                extra: dict[str, Any]) -> dict[str, Any]:
+    v = run.verdict
+    confirmed, w_c, c_c = confirm(ctx, v, extra.pop("specs"), int(rng.integers(2**31 - 1)))
+    rec = record_of(v, index, t_mut + run.seconds + w_c, c_mut + run.cpu_seconds + c_c, 1 + (confirmed is not None),
+                    confirmed, run.result.jitter_seed, sum(1 for a in run.trace.actors if a.added),
+                    run.result.sim_time, extra)
+    if v.failure or v.task_failure:
+        rec["scenario_equivalent"] = run.scenario
+    return rec
+
+
 def search(method: str, ctx: SeedContext, budget: int, seed: int, max_added: int = 8,
-           log_dir: Callable[[int], Path | None] | None = None) -> Iterator[dict[str, Any]]:
-    """Run a search baseline for ``budget`` simulated scenarios; yields one record per scenario.
-    ``log_dir(index)`` may give a directory for the episode's MCAP log."""
+           log_dir: Callable[[int], Path | None] | None = None, rule: str = "closest") -> Iterator[dict[str, Any]]:
+    """Run a search baseline for ``budget`` simulated scenarios under placement ``rule``; yields
+    one record per primary simulation. ``log_dir(index)`` may give a directory for its MCAP log."""
     if method not in SEARCH_METHODS:
         raise ValueError(f"unknown search method {method!r}; expected one of {SEARCH_METHODS}")
     rng = np.random.default_rng([seed, 7919])
-    cls = RandomMutator if method == "random" else NonInvasiveMutator
-    mutator = cls(ctx, rng, max_added=max_added)
-    seed_mutant = Mutant(Layout(ctx.areas), fitness=0.01)
-    population = [seed_mutant.copy() for _ in range(POPULATION)]
+    mutator = (RandomMutator if method == "random" else NonInvasiveMutator)(ctx, rng, rule, max_added=max_added)
+    population = [Mutant(Layout(ctx.areas), fitness=0.01) for _ in range(POPULATION)]
+    seen: set[frozenset[Any]] = {population[0].key()}
     used = 0
     while used < budget:
         offspring: list[Mutant] = []
         for parent in population:
             if used >= budget:
                 break
-            t0 = time.perf_counter()
+            w0, c0 = time.perf_counter(), time.process_time()
             child = None
-            for _ in range(5):  # a mutation that found no room costs no simulation: retry
-                child = mutator.mutate(parent)
-                if child is not None:
+            for _ in range(REDRAWS):  # a mutation without room or a near-duplicate costs no simulation
+                cand = mutator.mutate(parent)
+                if cand is not None and cand.key() not in seen:
+                    child = cand
                     break
             if child is None:
-                child = parent.copy()
-            t_mut = time.perf_counter() - t0
-            jitter = int(rng.integers(2**31 - 1))
-            run = run_scenario(ctx, child.specs, jitter, log_dir(used) if log_dir else None)
+                child = cand if cand is not None else parent.copy()
+            seen.add(child.key())
+            t_mut, c_mut = time.perf_counter() - w0, time.process_time() - c0
+            run = run_scenario(ctx, child.specs, int(rng.integers(2**31 - 1)), log_dir(used) if log_dir else None)
             v = run.verdict
             child.fitness = v.f_p + v.f_b
-            yield record_of(run, used, t_mut + run.seconds, {"mutation": child.history[-1] if child.history else ""})
+            yield _run_record(ctx, run, used, t_mut, c_mut, rng,
+                              {"mutation": child.history[-1] if child.history else "", "specs": child.specs})
             used += 1
             if v.valid and v.outcome == "completed" and not v.nods:
                 offspring.append(child)

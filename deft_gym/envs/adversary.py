@@ -1,22 +1,25 @@
 """``deft_gym/Adversary-v0``: an RL adversary places vehicles and obstacles around the ego.
 
-One episode is one simulated scenario: a seed scenario (or a perturbed variant) runs on the full
-jittered ADS stack, and every ``dt`` seconds (2 s) the adversary may add one participant or
-change the motion of one vehicle it added. Every placement is projected onto the non-invasive
-feasible area (:mod:`deft_gym.search.feasible`, Decictor eq. 3-4), so the action space only reaches
-placements that never enter the ego's reference motion area, nor the areas of the other
-participants - validity by construction. The episode's log can be handed to the DeFT extractor
-(:class:`deft_gym.envs.sink.EpisodeSink`).
+One episode is one simulated scenario: a seed scenario (a perturbed variant, or a generated
+scenario ``gen:<seed>``) runs on the full jittered ADS stack, and every ``dt`` seconds (2 s) the
+adversary may add one participant or change the motion of one vehicle it added. Every placement
+request is granted by the shared :class:`~deft_gym.search.placement.Placer` under the configured
+placement rule (``closest`` or ``uniform``, the same rule the search baselines are evaluated
+under) inside the non-invasive feasible area (:mod:`deft_gym.search.feasible`, Decictor eq.
+3-4), so the action space only reaches placements that never come within 0.5 m of the ego's
+reference motion, nor into the areas of the other participants - validity by construction. The
+episode's log can be handed to the DeFT extractor (:class:`deft_gym.envs.sink.EpisodeSink`).
 
-**Action** ``MultiDiscrete([5, 9, 9, 5, 5])``: operation (no-op, cone, static vehicle, vehicle,
-change a vehicle), where along the reference path relative to the ego (``ALONG`` m), lateral
-offset from the path (``LATERAL`` m, right +; for obstacles the projection moves a placement
-outwards until it is feasible, so +-1.5 means "as close as allowed"), speed (``SPEEDS`` x the
-lane speed limit) and manoeuvre for the next window (keep lane, change towards / away from the
-ego's path, turn left / right at the next junction).
+**Action** ``MultiDiscrete([5, 11, 9, 5, 5])``: operation (no-op, cone, static vehicle, vehicle,
+change a vehicle), where along the reference path relative to the ego (``ALONG`` m, or relative
+to the previous placement: ``AT_LAST``), lateral offset from the path (``LATERAL`` m, right +;
+the request the placement rule grants: ``closest`` moves it outwards until it is feasible, so
++-1.5 means "as close as allowed"), speed (``SPEEDS`` x the lane speed limit) and manoeuvre for
+the next window (keep lane, change towards / away from the ego's path, turn left / right at the
+next junction).
 
 **Observation** (``Box``, 119 floats): progress, the ego's state relative to the reference path
-and to the reference timing, the planner's current decision, the lane structure, the curvature
+and to the reference timing, what the planner intends (read off its latest trajectory, for any planner), the lane structure, the curvature
 of the path and the closest feasible obstacle offset at every ``ALONG`` anchor, the six nearest
 participants in the path frame, and where the previous placement went.
 
@@ -49,19 +52,15 @@ from deft_gym.config import load_mapping, validate
 from deft_gym.envs.sink import EpisodeSink
 from deft_gym.scenarios.scenario import with_participants
 from deft_gym.search.context import SEED_SCENARIOS, SeedContext, robust, seed_context
-from deft_gym.search.feasible import FeasibleConfig, Layout, Placed
+from deft_gym.search.feasible import FeasibleConfig, Layout
 from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH
+from deft_gym.search.placement import Placer, first_window
 from deft_gym.search.trace import TraceRecorder
 from deft_gym.search.vehicles import (
     LENGTH,
     WIDTH,
-    Controls,
-    LaneDriver,
     Trajectory,
     complete,
-    lateral_shifts,
-    start_state,
-    vehicle_spec,
     window_feasible,
 )
 from deft_gym.sim.simulation import Simulation
@@ -74,7 +73,6 @@ AT_LAST = ("last", "last+8")  # anchors relative to the previous placement (gate
 LATERAL = (-3.5, -2.5, -2.0, -1.5, 0.0, 1.5, 2.0, 2.5, 3.5)
 SPEEDS = (0.0, 0.3, 0.6, 0.9, 1.2)
 MANOEUVRES = ("keep", "toward", "away", "left", "right")
-BEHAVIOURS = ("CRUISE", "FOLLOW", "STOP", "NUDGE", "CHANGE_LANE", "ESTOP")
 N_NEAR = 6
 OBS_DIM = 6 + 8 + 8 + 3 * len(ALONG) + 2 * len(ALONG) + 8 * N_NEAR + 4
 
@@ -103,6 +101,9 @@ class AdversaryConfig(BaseModel):
     variant_prob: float = Field(0.0, ge=0.0, le=1.0, description="share of episodes on a training variant")
     variant_seeds: int = Field(200, ge=1, description="training variants use seeds [0, variant_seeds)")
     feasible: FeasibleConfig = FeasibleConfig()
+    placement: Literal["closest", "uniform"] = Field("closest", description="how a requested placement is "
+                                                      "granted (deft_gym.search.placement; the same rule the "
+                                                      "search baselines are evaluated under)")
     max_added: int = Field(8, ge=1, le=40)
     respect_plan: bool = Field(True, description="never place into the ego's current planned trajectory")
     plan_margin: float = Field(0.3, ge=0.0, le=5.0)
@@ -204,7 +205,8 @@ class AdversaryEnv(gym.Env):
         self._until = 0.0
         self.recorder = TraceRecorder(self.sim, self.added_ids)
         self.layout = Layout(ctx.areas)
-        self.driver = LaneDriver(ctx.roadmap, ctx.feasible.dt, ctx.feasible.sample_dt)
+        self.placer = Placer(ctx, self.cfg.placement, self.np_random)
+        self.driver = self.placer.driver
         self.k = 0
         self.n_placed = 0
         self._last_sigma: float | None = None
@@ -294,66 +296,39 @@ class AdversaryEnv(gym.Env):
         if not outs:
             return None
         tr = outs[-1]["trajectory"]
-        return {k: np.asarray(tr[k], dtype=float) for k in ("t", "x", "y", "heading")}
+        return {k: np.asarray(tr[k], dtype=float) for k in ("t", "x", "y", "heading", "v")}
 
     def _new_id(self, kind: str) -> str:
         self.n_placed += 1
         return f"adv_{kind}_{self.n_placed}"
 
     def _place_static(self, obstacle: str, along: float, lateral: float) -> dict[str, Any] | None:
-        ctx, cfg = self.ctx, self.cfg
+        cfg = self.cfg
         sigma_e, _ = self._ego_sigma()
         length, width = SIZES[obstacle]
-        side = np.sign(lateral) if lateral else 1.0
-        steps = np.arange(0, 61) * 0.05
-        lats = [lateral + side * steps] if lateral else [steps + 0.5, -(steps + 0.5)]
-        cands = [(sigma_e + along + ds, lat) for ds in (0.0, 3.0, -3.0, 6.0, -6.0) for ls in lats for lat in ls]
-        sig = np.array([c[0] for c in cands])
-        lat = np.array([c[1] for c in cands])
-        xy, h = ctx.path.offset(sig, lat)
-        ok = self.layout.static_ok(xy[:, 0], xy[:, 1], h, length, width)
-        ex, ey, _, _ = self._ego()
-        ok &= np.hypot(xy[:, 0] - ex, xy[:, 1] - ey) >= ctx.feasible.spawn_distance
         plan = self._plan() if cfg.respect_plan else None
-        if plan is not None and ok.any():
+
+        def off_plan(x: np.ndarray, y: np.ndarray, h: np.ndarray) -> np.ndarray:
             g = box_gap(plan["x"][None, :], plan["y"][None, :], plan["heading"][None, :],
                         EGO_LENGTH + 2 * cfg.plan_margin, EGO_WIDTH + 2 * cfg.plan_margin,
-                        xy[:, :1], xy[:, 1:], h[:, None], length, width)
-            ok &= (g > 0.0).all(axis=1)
-        idx = np.flatnonzero(ok)
-        if not len(idx):
+                        x[:, None], y[:, None], h[:, None], length, width)
+            return (g > 0.0).all(axis=1)
+
+        ex, ey, _, _ = self._ego()
+        pose = self.placer.static(self.layout, obstacle, sigma_e + along, lateral, ego_xy=np.array([ex, ey]),
+                                  extra_ok=off_plan if plan is not None else None)
+        if pose is None:
             return None
-        i = int(idx[0])
         pid = self._new_id("cone" if obstacle == "CONE" else "static")
-        spec = {"id": pid, "type": "static", "obstacle": obstacle, "x": float(xy[i, 0]), "y": float(xy[i, 1]),
-                "heading": float(h[i])}
+        spec = self.placer.add_static(self.layout, pid, obstacle, pose)
         self._add(spec)
-        self.layout.add(Placed(pid, "static", spec,
-                               area=self.layout.static_footprint(xy[i, 0], xy[i, 1], h[i], length, width)))
-        return {"id": pid, "x": spec["x"], "y": spec["y"], "sigma": float(sig[i] - sigma_e),
-                "lateral": float(lat[i]), "moved": float(abs(sig[i] - sigma_e - along) + abs(lat[i] - lateral))}
+        return {"id": pid, "x": pose.x, "y": pose.y, "sigma": pose.sigma - sigma_e, "lateral": pose.lateral,
+                "moved": abs(pose.sigma - sigma_e - along) + abs(pose.lateral - lateral)}
 
     def _add(self, spec: dict[str, Any]) -> None:
         self.added_ids.add(spec["id"])
         self.added_at[spec["id"]] = self._until  # replay: advance(until), then add
         self.sim.add_participant(spec)
-
-    def _first_window(self, st: Any, t0: float, v: float, man: str) -> Trajectory | None:
-        turn = man if man in ("left", "right") else "straight"
-        shift = 0
-        if man in ("toward", "away"):
-            away, toward = lateral_shifts(self.driver, st, self.ctx.path.xy)
-            choice = away if man == "away" else toward
-            if not choice:
-                return None
-            shift = choice[0]
-        return self.driver.window(st, t0, Controls(v, shift, 0.0 if shift else st.d, turn))
-
-    def _vehicle_ok(self, first: Trajectory, skip: str | None) -> bool:
-        ex, ey, _, _ = self._ego()
-        if math.hypot(first.x[0] - ex, first.y[0] - ey) < self.ctx.feasible.spawn_distance and skip is None:
-            return False
-        return window_feasible(self.layout, first, skip)
 
     def _plan_ok(self, traj: Trajectory) -> bool:
         if not self.cfg.respect_plan:
@@ -377,39 +352,20 @@ class AdversaryEnv(gym.Env):
         return bool((box_gap(px, py, ph, EGO_LENGTH + 2 * m, EGO_WIDTH + 2 * m, vx, vy, vh, LENGTH, WIDTH) > 0).all())
 
     def _place_vehicle(self, along: float, lateral: float, speed: float, man: str) -> dict[str, Any] | None:
-        ctx = self.ctx
         t0 = round(self.sim.world.time, 6)
         sigma_e, _ = self._ego_sigma()
-        side = np.sign(lateral) if lateral else 0.0
-        tries = 0
-        for ds in (0.0, 5.0, -5.0, 10.0, -10.0):
-            for dl in (0.0, 0.5, 1.0, 1.75, 2.5, 3.5):
-                if dl and not side:
-                    continue
-                sig, lat = sigma_e + along + ds, lateral + side * dl
-                xy, h = ctx.path.offset(np.array([sig]), np.array([lat]))
-                st = start_state(ctx.roadmap, float(xy[0, 0]), float(xy[0, 1]), float(h[0]), 0.0)
-                if st is None:
-                    continue
-                v = speed * self.driver.v_max(st.lane) / self.driver.v_max_factor
-                st = type(st)(st.lane, st.s, st.d, v)
-                first = self._first_window(st, t0, v, man)
-                if first is None or not self._vehicle_ok(first, None) or not self._plan_ok(first):
-                    continue
-                tries += 1
-                traj = complete(self.driver, self.layout, first, ctx.scenario.duration, ctx.path.xy)
-                if traj is not None and self._plan_ok(traj):
-                    pid = self._new_id("veh")
-                    spec = vehicle_spec(pid, traj)
-                    self._add(spec)
-                    self.layout.add(Placed(pid, "scripted", spec, self.layout.window_areas(
-                        traj.t, traj.x, traj.y, traj.h, LENGTH, WIDTH), traj=traj))
-                    return {"id": pid, "x": float(traj.x[0]), "y": float(traj.y[0]), "sigma": along + ds,
-                            "lateral": float(lat), "speed": float(v), "manoeuvre": man,
-                            "moved": float(abs(ds) + abs(lat - lateral))}
-                if tries >= 6:
-                    return None
-        return None
+        ex, ey, _, _ = self._ego()
+        traj = self.placer.vehicle(self.layout, t0, sigma_e + along, lateral, speed, man, ego_xy=np.array([ex, ey]),
+                                   trajectory_ok=self._plan_ok)
+        if traj is None:
+            return None
+        pid = self._new_id("veh")
+        spec = self.placer.add_vehicle(self.layout, pid, traj)
+        self._add(spec)
+        sig, lat, _ = self.ctx.path.project(np.array([traj.x[0], traj.y[0]]))
+        return {"id": pid, "x": float(traj.x[0]), "y": float(traj.y[0]), "sigma": along, "lateral": float(lat),
+                "speed": float(traj.states[0].v), "manoeuvre": man,
+                "moved": abs(sig - sigma_e - along) + abs(lat - lateral)}
 
     def _change_vehicle(self, along: float, lateral: float, speed: float, man: str) -> dict[str, Any] | None:
         ctx = self.ctx
@@ -424,16 +380,14 @@ class AdversaryEnv(gym.Env):
         if p.traj.t[i] > t0 + 1e-6 or p.traj.t[-1] < t0:
             return None
         v = speed * self.driver.v_max(st.lane) / self.driver.v_max_factor
-        first = self._first_window(st, t0, v, man)
-        if first is None or not self._vehicle_ok(first, p.id) or not self._plan_ok(first):
+        first = first_window(self.driver, ctx, st, t0, v, man)
+        if first is None or not window_feasible(self.layout, first, p.id) or not self._plan_ok(first):
             return None
         new = complete(self.driver, self.layout, first, ctx.scenario.duration, ctx.path.xy, skip=p.id)
         if new is None or not self._plan_ok(new):
             return None
         traj = p.traj.until(t0).extend(new)
-        spec = vehicle_spec(p.id, traj)
-        self.layout.replace(Placed(p.id, "scripted", spec, self.layout.window_areas(
-            traj.t, traj.x, traj.y, traj.h, LENGTH, WIDTH), traj=traj))
+        spec = self.placer.add_vehicle(self.layout, p.id, traj)
         _retarget(self.sim, p.id, spec)
         return {"id": p.id, "speed": float(v), "manoeuvre": man}
 
@@ -536,16 +490,7 @@ class AdversaryEnv(gym.Env):
         dh = float((h - hp[0] + math.pi) % (2 * math.pi) - math.pi)
         f += [lat_e / 3.5, v / 15.0, (v - path.speed_at(sigma_e)) / 10.0, math.sin(dh), math.cos(dh) - 1.0,
               float(w.ego.accel) / 5.0, self._max_dev / 3.5, 1.0 if w.collision else 0.0]
-        outs = sim.planning_outputs
-        beh = [0.0] * (len(BEHAVIOURS) + 2)
-        if outs:
-            dec = outs[-1]["decision"]
-            b = dec.get("behavior")
-            beh[BEHAVIOURS.index(b) if b in BEHAVIOURS else len(BEHAVIOURS)] = 1.0
-            beh[-1] = 1.0 if dec.get("lane") != dec.get("target_lane") else 0.0
-        else:
-            beh[len(BEHAVIOURS)] = 1.0
-        f += beh
+        f += self._plan_features(sigma_e)
         grid, left, right = path.lanes_beside
         anchors = sigma_e + np.array(ALONG)
         gi = np.clip(np.searchsorted(grid, anchors), 0, len(grid) - 1)
@@ -560,6 +505,25 @@ class AdversaryEnv(gym.Env):
         last = self._last_sigma
         f += [0.0, 0.0] if last is None else [1.0, (last - sigma_e) / 50.0]
         return np.clip(np.asarray(f, dtype=np.float32), -10.0, 10.0)
+
+    def _plan_features(self, sigma_e: float) -> list[float]:
+        """What the planner intends, from its latest trajectory alone (any planner): its offset
+        from the optimal path at a third, two thirds and the end of the plan [lanes], how far
+        along the path it gets [m / 50], its end and lowest speed [/ 15 m/s], whether it stops,
+        whether there is a plan."""
+        plan = self._plan()
+        if plan is None or not len(plan["x"]):
+            return [0.0] * 7 + [1.0]
+        n = len(plan["x"])
+        lats, sig_end = [], sigma_e
+        hint = self._hint
+        for i in (n // 3, (2 * n) // 3, n - 1):
+            sig, lat, hint = self.ctx.path.project(np.array([plan["x"][i], plan["y"][i]]), hint)
+            lats.append(float(np.clip(lat / 3.5, -3.0, 3.0)))
+            sig_end = sig
+        v = plan["v"]
+        return [*lats, (sig_end - sigma_e) / 50.0, float(v[-1]) / 15.0, float(v.min()) / 15.0,
+                1.0 if v[-1] < 0.5 else 0.0, 0.0]
 
     def _closest_static(self, anchors: np.ndarray) -> list[float]:
         """Per anchor and side: smallest feasible |lateral| of a cone, normalised (1.5: none)."""

@@ -6,8 +6,9 @@ costs per lateral option of the lattice:
 
 - **Path bounds (blocking).** Obstacles predicted static are taken by their SL boundary (the box
   of the obstacle in the reference line's (s, d) frame, so an angled object covers more of the
-  lane than its footprint), grown laterally by an *impact buffer* (``impact_buffer``, or
-  ``parked_impact_buffer`` for parked vehicles and vehicles predicted static). Objects whose s
+  lane than its footprint), in the ego's home lane grown laterally by an *impact buffer*
+  (``impact_buffer``, or ``parked_impact_buffer`` for parked vehicles and vehicles predicted
+  static; a lane it borrows is judged without them). Objects whose s
   ranges lie within ``parallel_gap`` of each other form one cluster; a lane is *blocked* at the
   first cluster that leaves no free interval of the lane at least ``ego_width + 2
   corridor_clearance`` wide within ``block_lookahead`` metres. Options staying in a blocked lane
@@ -92,7 +93,7 @@ class LaneDecider:
         for j in range(n):
             tgt = lat.target[j]
             if tgt not in views:
-                views[tgt] = self._view(tgt, float(lat.centre[j]), obs, s0)
+                views[tgt] = self._view(tgt, float(lat.centre[j]), obs, s0, own=tgt == home)
         for tgt, view in views.items():
             if tgt != lane:
                 view.gap = self._gap(view, obs, s0, v0) or self._junction_gap(ref, s0)
@@ -166,8 +167,10 @@ class LaneDecider:
         st.home = home
         return home
 
-    def _view(self, lane: LaneId, centre: float, obs: dict[str, Any] | None, s0: float) -> LaneView:
-        """Blocking and comfort of one lane (centre ``centre`` [m] in the current frame)."""
+    def _view(self, lane: LaneId, centre: float, obs: dict[str, Any] | None, s0: float, own: bool = True) -> LaneView:
+        """Blocking and comfort of one lane (centre ``centre`` [m] in the current frame). The
+        impact buffers grow objects in the ego's ``own`` lane only - its home lane, whose bounds
+        it keeps - while a lane it borrows is judged by the objects' SL boundaries alone."""
         p = self.p
         view = LaneView(lane, centre)
         if obs is None:
@@ -186,7 +189,7 @@ class LaneDecider:
             s_lo, s_hi = fs[o][0] - fes[o][0], fs[o][0] + fes[o][0]
             if s_hi < front0 or s_lo > horizon:
                 continue
-            buf = p.parked_impact_buffer if obs["kind"][o] != "CONE" else p.impact_buffer
+            buf = 0.0 if not own else p.parked_impact_buffer if obs["kind"][o] != "CONE" else p.impact_buffer
             d_lo, d_hi = fd[o] - fed[o] - buf, fd[o] + fed[o] + buf
             if d_hi <= lo_band or d_lo >= hi_band:
                 continue

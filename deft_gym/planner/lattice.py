@@ -113,8 +113,8 @@ class LatticeParams(BaseModel):
     # lane-level decisions (deft_gym.planner.decision): path bounds, comfort, gap acceptance, home lane
     decisions: bool = True
     block_lookahead: float = Field(50.0, ge=0.0, description="[m] static objects this far ahead of the ego's front can block its lane")
-    impact_buffer: float = Field(0.2, ge=0.0, description="[m] lateral growth of a static object's SL boundary in the path bounds")
-    parked_impact_buffer: float = Field(0.6, ge=0.0, description="[m] the same for parked vehicles and vehicles predicted static")
+    impact_buffer: float = Field(0.35, ge=0.0, description="[m] lateral growth of a static object's SL boundary in the path bounds")
+    parked_impact_buffer: float = Field(0.7, ge=0.0, description="[m] the same for parked vehicles and vehicles predicted static")
     corridor_clearance: float = Field(0.4, ge=0.0, description="[m] free width asked for each side of the ego between objects (the hard buffer then decides the exact path)")
     parallel_gap: float = Field(4.8, ge=0.0, description="[m] objects closer than this along s form one cluster (parallel obstacles)")
     comfort_gap: float = Field(1.0, ge=0.0, description="[m] lateral gap to static objects below which a lane is uncomfortable")

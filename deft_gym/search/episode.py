@@ -24,6 +24,7 @@ class EpisodeRun:
     result: EpisodeResult
     scenario: dict[str, Any]
     seconds: float  # wall time: building, simulating and judging
+    cpu_seconds: float = 0.0  # process CPU time of the same
 
 
 def run_scenario(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int,
@@ -33,7 +34,7 @@ def run_scenario(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int
     ``added_at`` (participant id -> sim time [s]) adds those participants mid-run, in the order
     of ``specs``, as the adversary env did - so an env episode's equivalent scenario replays it
     exactly; the others are part of the scenario from the start (the search baselines)."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     added_at = added_at or {}
     later = [s for s in specs if s["id"] in added_at]
     data = with_participants(ctx.scenario, f"{ctx.name}+mut", [s for s in specs if s["id"] not in added_at])
@@ -53,4 +54,4 @@ def run_scenario(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int
     o = res.outcome
     trace = rec.trace(o.outcome, o.sim_time)
     verdict = ctx.oracle.judge(trace, o.collision.as_dict() if o.collision else None)
-    return EpisodeRun(verdict, trace, res, data, time.perf_counter() - t0)
+    return EpisodeRun(verdict, trace, res, data, time.perf_counter() - t0, time.process_time() - c0)

@@ -161,8 +161,10 @@ EGO_LENGTH, EGO_WIDTH = EgoVehicle.LENGTH, EgoVehicle.WIDTH
 
 def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None,
                     clearance: float = CLEARANCE) -> list[str]:
-    """Participants of ``trace`` closer than ``clearance`` [m] to the reference ego replayed at
-    the same ticks. Static participants are extended to the end of the reference run."""
+    """Participants of ``trace`` that invade the optimal path: added ones closer than
+    ``clearance`` [m] to the reference ego replayed at the same ticks, seed ones (which may react
+    to what was added) overlapping it. Static participants are extended to the end of the
+    reference run."""
     parts = trace.parts
     if not len(parts):
         return []
@@ -190,10 +192,11 @@ def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None,
     e = ref.ego[tick_index]
     idx = rows[:, 1].astype(np.int64)
     dims = np.array([(a.length, a.width) for a in trace.actors])
+    need = np.array([clearance if a.added else 0.0 for a in trace.actors])[idx]
     gap = box_gap(e[:, 0], e[:, 1], e[:, 2], EGO_LENGTH, EGO_WIDTH, rows[:, 2], rows[:, 3], rows[:, 4],
                   dims[idx, 0], dims[idx, 1])
     # the SAT gap is a lower bound of the distance: confirm candidates exactly with shapely
-    hit = np.flatnonzero(gap < clearance)
+    hit = np.flatnonzero((gap < need) | ((need == 0.0) & (gap <= 0.0)))
     bad: list[str] = []
     for k in hit:
         i = int(idx[k])
@@ -202,7 +205,7 @@ def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None,
             continue
         pa = box_polygon(e[k, 0], e[k, 1], e[k, 2], EGO_LENGTH, EGO_WIDTH)
         pb = box_polygon(rows[k, 2], rows[k, 3], rows[k, 4], dims[i, 0], dims[i, 1])
-        if pa.distance(pb) < clearance:
+        if (pa.distance(pb) < clearance) if trace.actors[i].added else pa.intersects(pb):
             bad.append(aid)
     return bad
 
@@ -326,19 +329,35 @@ class DecisionOracle:
         return v
 
     def signature(self, v: Verdict, trace: Trace, collision: dict[str, Any] | None) -> str:
-        """Failure identity for de-duplication: kind, location (5 m cell) and participant."""
+        """Root-cause signature of a failure, for counting distinct failures: its kind, where
+        along the optimal path it happened (10 m buckets), the participant involved (seed or
+        added, kind, type) and the decision change (the planning decisions of the run that the
+        reference run never made, e.g. ``blocked+reason:borrow`` or ``refused:rear_gap``)."""
+        change = "+".join(self.decision_change(trace)) or "-"
         if v.collision and collision:
             who = _actor_key(trace, collision.get("participant", ""))
-            return f"collision@{_cell5(collision['x'], collision['y'])}:{who}"
-        if v.nods:
+            where = self._bucket(np.array([collision["x"], collision["y"]]))
+            return f"collision@{where}:{who}:{change}"
+        if v.nods or v.nods_local or v.task_failure:
             xy = trace.xy
             d = shapely.distance(shapely.points(xy), self.ref_line)
             off = np.flatnonzero(d > self.roadmap.spec.lane_width / 2)
             k = int(off[0]) if len(off) else int(np.argmax(d))
             side = _side(self.ref.xy, xy[k])
             who = _nearest_added(trace, int(trace.ticks[k]), xy[k])
-            return f"nods@{_cell5(*xy[k])}:{side}:{who}"
+            kind = "nods" if v.nods else ("local" if v.nods_local else v.task_failure)
+            return f"{kind}@{self._bucket(xy[k])}:{side}:{who}:{change}"
         return ""
+
+    def decision_change(self, trace: Trace) -> list[str]:
+        """Planning decisions the run made that the reference run never did (sorted)."""
+        ref = self.ref.meta.get("decisions", {})
+        return sorted(k for k in trace.meta.get("decisions", {}) if k not in ref)
+
+    def _bucket(self, p: np.ndarray) -> str:
+        """Where along the optimal path a point is: a 10 m bucket of its arc length."""
+        sigma = float(self.ref_line.project(shapely.Point(float(p[0]), float(p[1]))))
+        return f"{int(sigma // 10.0) * 10}m"
 
 
 def ego_at_fault(trace: Trace, collision: dict[str, Any]) -> bool:

@@ -27,7 +27,7 @@ from deft_gym.files import write_atomic
 from deft_gym.scenarios.scenario import Scenario, scenario_to_dict
 
 CACHE_DIR = ROOT / "runs" / "cache" / "reference"
-TRACE_FORMAT = 1  # bump when the recorded content changes (invalidates the cache)
+TRACE_FORMAT = 2  # bump when the recorded content changes (invalidates the cache)
 
 
 @dataclass
@@ -109,8 +109,27 @@ class TraceRecorder:
         self._index: dict[int, int] = {}  # id(Participant) -> actor index
         self.actors: list[Actor] = []
         self.added = added if added is not None else set()
+        #: planning decisions seen (``reason:<r>``, ``blocked``, ``tight``, ``refused:<why>``) and
+        #: when each was first seen [s]
+        self.decisions: dict[str, float] = {}
+        self._planning = sim.ads.topic("planning")
         sim.on_step.append(self._on_step)
+        sim.bus.taps.append(self._on_message)
         self._on_step(sim, initial=True)
+
+    def _on_message(self, msg: Any) -> None:
+        if msg.topic != self._planning:
+            return
+        d = msg.payload.get("decision") or {}
+        kinds = [f"reason:{d.get('reason') or d.get('behavior', '')}"]
+        if d.get("blocked"):
+            kinds.append("blocked")
+        if d.get("tight"):
+            kinds.append("tight")
+        kinds += [f"refused:{why}" for why in (d.get("refused") or {}).values()]
+        t = float(msg.payload["header"]["stamp"])
+        for k in kinds:
+            self.decisions.setdefault(k, t)
 
     def _actor(self, p: Any) -> int:
         key = id(p)
@@ -147,7 +166,7 @@ class TraceRecorder:
     def trace(self, outcome: str = "", sim_time: float = 0.0, meta: dict[str, Any] | None = None) -> Trace:
         parts = np.array(self._parts, dtype=float).reshape(-1, 5)
         return Trace(self.world_dt, np.array(self._ticks, dtype=np.int64), np.array(self._ego, dtype=float),
-                     list(self.actors), parts, outcome, sim_time, meta or {})
+                     list(self.actors), parts, outcome, sim_time, {**(meta or {}), "decisions": dict(self.decisions)})
 
 
 # ---------------------------------------------------------------------------------------------
