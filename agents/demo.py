@@ -82,16 +82,18 @@ def main(argv: list[str] | None = None) -> int:
         result["reproduce"] = _pytest(tests, "reproduces")  # replayed frames give the recorded plans
         result["oracle"] = _pytest(tests, "not reproduces")  # fail while the planner still crashes
     t_sum = json.loads((out / "train" / "summary.json").read_text())
-    per = summary["per_method"]
+    per = summary["per_scenario"]
     print("\n==================== DeFT-Gym adversary demo ====================")
     print(f"training   : {t_sum.get('timesteps')} steps, {t_sum['episodes']} episodes in {t_train:.0f} s; "
           f"{t_sum['collisions']} collisions + {t_sum['nods']} NoDS, validity {100 * t_sum['validity']:.1f} %")
     for m in ("rl", "random_delta"):
-        c = per.get(m, {}).get(scenario)
-        if c:
-            print(f"eval {m:<12}: {c['failures']:g} failures ({c['collisions']:g} collisions + {c['nods']:g} NoDS) "
-                  f"in {c['scenarios']:g} scenarios, validity {100 * c['validity']:.1f} %, "
-                  f"{c['distinct']:g} distinct, {c['seconds']:.2f} s/scenario")
+        for placement, cells in per.get(m, {}).items():
+            c = {k: v["mean"] for k, v in cells[scenario].items() if isinstance(v, dict)} if scenario in cells else None
+            if c:
+                print(f"eval {m:<12}: {c['failures']:g} failures ({c['collisions']:g} collisions + {c['nods']:g} "
+                      f"NoDS) in {c['simulated']:g} scenarios ({placement} placement), validity "
+                      f"{100 * c['validity']:.1f} %, {c['distinct']:g} distinct, {c['seconds_per_scenario'] or float('nan'):.2f} "
+                      "s/scenario")
     print(f"extracted  : {result['modules']} pytest module(s) from failing adversary episodes")
     if tests:
         print(f"pytest     : reproduction tests: {result['reproduce']}")

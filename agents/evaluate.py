@@ -12,12 +12,13 @@ parallel worker processes. Outputs in ``--out``:
 
 - ``records.jsonl`` - one line per simulated scenario (append-only; a rerun with the same
   ``--out`` skips the jobs already complete, so an interrupted evaluation resumes);
-- ``summary.json`` - per method and scenario: ``nods``, ``collisions``, ``failures`` (mean per
-  repeat), ``validity`` (share of non-invasive mutations), ``distinct`` (distinct failures per
-  repeat, by location and participant), ``scenarios`` (budget), ``seconds`` (wall time per
-  simulated scenario), plus totals for seeds and held-out variants and the ratios between
-  methods;
-- ``table.md`` - the Table I analogue; ``cumulative_failures.png`` - the Figure 7 analogue.
+- ``summary.json``, ``table.md``, ``cumulative_failures.png``, ``per_scenario.png`` - the
+  comparison (:mod:`agents.eval_report` through :mod:`agents.stats`): per method, placement and
+  scenario and per group (seeds, held-out, all) mean +- sd over repeats of counted failures (valid,
+  confirmed NoDS + ego-at-fault collisions), NoDS, collisions, local NoDS, task failures, validity,
+  distinct failures, s/scenario and distinct failures per CPU-hour; Mann-Whitney U and
+  Vargha-Delaney A12 between methods; the check of issue 17's targets; RL's training episodes as a
+  second budget column. ``python -m agents.eval_report OUT`` re-renders them from the records.
 
 Held-out variants (``--variants K``) are the first K *robust* variants ``<seed>~v<1000000+i>``
 (:func:`deft_gym.scenarios.variants.perturb`, seeds the adversary never trains on; robust: their unmutated
@@ -34,7 +35,7 @@ import threading
 import time
 from collections import defaultdict
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -64,6 +65,9 @@ class EvalConfig(BaseModel):
     seed: int = 0
     log_failures: bool = False
     max_added: int = Field(8, ge=1)
+    placements: list[Literal["closest", "uniform"]] = Field(
+        default_factory=lambda: ["closest", "uniform"], min_length=1,
+        description="placement rules every method runs under (one table row per method and placement)")
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -75,6 +79,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--repeats", type=int, default=None)
     p.add_argument("--scenarios", default=None, help="comma-separated seed scenarios (names or YAML paths)")
     p.add_argument("--variants", type=int, default=None, help="held-out variants per seed scenario")
+    p.add_argument("--placements", default=None, help="comma-separated placement rules, of closest,uniform")
     p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl'")
     p.add_argument("--deterministic", action="store_true", default=None, help="greedy RL actions")
     p.add_argument("--workers", type=int, default=None, help="parallel worker processes (default 2)")
@@ -95,7 +100,7 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
     for key in ("budget", "repeats", "variants", "model", "deterministic", "workers", "seed", "log_failures"):
         if getattr(args, key) is not None:
             data[key] = getattr(args, key)
-    for key in ("methods", "scenarios"):
+    for key in ("methods", "scenarios", "placements"):
         if getattr(args, key) is not None:
             data[key] = [s.strip() for s in getattr(args, key).split(",") if s.strip()]
     cfg = validate(EvalConfig, data, name)
@@ -238,110 +243,6 @@ def _job_entry(args: tuple[dict[str, Any], Any]) -> list[dict[str, Any]]:
     return run_job(*args)
 
 
-# -- aggregation ----------------------------------------------------------------------------------
-def summarize(records: list[dict[str, Any]], cfg: EvalConfig, seeds: list[str], held_out: list[str]) -> dict[str, Any]:
-    """Table I analogue per method and scenario, totals and ratios."""
-    groups: dict[tuple[str, str], dict[int, list[dict[str, Any]]]] = defaultdict(lambda: defaultdict(list))
-    for r in records:
-        groups[(r["method"], r["scenario"])][r["repeat"]].append(r)
-    per: dict[str, dict[str, Any]] = defaultdict(dict)
-    for (method, scn), reps in sorted(groups.items()):
-        n_rep = len(reps)
-        rows = [x for rs in reps.values() for x in rs]
-        nods = sum(1 for x in rows if x.get("failure") == "nods")
-        col = sum(1 for x in rows if x.get("failure") == "collision")
-        distinct = [len({x["signature"] for x in rs if x.get("failure")}) for rs in reps.values()]
-        per[method][scn] = {
-            "nods": round(nods / n_rep, 3), "collisions": round(col / n_rep, 3),
-            "failures": round((nods + col) / n_rep, 3),
-            "validity": round(sum(1 for x in rows if x.get("valid")) / max(len(rows), 1), 4),
-            "distinct": round(sum(distinct) / n_rep, 3),
-            "distinct_all_repeats": len({x["signature"] for x in rows if x.get("failure")}),
-            "scenarios": round(len(rows) / n_rep, 1), "repeats": n_rep,
-            "seconds": round(sum(x.get("seconds", 0.0) for x in rows) / max(len(rows), 1), 4),
-            "collisions_any": round(sum(1 for x in rows if x.get("collision")) / n_rep, 3),
-            "task_failures": round(sum(1 for x in rows if x.get("outcome") in ("timeout", "stuck")) / n_rep, 3)}
-    totals: dict[str, dict[str, Any]] = {}
-    for method, scns in per.items():
-        for label, names in (("seeds", seeds), ("held_out", held_out), ("all", seeds + held_out)):
-            sel = [scns[n] for n in names if n in scns]
-            if not sel:
-                continue
-            totals.setdefault(method, {})[label] = {
-                k: round(sum(s[k] for s in sel), 3) for k in ("nods", "collisions", "failures", "distinct", "scenarios")}
-            totals[method][label]["validity"] = round(sum(s["validity"] for s in sel) / len(sel), 4)
-            totals[method][label]["seconds"] = round(sum(s["seconds"] for s in sel) / len(sel), 4)
-    ratios: dict[str, Any] = {}
-    for label in ("seeds", "held_out", "all"):
-        f = {m: totals[m][label]["failures"] for m in totals if label in totals[m]}
-        for a, b in (("rl", "decictor"), ("rl", "random_delta"), ("rl", "random"), ("decictor", "random_delta"),
-                     ("random_delta", "random"), ("decictor", "random"), ("rl", "random_online")):
-            if a in f and b in f:
-                ratios.setdefault(label, {})[f"{a}/{b}"] = round(f[a] / f[b], 3) if f[b] else None
-    codes = sorted({r.get("code", "?") for r in records})
-    return {"config": cfg.model_dump(), "seeds": seeds, "held_out": held_out, "per_method": per,
-            "totals": totals, "ratios": ratios, "simulation_code": codes}
-
-
-def write_table(summary: dict[str, Any], path: Path) -> str:
-    """Markdown Table I analogue: failures (NoDS + collisions), validity and distinct failures."""
-    per = summary["per_method"]
-    scns = summary["seeds"] + summary["held_out"]
-    methods = [m for m in METHODS if m in per]
-    head = "| method | " + " | ".join(scns) + " | sum seeds | sum held-out |\n"
-    head += "|---" * (len(scns) + 3) + "|\n"
-    lines = [f"Budget: {summary['config']['budget']} simulated scenarios per method, scenario and repeat; "
-             f"{summary['config']['repeats']} repeat(s). Cells: NoDS + collisions = failures "
-             "(mean per repeat), validity %, distinct failures.\n", head]
-    for m in methods:
-        cells = []
-        for s in scns:
-            c = per[m].get(s)
-            cells.append("-" if c is None else f"{c['nods']:g}+{c['collisions']:g}={c['failures']:g} "
-                         f"({100 * c['validity']:.1f} %, {c['distinct']:g} d)")
-        t = summary["totals"].get(m, {})
-        ts = t.get("seeds", {})
-        th = t.get("held_out", {})
-        cells.append(f"{ts.get('failures', 0):g} ({100 * ts.get('validity', 0):.1f} %)" if ts else "-")
-        cells.append(f"{th.get('failures', 0):g} ({100 * th.get('validity', 0):.1f} %)" if th else "-")
-        lines.append(f"| {m} | " + " | ".join(cells) + " |\n")
-    text = "".join(lines)
-    write_atomic(path, text)
-    return text
-
-
-def plot_cumulative(records: list[dict[str, Any]], summary: dict[str, Any], path: Path) -> None:
-    """Cumulative failures over the budget, mean over repeats, summed over scenarios."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    budget = summary["config"]["budget"]
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=False)
-    for ax, label in zip(axes, ("seeds", "held_out")):
-        names = set(summary[label])
-        for m in METHODS:
-            rows = [r for r in records if r["method"] == m and r["scenario"] in names]
-            if not rows:
-                continue
-            reps = {r["repeat"] for r in rows}
-            curve = np.zeros(budget)
-            for r in rows:
-                if r.get("failure") and r["index"] < budget:
-                    curve[r["index"]] += 1
-            ax.plot(np.arange(1, budget + 1), np.cumsum(curve) / max(len(reps), 1), label=m)
-        ax.set_title(f"{'seed scenarios' if label == 'seeds' else 'held-out variants'} ({len(names)})")
-        ax.set_xlabel("simulated scenarios per scenario")
-        ax.set_ylabel("cumulative failures (NoDS + collisions)")
-        ax.grid(alpha=0.3)
-        ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 # -- main -----------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
@@ -418,13 +319,20 @@ def main(argv: list[str] | None = None) -> int:
             queue.put(None)
             th.join()
             bar.close()
-    summary = summarize(records, cfg, seeds, held_out)
+    from agents.eval_report import build_summary, headline_markdown, targets_markdown, write_report
+    from agents.stats import RecordError
+
+    try:
+        summary = build_summary(records, cfg.model_dump(), seeds, held_out, str(rec_path))
+    except RecordError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     summary["wall_seconds"] = round(time.time() - t0, 1)
-    write_json_atomic(out / "summary.json", summary)
-    table = write_table(summary, out / "table.md")
-    plot_cumulative(records, summary, out / "cumulative_failures.png")
-    print(table)
-    print(json.dumps({"totals": summary["totals"], "ratios": summary["ratios"]}, indent=1))
+    write_report(records, summary, out)
+    print(headline_markdown(summary))
+    print(targets_markdown(summary["targets"]))
+    print(f"report: {out / 'table.md'}, {out / 'summary.json'}, {out / 'cumulative_failures.png'}, "
+          f"{out / 'per_scenario.png'}")
     return 0
 
 

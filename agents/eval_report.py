@@ -1,0 +1,392 @@
+"""The report of the adversary evaluation (:mod:`agents.evaluate`): ``summary.json``, ``table.md``
+(headline table, per-group tables, per-scenario failures, statistics, targets),
+``cumulative_failures.png`` and ``per_scenario.png``, from the records through :mod:`agents.stats`.
+
+Re-render the report of a finished (or interrupted) evaluation from its records:
+
+    python -m agents.eval_report runs/eval/x [--model runs/adversary/x/model.zip]
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents import stats
+from agents.stats import GROUP_LABELS, GROUPS, METHOD_LABELS, METHOD_ORDER, RecordError
+from deft_gym.files import read_jsonl, write_atomic, write_json_atomic
+
+GROUP_TITLES = {"seeds": "Seed scenarios", "held_out": "Held-out scenarios", "all": "All scenarios"}
+TRAINING_METHODS = ("rl",)  # methods trained before the evaluation (a second budget column)
+
+
+# -- summary --------------------------------------------------------------------------------------
+def rl_training(model: str | None) -> dict[str, Any] | None:
+    """``episodes`` (training scenarios simulated) and ``train_seconds`` [s] from the training
+    ``summary.json`` next to ``model`` (or in its run folder); None without one."""
+    if not model:
+        return None
+    p = Path(model)
+    for d in (p.parent, p.parent.parent):
+        f = d / "summary.json"
+        if f.exists():
+            try:
+                data = json.loads(f.read_text())
+            except json.JSONDecodeError as err:
+                raise RecordError(f"{f}: not JSON ({err})") from None
+            if not isinstance(data, dict) or not isinstance(data.get("episodes"), int):
+                raise RecordError(f"{f}: field 'episodes': expected an integer")
+            return {"episodes": data["episodes"], "train_seconds": data.get("train_seconds"), "summary": str(f)}
+    return None
+
+
+def build_summary(records: list[dict[str, Any]], config: dict[str, Any], seeds: list[str], held_out: list[str],
+                  source: str = "records") -> dict[str, Any]:
+    """:func:`agents.stats.summarize` over ``config``'s methods and placements, plus the config,
+    RL's training budget and the simulation code the records ran."""
+    s = stats.summarize(records, config.get("methods"), config.get("placements"), seeds, held_out, source)
+    s["config"] = config
+    s["training"] = {m: (rl_training(config.get("model")) if m in TRAINING_METHODS else None)
+                     for m in s["methods"]}
+    s["simulation_code"] = sorted({str(r.get("code", "?")) for r in records})
+    return s
+
+
+# -- markdown -------------------------------------------------------------------------------------
+def _num(x: float | None, nd: int = 1) -> str:
+    return "-" if x is None else f"{x:.{nd}f}"
+
+
+def fmt(stat: dict[str, Any] | None, nd: int = 1, scale: float = 1.0) -> str:
+    """``mean ± sd`` of a measure (sd "-" with one repeat; "-" without data)."""
+    if not stat or stat.get("mean") is None:
+        return "-"
+    sd = stat.get("sd")
+    return f"{scale * stat['mean']:.{nd}f} ± " + ("-" if sd is None else f"{scale * sd:.{nd}f}")
+
+
+def _p(p: float | None) -> str:
+    return "-" if p is None else (f"{p:.1e}" if p < 0.001 else f"{p:.3f}")
+
+
+def _label(m: str) -> str:
+    return METHOD_LABELS.get(m, m)
+
+
+def _budget(summary: dict[str, Any], m: str, p: str) -> str:
+    """Simulated scenarios per scenario and repeat (a range when cells differ)."""
+    cells = summary["per_scenario"].get(m, {}).get(p, {})
+    b = sorted({c["simulated"]["mean"] for c in cells.values() if c["simulated"]["mean"] is not None})
+    return "-" if not b else f"{b[0]:g}" if len(b) == 1 else f"{b[0]:g}-{b[-1]:g}"
+
+
+def _training(summary: dict[str, Any], m: str) -> str:
+    if m not in TRAINING_METHODS:
+        return "0"
+    t = summary.get("training", {}).get(m)
+    return "-" if not t else f"{t['episodes']:,}"
+
+
+def _rows(summary: dict[str, Any]) -> list[tuple[str, str]]:
+    return [(m, p) for m in summary["methods"] for p in summary["placements"]]
+
+
+def _star(cell: dict[str, Any] | None) -> str:
+    return "" if not cell or cell["complete"] else "*"
+
+
+GROUP_COLUMNS = (("failures", "failures", 1, 1.0), ("nods", "NoDS", 1, 1.0), ("collisions", "collisions", 1, 1.0),
+                 ("nods_local", "local NoDS", 1, 1.0), ("task_failures", "task failures", 1, 1.0),
+                 ("validity", "validity %", 1, 100.0), ("distinct", "distinct", 1, 1.0),
+                 ("seconds_per_scenario", "s/scenario", 2, 1.0), ("distinct_per_cpu_hour", "distinct/CPU-h", 1, 1.0))
+
+
+def headline_markdown(summary: dict[str, Any]) -> str:
+    """The headline table (for the README): one row per method x placement; counted failures
+    (NoDS + collisions) on seeds, held-out and all scenarios, then the other measures on all
+    scenarios, mean ± sd over repeats of the per-repeat totals; the budget per scenario and
+    repeat, and training episodes as a second budget column."""
+    cols = ["method", "placement", "budget", "training episodes"] + [f"failures {GROUP_LABELS[g]}" for g in GROUPS]
+    cols += [label for key, label, *_ in GROUP_COLUMNS if key != "failures"]
+    reps = sorted({len(c["repeats"]) for ps in summary["groups"].values() for gs in ps.values() for c in gs.values()})
+    n_reps = "0" if not reps else str(reps[0]) if len(reps) == 1 else f"{reps[0]}-{reps[-1]}"
+    caption = (f"Mean ± sd over {n_reps} repeat(s) of per-repeat "
+               "totals. Failures: valid mutations whose NoDS (grid IoU <= 0.6) or ego-at-fault collision reproduced "
+               "on a second jitter seed, on seed, held-out and all scenarios; the other columns over all scenarios. "
+               "Budget: simulated scenarios per scenario and repeat; training episodes: scenarios simulated to "
+               "train the method beforehand.")
+    lines = [caption, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    groups = summary["groups"]
+    for m, p in _rows(summary):
+        g_all = groups.get(m, {}).get(p, {}).get("all")
+        cells = [_label(m), p, _budget(summary, m, p), _training(summary, m)]
+        for g in GROUPS:
+            c = groups.get(m, {}).get(p, {}).get(g)
+            cells.append(fmt(c and c["failures"]) + _star(c))
+        cells += [fmt(g_all and g_all[key], nd, scale) for key, _, nd, scale in GROUP_COLUMNS if key != "failures"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def group_markdown(summary: dict[str, Any], group: str) -> str:
+    """Every measure on one group of scenarios (per-repeat totals over its scenarios, mean ± sd)."""
+    cols = ["method", "placement", "scenarios", "repeats"] + [label for _, label, *_ in GROUP_COLUMNS] + ["unconfirmed"]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for m, p in _rows(summary):
+        c = summary["groups"].get(m, {}).get(p, {}).get(group)
+        if c is None:
+            lines.append("| " + " | ".join([_label(m), p] + ["-"] * (len(cols) - 2)) + " |")
+            continue
+        n_scn = f"{len(c['scenarios'])}/{len(c['scenarios']) + len(c['missing_scenarios'])}"
+        cells = [_label(m), p, n_scn, str(len(c["repeats"])) + _star(c)]
+        cells += [fmt(c[key], nd, scale) for key, _, nd, scale in GROUP_COLUMNS] + [fmt(c["unconfirmed"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def per_scenario_markdown(summary: dict[str, Any]) -> str:
+    """Counted failures per scenario (rows) and method x placement (columns), mean ± sd."""
+    rows = _rows(summary)
+    cols = ["scenario", "kind"] + [f"{_label(m)} ({p})" for m, p in rows]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for s in summary["seeds"] + summary["held_out"]:
+        cells = [s, "seed" if summary["scenario_kinds"].get(s) == "seed" else "held-out"]
+        cells += [fmt(summary["per_scenario"].get(m, {}).get(p, {}).get(s, {}).get("failures")) for m, p in rows]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def statistics_markdown(rows: list[dict[str, Any]], where: str = "group") -> str:
+    """Comparison rows (:func:`agents.stats.compare`) as a table; ``where``: group or scenario."""
+    cols = ["placement", where, "X vs Y", "measure", "n", "mean X", "mean Y", "X/Y", "U", "p", "A12", "note"]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        ratio = _num(r["ratio"], 2) if r["ratio"] is not None else "- (denominator 0)" if r["mean_y"] == 0 else "-"
+        label = GROUP_LABELS.get(r[where], r[where]) if where == "group" else r[where]
+        lines.append("| " + " | ".join([
+            r["placement"], label, f"{_label(r['x'])} vs {_label(r['y'])}", r["measure"], f"{r['n_x']}/{r['n_y']}",
+            _num(r["mean_x"], 2), _num(r["mean_y"], 2), ratio, _num(r["u"], 1), _p(r["p"]), _num(r["a12"], 2),
+            r["note"]]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _met(ok: bool) -> str:
+    return "**met**" if ok else "**not met**"
+
+
+def targets_markdown(t: dict[str, Any]) -> str:
+    """The issue's targets (:func:`agents.stats.check_targets`) as a list, with the numbers."""
+    pr = t["protocol"]
+    out = [f"Targets (group: {GROUP_LABELS[t['group']]}): {_met(t['met'])} overall.", "",
+           f"- Protocol: {_met(pr['met'])} - repeats per cell >= {pr['repeats_required']} (min {pr['repeats_min']}), "
+           f"held-out scenarios >= {pr['held_out_required']} ({pr['held_out_scenarios']}), equal budget "
+           f"({'yes' if pr['equal_budget'] else 'no'}: {', '.join(f'{b:g}' for b in pr['budgets']) or '-'})."]
+    no = t["nods_ordering"]
+    parts = []
+    for p, v in no["per_placement"].items():
+        steps = "; ".join(f"{_label(s['x'])} {_num(s['mean_x'], 2)} vs {_label(s['y'])} {_num(s['mean_y'], 2)} "
+                          f"(A12 {_num(s['a12'], 2)}, p {_p(s['p'])}) {'ok' if s['met'] else 'no'}" for s in v["steps"])
+        parts.append(f"{p}: {steps}")
+    out.append(f"- Decictor-GA > Random-delta > Random in NoDS, A12 >= {no['a12_required']} per step: "
+               f"{_met(no['met'])} - " + (" | ".join(parts) or "no data") + ".")
+    rg = t["rl_vs_ga"]
+    parts = [f"{p}: RL {_num(v['mean_rl'], 2)} vs GA {_num(v['mean_ga'], 2)}, ratio "
+             f"{_num(v['ratio'], 2) if v['ratio'] is not None else '- (' + (v['note'] or 'no data') + ')'}, "
+             f"p {_p(v['p'])} {'ok' if v['met'] else 'no'}" for p, v in rg["per_placement"].items()]
+    out.append(f"- RL >= {rg['ratio_required']}x Decictor-GA in failures (NoDS + collisions), p < {rg['p_required']}: "
+               f"{_met(rg['met'])} - " + (" | ".join(parts) or "no data") + ".")
+    va = t["validity"]
+    parts = [f"{_label(m)} {p} {100 * v:.1f} %" for m, ps in va["methods"].items() for p, v in ps.items()]
+    out.append(f"- Validity >= {100 * va['required']:g} % (non-invasive methods): {_met(va['met'])} - "
+               + (", ".join(parts) or "no data") + (f"; not required of {', '.join(map(_label, va['not_required']))}"
+                                                      if va["not_required"] else "") + ".")
+    fs = t["failure_on_every_seed"]
+    out.append(f"- A counted failure on every seed scenario: {_met(fs['met'])} - by any method: "
+               f"{'all' if fs['any_method']['met'] else 'none on ' + (', '.join(fs['any_method']['without']) or '-')}; "
+               f"by RL: {'all' if fs['rl']['met'] else 'none on ' + (', '.join(fs['rl']['without']) or '-')}.")
+    return "\n".join(out) + "\n"
+
+
+def table_markdown(summary: dict[str, Any]) -> str:
+    """``table.md``: the headline table, every measure per group, failures per scenario, the
+    statistics and the targets."""
+    cfg = summary.get("config", {})
+    missing = summary.get("missing_fields") or {}
+    text = [
+        "# Adversary evaluation", "",
+        f"Budget: {cfg.get('budget', '-')} simulated scenarios per method, placement, scenario and repeat; "
+        f"{cfg.get('repeats', '-')} repeat(s); {len(summary['seeds'])} seed and {len(summary['held_out'])} held-out "
+        "scenario(s). Cells: mean ± sd over repeats of the per-repeat totals over the group's scenarios (sd - with "
+        "one repeat). A failure (NoDS under the grid consistency check, or an ego-at-fault collision) counts only "
+        "for a valid mutation and when it reproduced on a second jitter seed; local NoDS and task failures "
+        "(timeout/stuck of a valid mutation) are separate columns. Distinct: distinct root-cause signatures. "
+        "Training episodes: scenarios simulated to train the method before the evaluation (a second budget). "
+        "`*`: scenarios or repeats missing in the cell.", ""]
+    if missing:
+        text += ["Fields absent from records (defaults used): "
+                 + ", ".join(f"{k} ({v})" for k, v in sorted(missing.items())) + ".", ""]
+    text += ["## Headline", "", headline_markdown(summary)]
+    for g in GROUPS:
+        text += [f"## {GROUP_TITLES[g]}", "", group_markdown(summary, g)]
+    text += ["## Failures per scenario", "", per_scenario_markdown(summary),
+             "## Statistics", "",
+             "Two-sided Mann-Whitney U on the per-repeat totals; A12 = P(X > Y) + 0.5 P(X = Y); X/Y: ratio of means.",
+             "", statistics_markdown(summary["statistics"]["groups"], "group")]
+    if summary["statistics"]["per_scenario"]:
+        text += ["<details><summary>Per scenario</summary>", "",
+                 statistics_markdown(summary["statistics"]["per_scenario"], "scenario"), "</details>", ""]
+    text += ["## Targets", "", targets_markdown(summary["targets"])]
+    return "\n".join(text)
+
+
+# -- plots ----------------------------------------------------------------------------------------
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _color(m: str) -> Any:
+    import matplotlib
+
+    i = METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER) + sum(map(ord, m)) % 4
+    return matplotlib.colormaps["tab10"](i % 10)
+
+
+def _save(fig: Any, path: Path) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    _pyplot().close(fig)
+    write_atomic(path, buf.getvalue())
+
+
+def plot_cumulative(records: list[dict[str, Any]], summary: dict[str, Any], path: Path) -> None:
+    """``cumulative_failures.png``: counted failures against simulated scenarios per scenario,
+    summed over each group's scenarios, mean over repeats with a 95 % confidence band; one line
+    per method, one panel per placement (rows) x group (columns)."""
+    plt = _pyplot()
+    curves = stats.cumulative_curves(records, summary)
+    placements = summary["placements"] or ["closest"]
+    fig, axes = plt.subplots(len(placements), len(GROUPS), figsize=(4.2 * len(GROUPS), 3.2 * len(placements)),
+                             squeeze=False)
+    handles: dict[str, Any] = {}
+    for i, p in enumerate(placements):
+        for j, g in enumerate(GROUPS):
+            ax = axes[i][j]
+            n_scn = len(summary["seeds"] if g == "seeds" else summary["held_out"] if g == "held_out"
+                        else summary["seeds"] + summary["held_out"])
+            ax.set_title(f"{p} placement, {GROUP_LABELS[g]} ({n_scn} scenarios)", fontsize=9)
+            lines = curves.get(p, {}).get(g, {})
+            for m in summary["methods"]:
+                c = lines.get(m)
+                if c is None:
+                    continue
+                (h,) = ax.plot(c["x"], c["mean"], color=_color(m), lw=1.6)
+                handles[m] = h
+                if c["lo"] is not None:
+                    ax.fill_between(c["x"], c["lo"], c["hi"], color=_color(m), alpha=0.18, lw=0)
+            if not lines:
+                ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes, color="0.5")
+            ax.set_xlabel("simulated scenarios per scenario")
+            ax.set_ylabel("cumulative failures\n(NoDS + collisions)", fontsize=9)
+            ax.grid(alpha=0.3)
+            ax.margins(x=0)
+            ax.set_ylim(bottom=0)
+    if handles:
+        fig.legend(list(handles.values()), [_label(m) for m in handles], loc="center left",
+                   bbox_to_anchor=(1.0, 0.5), title="mean, 95 % CI", frameon=False)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def plot_per_scenario(summary: dict[str, Any], path: Path) -> None:
+    """``per_scenario.png``: grouped bars of counted failures per scenario (mean over repeats,
+    sd error bars), one bar per method, one panel per placement; seeds left of the dashed line,
+    held-out scenarios right of it."""
+    plt = _pyplot()
+    scns = summary["seeds"] + summary["held_out"]
+    placements = summary["placements"] or ["closest"]
+    methods = summary["methods"] or []
+    width = 0.8 / max(len(methods), 1)
+    fig_w = min(max(6.0, 0.22 * len(scns) * max(len(methods), 1) + 2.0), 40.0)
+    fig, axes = plt.subplots(len(placements), 1, figsize=(fig_w, 3.4 * len(placements)), squeeze=False)
+    x = np.arange(len(scns))
+    handles: dict[str, Any] = {}
+    for i, p in enumerate(placements):
+        ax = axes[i][0]
+        for k, m in enumerate(methods):
+            cells = summary["per_scenario"].get(m, {}).get(p, {})
+            mean = [np.nan if s not in cells or cells[s]["failures"]["mean"] is None else cells[s]["failures"]["mean"]
+                    for s in scns]
+            sd = [np.nan if s not in cells or cells[s]["failures"]["sd"] is None else cells[s]["failures"]["sd"]
+                  for s in scns]
+            if all(np.isnan(mean)):
+                continue
+            handles[m] = ax.bar(x + (k - (len(methods) - 1) / 2) * width, np.nan_to_num(mean), width, yerr=sd,
+                                color=_color(m), capsize=2, error_kw={"lw": 0.8})
+        if summary["seeds"] and summary["held_out"]:
+            ax.axvline(len(summary["seeds"]) - 0.5, color="0.4", ls="--", lw=0.8)
+        ax.set_xticks(x, scns, rotation=40, ha="right", fontsize=8)
+        ax.set_xlim(-0.6, max(len(scns), 1) - 0.4)
+        ax.set_ylabel("failures per repeat\n(NoDS + collisions)", fontsize=9)
+        ax.set_title(f"{p} placement: mean ± sd over repeats (seeds | held-out)", fontsize=9)
+        ax.grid(axis="y", alpha=0.3)
+        ax.set_ylim(bottom=0)
+        if not handles:
+            ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes, color="0.5")
+    if handles:
+        fig.legend(list(handles.values()), [_label(m) for m in handles], loc="center left",
+                   bbox_to_anchor=(1.0, 0.5), frameon=False)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def write_report(records: list[dict[str, Any]], summary: dict[str, Any], out: Path) -> str:
+    """Write ``summary.json``, ``table.md``, ``cumulative_failures.png`` and ``per_scenario.png``
+    into ``out``; returns the table's text."""
+    write_json_atomic(out / "summary.json", summary)
+    table = table_markdown(summary)
+    write_atomic(out / "table.md", table)
+    plot_cumulative(records, summary, out / "cumulative_failures.png")
+    plot_per_scenario(summary, out / "per_scenario.png")
+    return table
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m agents.eval_report", description=__doc__.split("\n\n")[0])
+    p.add_argument("out", type=Path, help="evaluation folder (records.jsonl, eval_config.json)")
+    p.add_argument("--model", default=None, help="trained model.zip (its training summary; default: the config's)")
+    args = p.parse_args(argv)
+    cfg_path, rec_path = args.out / "eval_config.json", args.out / "records.jsonl"
+    try:
+        if not rec_path.exists():
+            raise RecordError(f"{rec_path}: no such file")
+        try:
+            cfg = json.loads(cfg_path.read_text()) if cfg_path.exists() else {}
+        except json.JSONDecodeError as err:
+            raise RecordError(f"{cfg_path}: not JSON ({err})") from None
+        if not isinstance(cfg, dict):
+            raise RecordError(f"{cfg_path}: expected an object")
+        if args.model:
+            cfg["model"] = args.model
+        records = read_jsonl(rec_path)
+        summary = build_summary(records, cfg, list(cfg.get("scenarios") or []), list(cfg.get("held_out") or []),
+                                str(rec_path))
+    except RecordError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(write_report(records, summary, args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

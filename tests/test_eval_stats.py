@@ -1,0 +1,328 @@
+"""The evaluation's statistics and report (agents/stats.py, agents/eval_report.py) on synthetic
+record lists: what counts as a failure, mean/sd over repeats, group totals, Mann-Whitney U and
+Vargha-Delaney A12 against hand-computed values, the targets block, distinct failures per
+CPU-hour, the written files, and partial data. No simulation."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import pytest
+
+from agents import eval_report, stats
+from agents.stats import RecordError
+
+SEEDS = ["s1", "s2"]
+HELD = [f"gen:{1_000_000 + i}" for i in range(10)]
+
+
+def rec(method: str = "rl", scenario: str = "s1", repeat: int = 0, index: int = 0, *, failure: str | None = None,
+        confirmed: bool | None = None, valid: bool = True, placement: str = "closest", signature: str = "",
+        nods_local: bool = False, task_failure: str | None = None, seconds: float = 2.0,
+        cpu_seconds: float | None = 1.0, sims: int = 1) -> dict[str, Any]:
+    """One record of the evaluation's schema."""
+    r = {"method": method, "placement": placement, "scenario": scenario,
+         "scenario_kind": "held_out" if scenario.startswith("gen:") else "seed", "repeat": repeat, "index": index,
+         "outcome": "collision" if failure == "collision" else task_failure or "completed", "valid": valid,
+         "iou": 0.5 if failure == "nods" else 1.0, "f_p": 0.1, "f_b": 0.1, "off_length": 0.0, "failure": failure,
+         "nods_local": nods_local, "task_failure": task_failure, "confirmed": confirmed,
+         "signature": signature, "seconds": seconds, "sims": sims}
+    if cpu_seconds is not None:
+        r["cpu_seconds"] = cpu_seconds
+    return r
+
+
+def cell(method: str, scenario: str, repeat: int, budget: int, failures: list[tuple[str, str]],
+         placement: str = "closest", **kw: Any) -> list[dict[str, Any]]:
+    """``budget`` records of one job; the first ones are confirmed valid failures (kind, signature)."""
+    out = []
+    for i in range(budget):
+        if i < len(failures):
+            kind, sig = failures[i]
+            out.append(rec(method, scenario, repeat, i, failure=kind, confirmed=True, signature=sig,
+                           placement=placement, sims=2, **kw))
+        else:
+            out.append(rec(method, scenario, repeat, i, placement=placement, **kw))
+    return out
+
+
+def full_dataset(ga_nods: int = 1, rd_scenarios: int = 6, rl_on_s2: bool = True) -> list[dict[str, Any]]:
+    """5 repeats, 2 seeds + 10 held-out scenarios, budget 4, one placement: RL 3 failures per
+    scenario (one more on s1 in odd repeats), Decictor-GA ``ga_nods`` NoDS per scenario,
+    Random-delta one NoDS on the first ``rd_scenarios`` scenarios, Random one on each seed."""
+    recs = []
+    for rep in range(5):
+        for k, s in enumerate(SEEDS + HELD):
+            rl = [("nods", f"n{s}"), ("collision", f"c{s}"), ("collision", f"c{s}b")]
+            if s == "s1" and rep % 2:
+                rl.append(("collision", "extra"))
+            recs += cell("rl", s, rep, 4, rl if rl_on_s2 or s != "s2" else [])
+            recs += cell("decictor", s, rep, 4, [("nods", f"g{j}") for j in range(ga_nods)])
+            recs += cell("random_delta", s, rep, 4, [("nods", "d")] if k < rd_scenarios else [])
+            recs += cell("random", s, rep, 4, [("nods", "r")] if s in SEEDS else [])
+    return recs
+
+
+def summarize(records: list[dict[str, Any]], **kw: Any) -> dict[str, Any]:
+    kw.setdefault("seeds", SEEDS)
+    kw.setdefault("held_out", HELD)
+    kw.setdefault("placements", ["closest"])
+    return stats.summarize(records, **kw)
+
+
+# -- counting -------------------------------------------------------------------------------------
+def test_only_valid_confirmed_failures_count():
+    recs = [rec(index=0, failure="nods", confirmed=True, signature="a"),
+            rec(index=1, failure="collision", confirmed=True, signature="b"),
+            rec(index=2, failure="nods", confirmed=False, signature="c"),  # did not reproduce
+            rec(index=3, failure="collision", confirmed=None, signature="d"),  # never re-checked
+            rec(index=4, failure="nods", confirmed=True, valid=False, signature="e"),  # invasive mutation
+            rec(index=5, nods_local=True),
+            rec(index=6, nods_local=True, valid=False),
+            rec(index=7, task_failure="timeout", confirmed=True),
+            rec(index=8, task_failure="stuck", confirmed=False),
+            rec(index=9)]
+    assert [stats.counted_failure(r) for r in stats.normalize(recs)[0]] == ["nods", "collision"] + [None] * 8
+    c = summarize(recs, held_out=[])["per_scenario"]["rl"]["closest"]["s1"]
+    got = {m: c[m]["mean"] for m in ("failures", "nods", "collisions", "unconfirmed", "nods_local", "task_failures",
+                                     "validity", "distinct", "simulated")}
+    assert got == {"failures": 2, "nods": 1, "collisions": 1, "unconfirmed": 2, "nods_local": 1,
+                   "task_failures": 1, "validity": 0.8, "distinct": 2, "simulated": 10}
+
+
+def test_mean_and_sd_over_repeats():
+    recs = [r for rep, n in enumerate((1, 2, 6)) for r in cell("rl", "s1", rep, 6, [("nods", f"x{i}") for i in range(n)])]
+    c = summarize(recs)["per_scenario"]["rl"]["closest"]["s1"]
+    assert c["repeats"] == [0, 1, 2]
+    assert c["failures"]["values"] == [1, 2, 6]
+    assert c["failures"]["mean"] == pytest.approx(3.0)
+    assert c["failures"]["sd"] == pytest.approx(math.sqrt(7.0))  # ((1-3)^2 + (2-3)^2 + (6-3)^2) / 2
+    assert c["seconds_per_scenario"]["mean"] == pytest.approx(2.0)
+    assert c["sims"]["values"] == [7, 8, 12]  # a confirmed failure took two simulations
+
+
+def test_group_totals_sum_scenarios_per_repeat_and_count_distinct_per_scenario():
+    g = "gen:1000000"
+    recs = (cell("rl", "s1", 0, 4, [("nods", "x")]) + cell("rl", "s2", 0, 4, [("nods", "x"), ("collision", "y")])
+            + cell("rl", g, 0, 4, [("nods", "z"), ("nods", "z"), ("collision", "w")])
+            + cell("rl", "s1", 1, 4, []) + cell("rl", "s2", 1, 4, [("collision", "y")]) + cell("rl", g, 1, 4, [("nods", "z")]))
+    groups = summarize(recs, held_out=[g])["groups"]["rl"]["closest"]
+    assert groups["seeds"]["failures"]["values"] == [3, 1]
+    assert groups["seeds"]["failures"]["sd"] == pytest.approx(math.sqrt(2.0))
+    assert groups["held_out"]["failures"]["values"] == [3, 1]
+    assert groups["all"]["failures"]["values"] == [6, 2]
+    assert groups["all"]["failures"]["mean"] == pytest.approx(4.0)
+    assert groups["all"]["nods"]["values"] == [4, 1] and groups["all"]["collisions"]["values"] == [2, 1]
+    # signature x on two scenarios is two distinct failures; z twice on one scenario is one
+    assert groups["seeds"]["distinct"]["values"] == [3, 1]
+    assert groups["all"]["distinct"]["values"] == [5, 2]
+    assert groups["all"]["simulated"]["values"] == [12, 12]
+    assert groups["all"]["scenarios"] == ["s1", "s2", g] and groups["all"]["complete"]
+
+
+def test_distinct_failures_per_cpu_hour():
+    recs = cell("rl", "s1", 0, 4, [("nods", "a"), ("nods", "a"), ("collision", "b")], cpu_seconds=450.0)
+    c = summarize(recs)["per_scenario"]["rl"]["closest"]["s1"]
+    assert c["cpu_seconds"]["mean"] == pytest.approx(1800.0)
+    assert c["distinct_per_cpu_hour"]["mean"] == pytest.approx(4.0)  # 2 distinct in half a CPU-hour
+    s = summarize(cell("rl", "s1", 0, 4, [("nods", "a")], cpu_seconds=None))
+    assert s["per_scenario"]["rl"]["closest"]["s1"]["distinct_per_cpu_hour"]["mean"] is None
+    assert s["missing_fields"] == {"cpu_seconds": 4}
+
+
+# -- statistics -----------------------------------------------------------------------------------
+def test_mann_whitney_and_a12_against_hand_computed_values():
+    r = stats.mann_whitney([3, 4, 5], [0, 1, 2])
+    assert r["u"] == 9 and r["a12"] == 1.0
+    assert r["p"] == pytest.approx(2 / 20)  # exact: 2 of the C(6, 3) rank splits are as extreme
+    r = stats.mann_whitney([10, 11, 12, 13, 14], [0, 1, 2, 3, 4])
+    assert r["a12"] == 1.0 and r["p"] == pytest.approx(2 / 252)
+    r = stats.mann_whitney([2, 2, 2], [2, 2, 2])
+    assert r["a12"] == 0.5 and r["p"] == pytest.approx(1.0)
+    # 1 vs 2,3,4: 0; 2 vs 2: 0.5; 3 vs 2: 1, 3 vs 3: 0.5 -> 2 of 9 pairs
+    assert stats.mann_whitney([1, 2, 3], [2, 3, 4])["a12"] == pytest.approx(2 / 9)
+    assert stats.mann_whitney([0, 1, 2], [3, 4, 5])["a12"] == 0.0
+    assert stats.mann_whitney([5], [1]) == {"u": None, "p": None, "a12": None}
+
+
+def test_statistics_between_methods_and_ratio_over_zero():
+    recs = []
+    for rep, (x, y) in enumerate(((3, 0), (4, 1), (5, 2))):
+        recs += cell("rl", "s1", rep, 6, [("collision", f"c{i}") for i in range(x)])
+        recs += cell("decictor", "s1", rep, 6, [("nods", f"n{i}") for i in range(y)])
+        recs += cell("random_delta", "s1", rep, 6, [])
+    s = summarize(recs, held_out=[])
+    row = stats.find_comparison(s, "rl", "decictor", "closest", "all")
+    assert (row["n_x"], row["n_y"], row["mean_x"], row["mean_y"]) == (3, 3, 4.0, 1.0)
+    assert row["ratio"] == 4.0 and row["a12"] == 1.0 and row["p"] == pytest.approx(0.1)
+    zero = stats.find_comparison(s, "rl", "random_delta", "closest", "all")
+    assert zero["ratio"] is None and "Random-delta mean is 0" in zero["note"]
+    assert "- (denominator 0)" in eval_report.statistics_markdown(s["statistics"]["groups"])
+    per = [r for r in s["statistics"]["per_scenario"] if (r["x"], r["y"]) == ("rl", "decictor")]
+    assert len(per) == 1 and per[0]["scenario"] == "s1" and per[0]["a12"] == 1.0
+    ordering = stats.find_comparison(s, "decictor", "random_delta", "closest", "all")
+    assert ordering["measure"] == "nods" and ordering["mean_x"] == 1.0
+
+
+# -- targets --------------------------------------------------------------------------------------
+def test_targets_met_with_the_numbers():
+    t = summarize(full_dataset())["targets"]
+    assert t["protocol"] == {"met": True, "repeats_min": 5, "repeats_required": 5, "held_out_scenarios": 10,
+                             "held_out_required": 10, "budgets": [4.0], "equal_budget": True}
+    steps = t["nods_ordering"]["per_placement"]["closest"]["steps"]
+    assert [(s["mean_x"], s["mean_y"], s["a12"], s["met"]) for s in steps] == [(12.0, 6.0, 1.0, True),
+                                                                              (6.0, 2.0, 1.0, True)]
+    rg = t["rl_vs_ga"]["per_placement"]["closest"]
+    assert rg["mean_rl"] == pytest.approx(36.4) and rg["mean_ga"] == 12.0  # 36, 37, 36, 37, 36
+    assert rg["ratio"] == pytest.approx(36.4 / 12, abs=1e-4) and rg["p"] < 0.05 and rg["met"]
+    assert t["validity"]["met"] and t["validity"]["methods"]["rl"]["closest"] == 1.0
+    assert t["validity"]["not_required"] == ["random"]
+    assert t["failure_on_every_seed"]["per_seed"]["s2"] == {"any": 30, "rl": 15}  # (3 + 1 + 1 + 1) x 5
+    assert t["met"] is True
+
+
+def test_targets_not_met_say_where():
+    t = summarize(full_dataset(rd_scenarios=12, rl_on_s2=False))["targets"]
+    step1 = t["nods_ordering"]["per_placement"]["closest"]["steps"][0]
+    assert (step1["mean_x"], step1["mean_y"], step1["a12"], step1["met"]) == (12.0, 12.0, 0.5, False)
+    assert not t["nods_ordering"]["met"]
+    assert t["failure_on_every_seed"]["any_method"] == {"met": True, "without": []}
+    assert t["failure_on_every_seed"]["rl"] == {"met": False, "without": ["s2"]}
+    assert t["met"] is False
+    t = summarize(full_dataset(ga_nods=0))["targets"]
+    rg = t["rl_vs_ga"]["per_placement"]["closest"]
+    assert rg["ratio"] is None and "mean is 0" in rg["note"]
+    assert not t["nods_ordering"]["met"]  # GA found no NoDS: the ordering fails
+    few = [r for r in full_dataset() if r["repeat"] < 2 and r["scenario"] in SEEDS + HELD[:3]]
+    pr = summarize(few, held_out=HELD[:3])["targets"]["protocol"]
+    assert (pr["met"], pr["repeats_min"], pr["held_out_scenarios"]) == (False, 2, 3)
+
+
+# -- partial data, files --------------------------------------------------------------------------
+def test_missing_methods_placements_and_one_repeat_give_dashes():
+    recs = cell("rl", "s1", 0, 3, [("nods", "a")]) + cell("decictor", "s1", 0, 3, [])
+    s = summarize(recs, methods=["rl", "decictor", "random"], placements=["closest", "uniform"], held_out=[])
+    c = s["groups"]["rl"]["closest"]["all"]
+    assert c["failures"]["mean"] == 1.0 and c["failures"]["sd"] is None
+    assert c["missing_scenarios"] == ["s2"] and not c["complete"]
+    row = stats.find_comparison(s, "rl", "decictor", "closest", "all")
+    assert (row["p"], row["a12"], row["u"]) == (None, None, None) and "fewer than 2 repeats" in row["note"]
+    assert "no data for random" in stats.find_comparison(s, "rl", "random", "closest", "all")["note"]
+    assert s["targets"]["met"] is False
+    head = eval_report.headline_markdown(s).splitlines()
+    assert head[0].startswith("Mean ± sd over 1 repeat(s)")
+    assert len(head) == 4 + 3 * 2  # caption, blank, header, rule, one row per method x placement
+    rl_closest = next(line for line in head if line.startswith("| RL | closest"))
+    assert "1.0 ± -*" in rl_closest
+    assert next(line for line in head if line.startswith("| Random | uniform")).count("| - ") >= 10
+    text = eval_report.table_markdown(s)
+    assert "## Held-out scenarios" in text and "- | - |" in text
+
+
+def test_report_files_are_written(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    recs = full_dataset() + [r | {"placement": "uniform"} for r in full_dataset(ga_nods=2)]
+    summary = eval_report.build_summary(recs, {"methods": ["rl", "decictor", "random_delta", "random"],
+                                               "placements": ["closest", "uniform"], "budget": 4, "repeats": 5},
+                                        SEEDS, HELD)
+    table = eval_report.write_report(recs, summary, tmp_path)
+    assert (tmp_path / "table.md").read_text() == table
+    for part in ("## Headline", "## Seed scenarios", "## All scenarios", "## Failures per scenario",
+                 "## Statistics", "## Targets", "| RL | uniform | 4 |"):
+        assert part in table
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["targets"]["met"] is True and saved["groups"]["rl"]["uniform"]["all"]["failures"]["mean"] == 36.4
+    for name in ("cumulative_failures.png", "per_scenario.png"):
+        img = plt.imread(tmp_path / name)
+        assert img.ndim == 3 and img.shape[0] > 200 and img.shape[1] > 400
+        assert img[..., :3].std() > 0.05  # not a blank canvas
+
+
+def test_cumulative_curves_mean_and_band():
+    from scipy.stats import t as student
+
+    recs = (cell("rl", "s1", 0, 4, []) + cell("rl", "s1", 1, 4, []))
+    for r in recs:  # repeat 0 fails at 0 and 2, repeat 1 at 1
+        if (r["repeat"], r["index"]) in ((0, 0), (0, 2), (1, 1)):
+            r.update(failure="nods", confirmed=True, signature=f"s{r['index']}")
+    s = summarize(recs, held_out=[])
+    c = stats.cumulative_curves(recs, s)["closest"]["seeds"]["rl"]
+    assert c["x"] == [1, 2, 3, 4] and c["n"] == 2
+    assert c["mean"] == pytest.approx([0.5, 1.0, 1.5, 1.5])
+    half = student.ppf(0.975, 1) * math.sqrt(0.5) / math.sqrt(2)  # sd of (1, 0) over sqrt(2)
+    assert c["hi"][0] == pytest.approx(0.5 + half) and c["lo"][0] == 0.0  # clipped at 0
+    assert c["lo"][1] == pytest.approx(1.0) and c["hi"][1] == pytest.approx(1.0)  # both repeats at 1
+    one = stats.cumulative_curves(recs[:4], summarize(recs[:4], held_out=[]))["closest"]["seeds"]["rl"]
+    assert one["lo"] is None and one["mean"] == [1.0, 1.0, 2.0, 2.0]
+
+
+def test_rl_training_episodes_as_second_budget(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "summary.json").write_text(json.dumps({"episodes": 1234, "train_seconds": 60.0}))
+    recs = cell("rl", "s1", 0, 2, []) + cell("decictor", "s1", 0, 2, [])
+    s = eval_report.build_summary(recs, {"methods": ["rl", "decictor"], "placements": ["closest"],
+                                         "model": str(run / "model.zip")}, SEEDS, [])
+    assert s["training"]["rl"]["episodes"] == 1234 and s["training"]["decictor"] is None
+    head = eval_report.headline_markdown(s)
+    assert "| RL | closest | 2 | 1,234 |" in head and "| Decictor-GA | closest | 2 | 0 |" in head
+    (run / "summary.json").write_text(json.dumps({"timesteps": 5}))
+    with pytest.raises(RecordError, match=r"summary\.json: field 'episodes'"):
+        eval_report.rl_training(str(run / "model.zip"))
+    assert eval_report.rl_training(str(tmp_path / "elsewhere" / "model.zip")) is None
+
+
+def test_bad_records_name_the_record_and_field():
+    good = rec()
+    for bad, pattern in (({"valid": None}, r"record 2: field 'valid': expected bool"),
+                         ({"failure": "crash"}, r"record 2: field 'failure': expected one of"),
+                         ({"repeat": "1"}, r"record 2: field 'repeat': expected int"),
+                         ({"seconds": -1.0}, r"record 2: field 'seconds': expected a finite number"),
+                         ({"scenario_kind": "train"}, r"record 2: field 'scenario_kind'")):
+        with pytest.raises(RecordError, match=pattern):
+            stats.normalize([good, good | bad], "out/records.jsonl")
+    with pytest.raises(RecordError, match=r"record 2: field 'index' is missing"):
+        stats.normalize([good, {k: v for k, v in good.items() if k != "index"}])
+    with pytest.raises(RecordError, match=r"scenario 's1': field 'scenario_kind'"):
+        stats.summarize([good, good | {"scenario_kind": "held_out"}])
+
+
+def test_old_records_default_placement_and_kind():
+    old = [{k: v for k, v in rec(scenario=s).items() if k not in ("placement", "scenario_kind")}
+           for s in ("s1", "left_turn~v1000001", "gen:1000005")]
+    rows, missing = stats.normalize(old)
+    assert [r["placement"] for r in rows] == ["closest"] * 3
+    assert [r["scenario_kind"] for r in rows] == ["seed", "held_out", "held_out"]
+    assert missing == {"placement": 3, "scenario_kind": 3}
+
+
+def test_report_cli_rerenders_and_refuses_bad_records(tmp_path, capsys):
+    recs = cell("rl", "s1", 0, 3, [("nods", "a")]) + cell("rl", "s1", 1, 3, [])
+    (tmp_path / "records.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+    (tmp_path / "eval_config.json").write_text(json.dumps({"methods": ["rl"], "placements": ["closest"],
+                                                           "scenarios": ["s1"], "held_out": [], "budget": 3}))
+    assert eval_report.main([str(tmp_path)]) == 0
+    assert "| RL | closest | 3 | - | 0.5 ± 0.7 |" in capsys.readouterr().out
+    assert all((tmp_path / n).stat().st_size > 0 for n in ("summary.json", "table.md", "cumulative_failures.png",
+                                                            "per_scenario.png"))
+    with (tmp_path / "records.jsonl").open("a") as f:
+        f.write(json.dumps(recs[0] | {"valid": "yes"}) + "\n")
+    assert eval_report.main([str(tmp_path)]) == 2
+    assert "records.jsonl: record 7: field 'valid'" in capsys.readouterr().err
+
+
+def test_evaluation_config_placements(tmp_path):
+    from agents.evaluate import load_eval_config, parse_args
+    from deft_gym.config import ConfigError
+
+    base = ["--methods", "random", "--out", str(tmp_path)]
+    assert load_eval_config(parse_args(base)).placements == ["closest", "uniform"]
+    assert load_eval_config(parse_args([*base, "--placements", "uniform"])).placements == ["uniform"]
+    with pytest.raises(ConfigError, match="placements"):
+        load_eval_config(parse_args([*base, "--placements", "sideways"]))
