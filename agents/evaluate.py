@@ -7,8 +7,8 @@ Methods: ``rl`` (the trained adversary, stochastic actions), ``decictor`` (Decic
 ``random_delta``, ``random`` (see :mod:`agents.search`) and ``random_online`` (uniform random
 actions in the adversary env: the env without learning, an ablation).
 
-Every (method, scenario, repeat) is one job of ``budget`` simulated scenarios; jobs run in
-parallel worker processes. Outputs in ``--out``:
+Every (method, placement rule, scenario, repeat) is one job of ``budget`` simulated scenarios;
+jobs run in parallel worker processes. Outputs in ``--out``:
 
 - ``records.jsonl`` - one line per simulated scenario (append-only; a rerun with the same
   ``--out`` skips the jobs already complete, so an interrupted evaluation resumes);
@@ -20,9 +20,11 @@ parallel worker processes. Outputs in ``--out``:
   Vargha-Delaney A12 between methods; the check of issue 17's targets; RL's training episodes as a
   second budget column. ``python -m agents.eval_report OUT`` re-renders them from the records.
 
-Held-out variants (``--variants K``) are the first K *robust* variants ``<seed>~v<1000000+i>``
-(:func:`deft_gym.scenarios.variants.perturb`, seeds the adversary never trains on; robust: their unmutated
-runs complete consistently under eight jitter seeds, see :func:`deft_gym.search.context.robust`).
+Held-out scenarios (``--held-out K``, default 10) are the first K *robust* generated scenarios
+``gen:<seed>`` with seeds from 1000000 on (:mod:`deft_gym.scenarios.generate`; a model trained on
+any of them is refused); ``--variants K`` adds the first K robust perturbed variants
+``<seed>~v<1000000+i>`` of each seed scenario. Robust: their unmutated runs complete consistently
+under eight jitter seeds (:func:`deft_gym.search.context.robust`).
 """
 
 from __future__ import annotations
@@ -58,7 +60,9 @@ class EvalConfig(BaseModel):
     budget: int = Field(50, ge=1)
     repeats: int = Field(1, ge=1)
     scenarios: list[str] = Field(default_factory=lambda: list(SEED_SCENARIOS))
-    variants: int = Field(0, ge=0, description="held-out variants per seed scenario")
+    held_out: int = Field(10, ge=0, description="held-out generated scenarios gen:<seed> (seeds from "
+                          "1000000 on, never trained on; the first robust ones)")
+    variants: int = Field(0, ge=0, description="held-out perturbed variants per seed scenario")
     model: str | None = None
     deterministic: bool = False
     workers: int = Field(2, ge=1)
@@ -78,7 +82,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--budget", type=int, default=None, help="simulated scenarios per method, scenario and repeat")
     p.add_argument("--repeats", type=int, default=None)
     p.add_argument("--scenarios", default=None, help="comma-separated seed scenarios (names or YAML paths)")
-    p.add_argument("--variants", type=int, default=None, help="held-out variants per seed scenario")
+    p.add_argument("--held-out", type=int, default=None, dest="held_out",
+                   help="held-out generated scenarios (default 10)")
+    p.add_argument("--variants", type=int, default=None, help="held-out perturbed variants per seed scenario")
     p.add_argument("--placements", default=None, help="comma-separated placement rules, of closest,uniform")
     p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl'")
     p.add_argument("--deterministic", action="store_true", default=None, help="greedy RL actions")
@@ -97,7 +103,7 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
     if args.config is not None:
         name = str(args.config)
         data = load_mapping(args.config)
-    for key in ("budget", "repeats", "variants", "model", "deterministic", "workers", "seed", "log_failures"):
+    for key in ("budget", "repeats", "held_out", "variants", "model", "deterministic", "workers", "seed", "log_failures"):
         if getattr(args, key) is not None:
             data[key] = getattr(args, key)
     for key in ("methods", "scenarios", "placements"):
@@ -130,14 +136,16 @@ _POLICIES: dict[str, Any] = {}
 
 
 def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
-    """``budget`` simulated scenarios of one method on one scenario (in a worker process)."""
+    """``budget`` simulated scenarios of one method on one scenario under one placement rule (in a
+    worker process); one record per primary simulation (schema: :mod:`agents.stats`)."""
     from deft_gym.envs.adversary import load_env_config
 
-    env_cfg = load_env_config(job["env"])
+    env_cfg = load_env_config(job["env"], placement=job["placement"])
     method, scenario, budget = job["method"], job["scenario"], job["budget"]
     seed = job["seed"]
     recs: list[dict[str, Any]] = []
-    base = {"method": method, "scenario": scenario, "repeat": job["repeat"]}
+    base = {"method": method, "placement": job["placement"], "scenario": scenario,
+            "scenario_kind": job["scenario_kind"], "repeat": job["repeat"]}
     if method in ("rl", "random_online"):
         recs = _run_rl(job, env_cfg, progress)
     else:
@@ -149,7 +157,7 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
         def log_dir(i: int) -> Path | None:
             return (log_root / f"{i:05d}") if job["log_failures"] else None
 
-        for rec in search(method, ctx, budget, seed, job["max_added"], log_dir):
+        for rec in search(method, ctx, budget, seed, job["max_added"], log_dir, rule=job["placement"]):
             if job["log_failures"]:
                 _keep_or_drop(log_dir(rec["index"]), rec)
             recs.append({**base, **rec})
@@ -162,8 +170,9 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
 
 
 def _log_root(job: dict[str, Any]) -> Path:
-    """Where one job's episode logs go: ``OUT/logs/<method>/<scenario>/r<repeat>``."""
-    return Path(job["out"]) / "logs" / job["method"] / job["scenario"].replace("~", "_") / f"r{job['repeat']}"
+    """Where one job's episode logs go: ``OUT/logs/<method>-<placement>/<scenario>/r<repeat>``."""
+    name = job["scenario"].replace("~", "_").replace(":", "_")
+    return Path(job["out"]) / "logs" / f"{job['method']}-{job['placement']}" / name / f"r{job['repeat']}"
 
 
 def _keep_or_drop(d: Path | None, rec: dict[str, Any]) -> None:
@@ -183,11 +192,14 @@ def _keep_or_drop(d: Path | None, rec: dict[str, Any]) -> None:
 
 
 def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, Any]]:
-    import time as _time
-
+    """``budget`` episodes of the adversary env (one scenario each) with the trained policy
+    (``rl``) or uniform random actions (``random_online``); failures re-checked as the search
+    baselines' are (:func:`agents.search.confirm`)."""
+    import numpy as np
     import torch
     from stable_baselines3 import A2C, PPO
 
+    from agents.search import confirm, record_of
     from deft_gym.envs.adversary import AdversaryEnv
 
     torch.set_num_threads(1)
@@ -210,9 +222,10 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
                                      "keep_passing": 0.0, "extract": True})
     env = AdversaryEnv(config=cfg)
     env.action_space.seed(job["seed"])
+    rng = np.random.default_rng([job["seed"], 104729])
     recs = []
     for i in range(job["budget"]):
-        t0 = _time.perf_counter()
+        w0, c0 = time.perf_counter(), time.process_time()
         obs, _ = env.reset(seed=job["seed"] * 100_003 + i)
         done = False
         info: dict[str, Any] = {}
@@ -222,13 +235,14 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
             else:
                 action, _ = model.predict(obs, deterministic=job["deterministic"])
             obs, _, done, _, info = env.step(action)
-        rec = {"index": i, **{k: info.get(k) for k in ("outcome", "collision", "nods", "iou", "f_p", "f_b", "valid",
-                                                        "invasive", "failure", "signature", "added", "sim_time",
-                                                        "jitter_seed")},
-               "seconds": round(_time.perf_counter() - t0, 4)}
-        if info.get("failure"):
-            rec["scenario_equivalent"] = env.equivalent_scenario()
-            rec["collision_detail"] = info.get("collision_detail")
+        v = env.last_verdict
+        eq = env.equivalent_scenario()
+        specs = eq["scenario"]["participants"][len(env.ctx.scenario.participants):]
+        confirmed, _, _ = confirm(env.ctx, v, specs, int(rng.integers(2**31 - 1)), eq["added_at"])
+        rec = record_of(v, i, time.perf_counter() - w0, time.process_time() - c0, 1 + (confirmed is not None),
+                        confirmed, int(info["jitter_seed"]), int(info["added"]), float(info["sim_time"]))
+        if v.failure or v.task_failure:
+            rec["scenario_equivalent"] = eq
             rec["ops"] = env.ops
             if info.get("log"):
                 rec["log"], rec["extraction"] = info["log"], info.get("extraction")
@@ -254,17 +268,30 @@ def main(argv: list[str] | None = None) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     seeds = list(cfg.scenarios)
+    env = model_env_config(cfg.model)
     held_out = []
+    if cfg.held_out:
+        from deft_gym.scenarios.generate import HELD_OUT_BASE as GEN_BASE
+        from deft_gym.scenarios.generate import disjoint, parse_spec
+        from deft_gym.search.context import held_out_generated
+
+        print(f"choosing {cfg.held_out} robust held-out generated scenario(s) ...", flush=True)
+        held_out += held_out_generated(cfg.held_out, GEN_BASE)
+        trained = [parse_spec(s) for s in env.get("scenarios", []) if isinstance(s, str)]
+        try:
+            disjoint([t for t in trained if t is not None], [parse_spec(h) for h in held_out])  # type: ignore[misc]
+        except ValueError as err:
+            print(f"error: {cfg.model}: {err}", file=sys.stderr)
+            return 2
     if cfg.variants:
         from deft_gym.search.context import held_out_variants
 
         print(f"choosing {cfg.variants} robust held-out variant(s) per seed ...", flush=True)
         for s in seeds:
             held_out += held_out_variants(s, cfg.variants, HELD_OUT_BASE) if "~v" not in s else []
-    env = model_env_config(cfg.model)
     env["max_added"] = env.get("max_added", cfg.max_added)
     rec_path = out / "records.jsonl"
-    done: dict[tuple[str, str, int], int] = defaultdict(int)
+    done: dict[tuple[str, str, str, int], int] = defaultdict(int)
     records: list[dict[str, Any]] = []
     if rec_path.exists():  # resume: keep what earlier runs simulated with the same simulation code
         from deft_gym.search.trace import code_fingerprint
@@ -276,18 +303,22 @@ def main(argv: list[str] | None = None) -> int:
         if stale:
             print(f"{stale} earlier record(s) ran other simulation code: simulating them again")
         for r in records:
-            done[(r["method"], r["scenario"], r["repeat"])] += 1
+            done[(r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"])] += 1
     jobs = []
+    kinds = {**{s: "seed" for s in seeds}, **{h: "held_out" for h in held_out}}
     for rep in range(cfg.repeats):
         for scn in seeds + held_out:
             for m in cfg.methods:
-                if done[(m, scn, rep)] >= cfg.budget:
-                    continue
-                records = [r for r in records if (r["method"], r["scenario"], r["repeat"]) != (m, scn, rep)]
-                jobs.append({"method": m, "scenario": scn, "repeat": rep, "budget": cfg.budget,
-                             "seed": cfg.seed * 1000 + rep, "env": env, "model": cfg.model,
-                             "deterministic": cfg.deterministic, "out": str(out), "log_failures": cfg.log_failures,
-                             "max_added": cfg.max_added})
+                for pl in cfg.placements:
+                    key = (m, pl, scn, rep)
+                    if done[key] >= cfg.budget:
+                        continue
+                    records = [r for r in records
+                               if (r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"]) != key]
+                    jobs.append({"method": m, "placement": pl, "scenario": scn, "scenario_kind": kinds[scn],
+                                 "repeat": rep, "budget": cfg.budget, "seed": cfg.seed * 1000 + rep, "env": env,
+                                 "model": cfg.model, "deterministic": cfg.deterministic, "out": str(out),
+                                 "log_failures": cfg.log_failures, "max_added": cfg.max_added})
     write_json_atomic(out / "eval_config.json", {**cfg.model_dump(), "held_out": held_out})
     # rewrite the journal without partial jobs, then append as jobs finish
     write_atomic(rec_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))

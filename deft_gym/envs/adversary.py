@@ -441,6 +441,7 @@ class AdversaryEnv(gym.Env):
         o = result.outcome
         trace = self.recorder.trace(o.outcome, o.sim_time)
         verdict = ctx.oracle.judge(trace, o.collision.as_dict() if o.collision else None)
+        self.last_verdict = verdict
         rw = cfg.reward
         r = 0.0
         if not verdict.valid:

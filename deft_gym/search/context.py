@@ -137,3 +137,19 @@ def held_out_variants(seed_name: str, count: int, base: int = 1_000_000, tries: 
         except (ValueError, ConfigError):
             continue
     return out
+
+
+def held_out_generated(count: int, base: int, tries: int = 200) -> list[str]:
+    """The first ``count`` robust generated scenarios ``gen:<base + i>`` (their reference run
+    completes and their unmutated runs stay consistent under timing noise)."""
+    out: list[str] = []
+    for i in range(tries):
+        if len(out) >= count:
+            break
+        name = f"gen:{base + i}"
+        try:
+            if robust(seed_context(name)):
+                out.append(name)
+        except (ValueError, ConfigError):
+            continue
+    return out
