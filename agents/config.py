@@ -31,6 +31,8 @@ class TrainConfig(BaseModel):
     checkpoint_every: int = Field(10_000, ge=1, description="env steps between checkpoints")
     algo_kwargs: dict[str, Any] = Field(default_factory=dict)
     policy_kwargs: dict[str, Any] = Field(default_factory=lambda: {"net_arch": [128, 128]})
+    generated: int = Field(0, ge=0, description="robust generated scenarios gen:<seed> (seeds from 0 on) "
+                           "added to env.scenarios for training; held-out evaluation seeds start at 1000000")
     env: AdversaryConfig = AdversaryConfig()
     log_episodes: bool = Field(True, description="record every episode's MCAP log (failures -> extractor)")
 

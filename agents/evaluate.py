@@ -273,10 +273,10 @@ def main(argv: list[str] | None = None) -> int:
     if cfg.held_out:
         from deft_gym.scenarios.generate import HELD_OUT_BASE as GEN_BASE
         from deft_gym.scenarios.generate import disjoint, parse_spec
-        from deft_gym.search.context import held_out_generated
+        from deft_gym.search.context import robust_generated
 
         print(f"choosing {cfg.held_out} robust held-out generated scenario(s) ...", flush=True)
-        held_out += held_out_generated(cfg.held_out, GEN_BASE)
+        held_out += robust_generated(cfg.held_out, GEN_BASE)
         trained = [parse_spec(s) for s in env.get("scenarios", []) if isinstance(s, str)]
         try:
             disjoint([t for t in trained if t is not None], [parse_spec(h) for h in held_out])  # type: ignore[misc]

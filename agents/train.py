@@ -92,11 +92,20 @@ def failure_callback(out: Path | None) -> Any:
             super().__init__()
             self.counts: Counter[str] = Counter()
             self.t0 = time.time()
+            self.cpu0 = time.process_time()
+            self.worker_cpu: dict[int, float] = {}  # env process id -> its CPU seconds so far
+
+        def cpu_seconds(self) -> float:
+            """CPU seconds of training so far: this process (updates) plus every env process."""
+            own = time.process_time() - self.cpu0
+            return own + sum(v for pid, v in self.worker_cpu.items() if pid != os.getpid())
 
         def _on_step(self) -> bool:
             for info, done in zip(self.locals["infos"], self.locals["dones"]):
                 if not done or "outcome" not in info:
                     continue
+                if "pid" in info:
+                    self.worker_cpu[int(info["pid"])] = float(info["process_cpu"])
                 c = self.counts
                 c["episodes"] += 1
                 c[f"outcome_{info['outcome']}"] += 1
@@ -111,7 +120,8 @@ def failure_callback(out: Path | None) -> Any:
                 self.logger.record_mean("adversary/iou", float(info.get("iou", 1.0)))
                 if out is not None and c["episodes"] % 50 == 0:
                     append_jsonl(out / "progress.jsonl", {"timesteps": self.num_timesteps,
-                                                          "seconds": round(time.time() - self.t0, 1), **c})
+                                                          "seconds": round(time.time() - self.t0, 1),
+                                                          "cpu_seconds": round(self.cpu_seconds(), 1), **c})
             return True
 
     return FailureStats()
@@ -160,6 +170,14 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    if cfg.generated:
+        from deft_gym.search.context import robust_generated
+
+        print(f"choosing {cfg.generated} robust generated training scenario(s) ...", flush=True)
+        names = robust_generated(cfg.generated, 0)
+        cfg = cfg.model_copy(update={"env": cfg.env.model_copy(update={"scenarios": list(cfg.env.scenarios) + names}),
+                                     "generated": 0})
+        print(f"training on {len(cfg.env.scenarios)} scenarios ({len(names)} generated)", flush=True)
     out = args.out or Path("runs/adversary") / cfg.name
     if args.resume is None and any(out.glob("episodes-*.jsonl")):
         print(f"error: {out} already holds a training run (episodes-*.jsonl); continue it with --resume "
@@ -182,10 +200,11 @@ def main(argv: list[str] | None = None) -> int:
         model = algo_cls(cfg.policy, vec_env, seed=cfg.seed, tensorboard_log=str(out / "tb"), device="cpu",
                          policy_kwargs=cfg.policy_kwargs, verbose=0, **cfg.algo_kwargs)
     remaining = max(cfg.timesteps - (model.num_timesteps if args.resume else 0), 0)
+    stats = failure_callback(out)
     callbacks = CallbackList([
         CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.n_envs, 1), save_path=str(out / "checkpoints"),
                            name_prefix=cfg.algo),
-        failure_callback(out),
+        stats,
     ])
     signal.signal(signal.SIGTERM, _interrupt)  # `kill PID` stops training like Ctrl-C: model saved
     t0 = time.time()
@@ -208,7 +227,9 @@ def main(argv: list[str] | None = None) -> int:
                     "interrupted": interrupted,
                     "env_steps_per_second": round((model.num_timesteps - steps0) / max(seconds, 1e-9), 2),
                     "episodes_this_session": summary["episodes"] - episodes0,
-                    "episodes_per_hour": round((summary["episodes"] - episodes0) / max(seconds, 1e-9) * 3600, 1)})
+                    "episodes_per_hour": round((summary["episodes"] - episodes0) / max(seconds, 1e-9) * 3600, 1),
+                    "cpu_seconds": round(stats.cpu_seconds(), 1),
+                    "scenarios_per_cpu_hour": round(stats.counts["episodes"] / max(stats.cpu_seconds(), 1e-9) * 3600, 1)})
     write_json_atomic(out / "summary.json", summary)
     print(json.dumps({k: v for k, v in summary.items() if k not in ("per_scenario", "extracted_tests")}, indent=1))
     print(f"model: {out / 'model.zip'}")

@@ -38,7 +38,9 @@ and the log / extraction results when logging.
 from __future__ import annotations
 
 import math
+import os
 import shutil
+import time
 from pathlib import Path
 from typing import Any, Literal
 
@@ -52,6 +54,7 @@ from deft_gym.config import load_mapping, validate
 from deft_gym.envs.sink import EpisodeSink
 from deft_gym.scenarios.scenario import with_participants
 from deft_gym.search.context import SEED_SCENARIOS, SeedContext, robust, seed_context
+from deft_gym.search.episode import run_scenario
 from deft_gym.search.feasible import FeasibleConfig, Layout
 from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH
 from deft_gym.search.placement import Placer, first_window
@@ -112,15 +115,27 @@ class AdversaryConfig(BaseModel):
     threshold: float = Field(0.6, gt=0.0, lt=1.0)
     reference_seed: int = 0
     log_dir: str | None = None
+    record: Literal["all", "failures"] = Field("failures", description="with log_dir: record every episode "
+                                               "as it runs (all), or only the kept ones (failures and a "
+                                               "keep_passing sample) by replaying them exactly afterwards")
     keep_passing: float = Field(0.02, ge=0.0, le=1.0)
     extract: bool = True
     worker: int = 0
 
     def context(self, scenario: str | Path) -> SeedContext:
         """The :class:`SeedContext` of a scenario under this config's feasible areas, reference
-        seed and decision oracle."""
-        return seed_context(scenario, self.feasible, reference_seed=self.reference_seed, grid=self.grid,
-                            threshold=self.threshold)
+        seed and decision oracle (memoised per process by name: resolving a name reads files)."""
+        key = (str(scenario), self.feasible, self.reference_seed, self.grid, self.threshold)
+        ctx = _CONTEXTS.get(key)
+        if ctx is None:
+            if len(_CONTEXTS) > 512:
+                _CONTEXTS.clear()
+            ctx = _CONTEXTS[key] = seed_context(scenario, self.feasible, reference_seed=self.reference_seed,
+                                                grid=self.grid, threshold=self.threshold)
+        return ctx
+
+
+_CONTEXTS: dict[tuple[Any, ...], SeedContext] = {}
 
 
 def load_env_config(source: dict[str, Any] | str | Path | AdversaryConfig | None = None,
@@ -165,6 +180,7 @@ class AdversaryEnv(gym.Env):
         self._finished = False
         self.ctx: SeedContext | None = None
         self.episodes = 0
+        self._cpu0 = time.process_time()
 
     # -- episode ------------------------------------------------------------------------------
     def _context(self) -> SeedContext:
@@ -198,7 +214,8 @@ class AdversaryEnv(gym.Env):
             self.ctx = self._context()
         ctx = self.ctx
         self.jitter_seed = int(options.get("jitter_seed", self.np_random.integers(2**31 - 1)))
-        self.log_dir = self.sink.episode_dir(ctx.name.replace("~", "_")) if self.sink else None
+        self.log_dir = (self.sink.episode_dir(self._tag()) if self.sink is not None and self.cfg.record == "all"
+                        else None)
         self.sim = Simulation(ctx.scenario, ctx.ads, jitter_seed=self.jitter_seed, out_dir=self.log_dir)
         self.added_ids: set[str] = set()
         self.added_at: dict[str, float] = {}
@@ -456,16 +473,37 @@ class AdversaryEnv(gym.Env):
             if o.outcome == "completed" and not verdict.nods and cfg.objective in ("nods", "both"):
                 r += rw.iou_shaping * (1.0 - verdict.iou)
         info = {**verdict.as_dict(), "scenario": ctx.name, "jitter_seed": self.jitter_seed,
+                "pid": os.getpid(), "process_cpu": round(time.process_time() - self._cpu0, 3),
                 "added": len(self.layout.placed), "sim_time": round(o.sim_time, 3),
                 "wall_time": round(result.wall_time, 3)}
-        if self.sink is not None and self.log_dir is not None:
+        if self.sink is not None:
             details = {"scenario_equivalent": self.equivalent_scenario(), "ops": self.ops,
                        "reference_seed": cfg.reference_seed}
-            done = self.sink.finish(Path(self.log_dir), {k: info[k] for k in info if k != "collision_detail"}
-                                    | {"collision_detail": verdict.collision_detail}, details)
+            record = {k: info[k] for k in info if k != "collision_detail"} | {"collision_detail": verdict.collision_detail}
+            if self.log_dir is not None:  # recorded as it ran
+                done = self.sink.finish(Path(self.log_dir), record, details)
+            else:
+                done = self._replay_into_sink(record, details, verdict)
             info["log"] = done.get("dir")
             info["extraction"] = done.get("extraction")
         return r, info
+
+    def _tag(self) -> str:
+        return self.ctx.name.replace("~", "_").replace(":", "_")
+
+    def _replay_into_sink(self, record: dict[str, Any], details: dict[str, Any], verdict: Any) -> dict[str, Any]:
+        """Record a kept episode by replaying it exactly (same scenario, additions at the same
+        times, same jitter seed) into a fresh episode folder; the rest only reach the journal."""
+        keep = self.sink.keeps(record)
+        if not keep:
+            return self.sink.finish(None, record, details, keep=False)
+        d = self.sink.episode_dir(self._tag())
+        eq = details["scenario_equivalent"]
+        specs = eq["scenario"]["participants"][len(self.ctx.scenario.participants):]
+        again = run_scenario(self.ctx, specs, eq["jitter_seed"], out_dir=d, added_at=eq["added_at"]).verdict
+        if again.failure != verdict.failure or abs(again.iou - verdict.iou) > 1e-9:
+            details = {**details, "replay_differs": {"failure": again.failure, "iou": again.iou}}
+        return self.sink.finish(d, record, details, keep=True)
 
     def equivalent_scenario(self) -> dict[str, Any]:
         """``{"scenario", "added_at", "jitter_seed"}``: the seed scenario plus every added
@@ -528,14 +566,14 @@ class AdversaryEnv(gym.Env):
 
     def _closest_static(self, anchors: np.ndarray) -> list[float]:
         """Per anchor and side: smallest feasible |lateral| of a cone, normalised (1.5: none)."""
-        lats = np.arange(1.2, 6.01, 0.3)
+        lats = np.arange(1.2, 6.01, 0.6)
         n_a, n_l = len(anchors), len(lats)
         sig = np.repeat(anchors, 2 * n_l)
         lat = np.tile(np.concatenate([-lats, lats]), n_a)
         xy, h = self.ctx.path.offset(sig, lat)
         ok = self.layout.static_ok(xy[:, 0], xy[:, 1], h, 0.6, 0.6).reshape(n_a, 2, n_l)
         first = np.where(ok.any(axis=2), lats[np.argmax(ok, axis=2)], 7.5)
-        return ((first - 1.2) / 4.0).ravel().tolist()
+        return ((first - 1.2) / 4.0).ravel().tolist()  # 7.5 (none) -> 1.575
 
     def _nearest(self, x: float, y: float, sigma_e: float) -> list[float]:
         parts = self.sim.world.present_participants()

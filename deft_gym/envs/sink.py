@@ -55,16 +55,26 @@ class EpisodeSink:
         d.mkdir(parents=True)
         return d
 
-    def finish(self, episode_dir: Path, record: dict[str, Any], details: dict[str, Any]) -> dict[str, Any]:
-        """Extract / keep / delete; returns what was done (also added to the journal line)."""
+    def keeps(self, record: dict[str, Any]) -> bool:
+        """Whether the episode's log is kept: always for a failure, with probability
+        ``keep_passing`` otherwise (one draw of the sink's RNG)."""
+        return bool(record.get("failure")) or bool(self.rng.random() < self.keep_passing)
+
+    def finish(self, episode_dir: Path | None, record: dict[str, Any], details: dict[str, Any],
+               keep: bool | None = None) -> dict[str, Any]:
+        """Extract / keep / delete; returns what was done (also added to the journal line).
+        ``keep``: decided earlier with :meth:`keeps` (a log recorded after the fact, by replay);
+        ``episode_dir`` None: nothing was recorded."""
         failing = bool(record.get("failure"))
         done: dict[str, Any] = {"kept": False, "extraction": None}
-        if failing or self.rng.random() < self.keep_passing:
+        if keep is None:
+            keep = self.keeps(record)
+        if keep and episode_dir is not None:
             done["kept"] = True
             write_json_atomic(episode_dir / "episode.json", {**record, **details})
             if failing and self.extract:
                 done["extraction"] = self._extract(episode_dir)
-        else:
+        elif episode_dir is not None:
             shutil.rmtree(episode_dir, ignore_errors=True)
         done["dir"] = str(episode_dir) if done["kept"] else None
         append_jsonl(self.journal, {**record, **done})

@@ -139,11 +139,12 @@ def held_out_variants(seed_name: str, count: int, base: int = 1_000_000, tries: 
     return out
 
 
-def held_out_generated(count: int, base: int, tries: int = 200) -> list[str]:
-    """The first ``count`` robust generated scenarios ``gen:<base + i>`` (their reference run
-    completes and their unmutated runs stay consistent under timing noise)."""
+def robust_generated(count: int, base: int, tries: int | None = None) -> list[str]:
+    """The first ``count`` robust generated scenarios ``gen:<seed>`` from seed ``base`` on (their
+    reference run completes and their unmutated runs stay consistent under timing noise); at most
+    ``tries`` seeds are looked at (default ``4 count + 20``)."""
     out: list[str] = []
-    for i in range(tries):
+    for i in range(tries if tries is not None else 4 * count + 20):
         if len(out) >= count:
             break
         name = f"gen:{base + i}"

@@ -292,14 +292,16 @@ class DecisionOracle:
         return float(shapely.distance(shapely.points(np.asarray(xy).reshape(-1, 2)), self.ref_line).mean())
 
     def f_b(self, ego: np.ndarray) -> float:
-        """Eq. 8: mean over reference lanes of the Gaussian-kernel MMD^2 between the reference
-        behaviour on that lane and the mutated run's (x10, the scale of Decictor's code)."""
+        """Eq. 8: mean over reference lanes of the Gaussian-kernel MMD (the distance, in [0,
+        sqrt 2]) between the reference behaviour on that lane and the mutated run's - on the scale
+        of f_p's metres, so that neither term of D = f_p + f_b drowns the other."""
         if not self.ref_lanes:
             return 0.0
         pi, li, _ = self.lanes.membership(ego[:, :2])
         feats = behaviour_features(ego)
-        vals = [mmd_rbf(ref_feats, feats[pi[li == j]], self.bandwidth) for j, ref_feats in self.ref_lanes.items()]
-        return 10.0 * float(np.mean(vals))
+        vals = [math.sqrt(mmd_rbf(ref_feats, feats[pi[li == j]], self.bandwidth))
+                for j, ref_feats in self.ref_lanes.items()]
+        return float(np.mean(vals))
 
     def off_length(self, xy: np.ndarray) -> float:
         """Longest stretch [m] of the path farther than half a lane from the reference path."""
