@@ -74,7 +74,8 @@ class PlannerSpec(Strict):
 
 
 class PlanningConfig(ModuleConfig):
-    subscribe: list[str] = ["routing", "localization", "traffic_light", "prediction"]
+    subscribe: list[str] | None = Field(default=None, description="roles of the planner's frame; None (default): "
+                                        "the planner's Planner.inputs, which a list must match")
     trigger: str | None = "prediction"
     planner: PlannerSpec = PlannerSpec()
     publish_input_headers: bool = False

@@ -14,14 +14,17 @@ from typing import Any
 from deft_gym.bus.ads import PlanningConfig
 from deft_gym.bus.bus import Node, header
 from deft_gym.bus.messages import NS_PER_S, Message
-from deft_gym.planner.base import Frame, Planner
+from deft_gym.planner.base import Frame, Planner, resolve_inputs
 
 
 class PlanningNode(Node):
     """Planner behind the bus: frame in, trajectory out."""
 
     def __init__(self, planner: Planner, cfg: PlanningConfig, topics: dict[str, str]) -> None:
-        self.role_topics = {role: topics[role] for role in cfg.subscribe}
+        #: the roles of the frame: the planner's inputs (Planner.inputs; ValueError when a
+        #: configured planning.subscribe names others)
+        self.roles = resolve_inputs(type(planner), cfg.subscribe)
+        self.role_topics = {role: topics[role] for role in self.roles}
         trigger = topics[cfg.trigger] if cfg.trigger else None
         super().__init__("planning", list(self.role_topics.values()), trigger=trigger,
                          processing=cfg.processing)
