@@ -44,7 +44,7 @@ class JitterConfig(Strict):
     enabled: bool = True
     delivery: Duration = Duration(mean_ms=1.0, std_ms=0.6)
     drop_prob: float = Field(default=0.001, ge=0.0, lt=1.0)
-    reliable: list[str] = Field(default_factory=lambda: ["routing"],
+    reliable: list[str] = Field(default_factory=lambda: ["routing", "map"],
                                 description="topic roles whose deliveries are never lost (a drawn loss is "
                                 "redelivered), as Apollo's routing response is latched (transient local)")
     _roles = field_validator("reliable")(_known_roles)

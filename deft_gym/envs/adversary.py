@@ -539,7 +539,7 @@ class AdversaryEnv(gym.Env):
         outs = sim.planning_outputs
         beh = [0.0] * (len(BEHAVIOURS) + 2)
         if outs:
-            dec = outs[-1]["decision"]
+            dec = outs[-1].get("decision") or {}  # planner-defined and optional
             b = dec.get("behavior")
             beh[BEHAVIOURS.index(b) if b in BEHAVIOURS else len(BEHAVIOURS)] = 1.0
             beh[-1] = 1.0 if dec.get("lane") != dec.get("target_lane") else 0.0

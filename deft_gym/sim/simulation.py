@@ -139,7 +139,7 @@ class Simulation:
         nodes: list[Node] = [
             self.simulator,
             _node(RoutingNode, ads.routing, self.roadmap, start_lane, tuple(sc.ego.destination.lane), dest_s,
-                  sc.ego.cruise_speed, ads.routing, topics["routing"]),
+                  sc.ego.cruise_speed, ads.routing, topics["routing"], topics["map"]),
             _node(LocalizationNode, ads.localization, self.world, ads.localization, topics["localization"], sc.seed),
             _node(PerceptionNode, ads.perception, self.world, ads.perception, topics["perception_obstacles"]),
             _node(PredictionNode, ads.prediction, self.roadmap, ads.prediction, topics["perception_obstacles"],
