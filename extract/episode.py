@@ -257,7 +257,8 @@ def _summary(elog: EpisodeLog, log_path: Path, scenario: str, meta: dict[str, An
     finite = [d for d in distances if math.isfinite(d)]
     tries = np.array([c.tries for c in choices]) if choices else np.zeros(1)
     return {
-        "format": SUMMARY_FORMAT, "log": str(log_path), "log_status": elog.status, "scenario": scenario,
+        "format": SUMMARY_FORMAT, "log": str(log_path), "log_status": elog.status,
+        "log_integrity": elog.integrity.as_dict(), "scenario": scenario,
         "jitter_seed": meta.get("jitter_seed"), "outcome": outcome.get("outcome"),
         "collision": outcome.get("collision"), "mode": cfg.mode, "theta": tol.theta, "measure": cfg.measure,
         "tolerances": tol.as_dict(), "mapping": mp.name, "frames": n, "reproduced": counts,
