@@ -39,7 +39,7 @@ from rich.console import Console
 from rich.table import Table
 
 from deft_gym.files import write_atomic
-from extract.logs import _chunk_head, _read_summary
+from extract.logs import _chunk_head, _read_summary, _walk
 from extract.verify import verify
 
 KINDS = ("record_type", "payload_digit", "record_length", "record_type_no_summary", "payload_digit_no_summary",
@@ -57,14 +57,11 @@ def chunk_table(buf: bytes) -> list[dict[str, Any]]:
     for off, ci in sorted(summary.chunk_at.items()):
         _, _, _, data = _chunk_head(buf, off + 9, off + ci.chunk_length)
         base = off + ci.chunk_length - len(data)  # uncompressed chunks: the records' offset in the file
-        msgs, pos = [], 0
-        while pos + 9 <= len(data):
-            op = data[pos]
-            (length,) = struct.unpack_from("<Q", data, pos + 1)
+        msgs = []
+        for op, body, stop in _walk(data):
             if op == _MESSAGE:
-                cid, seq, log_t = struct.unpack_from("<HIQ", data, pos + 9)
-                msgs.append((cid, seq, log_t, base + pos + 9 + 22, length - 22))
-            pos += 9 + length
+                cid, seq, log_t = struct.unpack_from("<HIQ", data, body)
+                msgs.append((cid, seq, log_t, base + body + 22, stop - body - 22))
         out.append({"offset": off, "length": ci.chunk_length, "start": ci.message_start_time,
                     "end": ci.message_end_time, "messages": msgs, "compressed": ci.compression != ""})
     return out

@@ -31,6 +31,7 @@ import io
 import json
 import struct
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -428,36 +429,24 @@ class _Scan:
         its summary knows its channels only from them): later, intact chunks stay readable."""
         listed = set((self.metadata.get("deft_gym.episode", {}).get("topics") or {}).values())
         taken = []
-        pos, end = 0, len(data)
-        while pos + 9 <= end:
-            op = data[pos]
-            (length,) = struct.unpack_from("<Q", data, pos + 1)
-            if pos + 9 + length > end or op not in _KNOWN:
-                break
+        for op, body, stop in _walk(data):
             if op == _CHANNEL:
                 try:
-                    ch = Channel.read(ReadDataStream(io.BytesIO(data[pos + 9:pos + 9 + length])))
+                    ch = Channel.read(ReadDataStream(io.BytesIO(data[body:stop])))
                 except Exception:
                     ch = None
                 if ch is not None and ch.id not in self.chan_topic and ch.topic in listed:
-                    self._channel(data, pos + 9, pos + 9 + length)
+                    self._channel(data, body, stop)
                     taken.append(ch.topic)
-            pos += 9 + length
         return f" (its {len(taken)} channel record(s) kept: their topics match the episode record)" if taken else ""
 
     def _lost_in(self, data: bytes) -> dict[str, list[int]]:
         """Topics and sequence numbers of the messages in a damaged chunk, as far as they read."""
         lost: dict[str, list[int]] = {}
-        pos, end = 0, len(data)
-        while pos + 9 <= end:
-            op = data[pos]
-            (length,) = struct.unpack_from("<Q", data, pos + 1)
-            if pos + 9 + length > end or op not in _KNOWN:
-                break
-            if op == _MESSAGE and length >= 22:
-                cid, seq = struct.unpack_from("<HI", data, pos + 9)
+        for op, body, stop in _walk(data):
+            if op == _MESSAGE and stop - body >= 22:
+                cid, seq = struct.unpack_from("<HI", data, body)
                 lost.setdefault(self.chan_topic.get(cid, f"channel {cid}"), []).append(seq)
-            pos += 9 + length
         return lost
 
     def _peek_lost(self, buf: bytes, body: int, stop: int) -> dict[str, list[int]] | None:
@@ -486,6 +475,19 @@ class _Scan:
 
 _MESSAGE, _CHANNEL, _METADATA, _CHUNK, _FOOTER, _DATA_END = 0x05, 0x04, 0x0C, 0x06, 0x02, 0x0F
 _KNOWN = set(range(0x01, 0x11))  # the record types of MCAP v0 (header .. data end)
+
+
+def _walk(data: bytes) -> Iterator[tuple[int, int, int]]:
+    """``(record type, body start, body end)`` of the records in ``data``, up to the first that
+    is not of a known type or does not fit (the records of a chunk that failed its CRC)."""
+    pos, end = 0, len(data)
+    while pos + 9 <= end:
+        op = data[pos]
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        if pos + 9 + length > end or op not in _KNOWN:
+            return
+        yield op, pos + 9, pos + 9 + length
+        pos += 9 + length
 
 
 def _chunk_stop(buf: bytes, body: int, end: int) -> int | None:

@@ -231,22 +231,23 @@ def validate_output(out: Any, frame_time: float) -> list[str]:
         return ["output has no 'trajectory' object"]
     problems = []
     n = None
+    numbers = {float, int}
     for key in [*TRAJECTORY_FIELDS, *(k for k in tr if k not in TRAJECTORY_FIELDS)]:
         col = tr.get(key)
         if col is None:
             problems.append(f"trajectory.{key} missing")
             continue
-        if not isinstance(col, list | tuple) or not all(_num(v) for v in col):
+        if not isinstance(col, list | tuple) or not set(map(type, col)) <= numbers:
             problems.append(f"trajectory.{key} is not a list of numbers")
             continue
-        if not all(math.isfinite(v) for v in col):
+        if not all(map(math.isfinite, col)):
             problems.append(f"trajectory.{key} has a non-finite value")
         if n is None:
             n = len(col)
         elif len(col) != n:
             problems.append(f"trajectory.{key} has {len(col)} points, trajectory.t {n}")
     t = tr.get("t")
-    if isinstance(t, list | tuple) and all(_num(v) for v in t):
+    if isinstance(t, list | tuple) and set(map(type, t)) <= numbers:
         if len(t) < 2:
             problems.append(f"trajectory has {len(t)} point(s), expected at least 2")
         elif not all(b > a for a, b in itertools.pairwise(t)):
@@ -257,10 +258,6 @@ def validate_output(out: Any, frame_time: float) -> list[str]:
     if dec is not None and not isinstance(dec, Mapping):
         problems.append(f"decision is a {type(dec).__name__}, expected an object")
     return problems
-
-
-def _num(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
 
 
 # -- seeding: plain values of a state --------------------------------------------------------------
