@@ -39,7 +39,7 @@ from rich.console import Console
 from rich.table import Table
 
 from deft_gym.files import write_atomic
-from extract.logs import _chunk_head, _read_summary, _walk
+from extract.logs import chunk_head, read_summary, walk_records
 from extract.verify import verify
 
 KINDS = ("record_type", "payload_digit", "record_length", "record_type_no_summary", "payload_digit_no_summary",
@@ -50,15 +50,15 @@ _MESSAGE = 0x05
 def chunk_table(buf: bytes) -> list[dict[str, Any]]:
     """Every chunk of an intact log: offset, record length, time range [ns] and its messages as
     ``(channel id, seq, log time, payload offset in the file, payload length)``."""
-    summary, _ = _read_summary(buf)
+    summary, _ = read_summary(buf)
     if summary is None:
         raise ValueError("the log has no verified summary section; damage experiments need an intact log")
     out = []
     for off, ci in sorted(summary.chunk_at.items()):
-        _, _, _, data = _chunk_head(buf, off + 9, off + ci.chunk_length)
+        _, _, _, data = chunk_head(buf, off + 9, off + ci.chunk_length)
         base = off + ci.chunk_length - len(data)  # uncompressed chunks: the records' offset in the file
         msgs = []
-        for op, body, stop in _walk(data):
+        for op, body, stop in walk_records(data):
             if op == _MESSAGE:
                 cid, seq, log_t = struct.unpack_from("<HIQ", data, body)
                 msgs.append((cid, seq, log_t, base + body + 22, stop - body - 22))
@@ -107,7 +107,7 @@ def evaluate(path: Path, chunks_at: tuple[str, ...] = ("first", "middle", "last"
     if not base.integrity.intact:
         raise ValueError(f"{path}: not intact to begin with ({base.status})")
     everything = _messages(base)
-    topic_of = {cid: t for cid, t in _read_summary(buf)[0].channels.items()}
+    topic_of = {cid: t for cid, t in read_summary(buf)[0].channels.items()}
     picks = {"first": 0, "middle": len(table) // 2, "last": len(table) - 1}
     rows = []
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:

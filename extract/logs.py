@@ -245,7 +245,7 @@ class _Scan:
                 pos = self._indexed_chunk(buf, pos, op, length, ci, end)
                 continue
             body, stop = pos + 9, pos + 9 + length
-            if op == _CHUNK and (stop > end or _chunk_head(buf, body, stop) is None):
+            if op == _CHUNK and (stop > end or chunk_head(buf, body, stop) is None):
                 real = _chunk_stop(buf, body, end)
                 if real is not None and real != stop and self._chunk(buf, body, real, pos, quiet=True):
                     self._note(pos, "record-length", f"record length damaged ({length}; the chunk's own fields say "
@@ -320,7 +320,7 @@ class _Scan:
     def _chunk(self, buf: bytes, body: int, stop: int, pos: int, quiet: bool = False) -> bool:
         """Verify one chunk and take its messages; whether it was intact. A damaged one is noted
         here unless ``quiet`` (the caller notes it, with more to say)."""
-        head = _chunk_head(buf, body, stop)
+        head = chunk_head(buf, body, stop)
         if head is None:
             if not quiet:
                 self.integrity.chunks += 1
@@ -382,7 +382,7 @@ class _Scan:
                            "; ".join(notes) + ": read at its indexed offset and length, its content passes the CRC: kept",
                            ci.message_start_time, ci.message_end_time)
             else:
-                head = _chunk_head(buf, pos + 9, stop)
+                head = chunk_head(buf, pos + 9, stop)
                 self._note(pos, "record-type" if op != _CHUNK else "record-length", "; ".join(notes)
                            + " and its content fails the CRC: dropped", ci.message_start_time, ci.message_end_time,
                            self._lost_in(head[3]) if head else None)
@@ -410,7 +410,7 @@ class _Scan:
                 if stop <= end:
                     op = buf[q]
                     if op == _CHUNK:
-                        head = _chunk_head(buf, q + 9, stop)
+                        head = chunk_head(buf, q + 9, stop)
                         if head is not None and head[2] and zlib.crc32(head[3]) == head[2]:
                             return q
                     elif op == _DATA_END and length == 4 and stop + 9 <= end and buf[stop] in _KNOWN:
@@ -429,7 +429,7 @@ class _Scan:
         its summary knows its channels only from them): later, intact chunks stay readable."""
         listed = set((self.metadata.get("deft_gym.episode", {}).get("topics") or {}).values())
         taken = []
-        for op, body, stop in _walk(data):
+        for op, body, stop in walk_records(data):
             if op == _CHANNEL:
                 try:
                     ch = Channel.read(ReadDataStream(io.BytesIO(data[body:stop])))
@@ -443,14 +443,14 @@ class _Scan:
     def _lost_in(self, data: bytes) -> dict[str, list[int]]:
         """Topics and sequence numbers of the messages in a damaged chunk, as far as they read."""
         lost: dict[str, list[int]] = {}
-        for op, body, stop in _walk(data):
+        for op, body, stop in walk_records(data):
             if op == _MESSAGE and stop - body >= 22:
                 cid, seq = struct.unpack_from("<HI", data, body)
                 lost.setdefault(self.chan_topic.get(cid, f"channel {cid}"), []).append(seq)
         return lost
 
     def _peek_lost(self, buf: bytes, body: int, stop: int) -> dict[str, list[int]] | None:
-        head = _chunk_head(buf, body, stop)
+        head = chunk_head(buf, body, stop)
         return self._lost_in(head[3]) if head else None
 
     def _note(self, pos: int, kind: str, detail: str, t0: int | None = None, t1: int | None = None,
@@ -477,7 +477,7 @@ _MESSAGE, _CHANNEL, _METADATA, _CHUNK, _FOOTER, _DATA_END = 0x05, 0x04, 0x0C, 0x
 _KNOWN = set(range(0x01, 0x11))  # the record types of MCAP v0 (header .. data end)
 
 
-def _walk(data: bytes) -> Iterator[tuple[int, int, int]]:
+def walk_records(data: bytes) -> Iterator[tuple[int, int, int]]:
     """``(record type, body start, body end)`` of the records in ``data``, up to the first that
     is not of a known type or does not fit (the records of a chunk that failed its CRC)."""
     pos, end = 0, len(data)
@@ -502,7 +502,7 @@ def _chunk_stop(buf: bytes, body: int, end: int) -> int | None:
     return stop if stop <= end else None
 
 
-def _chunk_head(buf: bytes, body: int, stop: int) -> tuple[int, int, int, bytes] | None:
+def chunk_head(buf: bytes, body: int, stop: int) -> tuple[int, int, int, bytes] | None:
     """``(start ns, end ns, CRC, uncompressed content)`` of a chunk body, or None when its
     fields do not add up to the record (a damaged length) or it cannot be decompressed."""
     try:
@@ -533,7 +533,7 @@ class _Summary:
     data_end: int
 
 
-def _read_summary(buf: bytes) -> tuple[_Summary | None, Damage | None]:
+def read_summary(buf: bytes) -> tuple[_Summary | None, Damage | None]:
     """The summary section via the footer at the end of the file: ``(summary, None)``, or
     ``(None, damage)`` when it is there but does not verify, or ``(None, None)`` without one."""
     n = len(buf)
@@ -602,7 +602,7 @@ def read_log(path: Path | str, topics: list[str], seq_field: str | None = None) 
     if buf[:len(MCAP_MAGIC)] != MCAP_MAGIC:
         what = "empty file" if not buf else "bad magic bytes"
         raise LogError(f"{path}: not an MCAP file ({what}); expected an episode log (.mcap)")
-    summary, bad_summary = _read_summary(buf)
+    summary, bad_summary = read_summary(buf)
     scan = _Scan(set(topics), summary)
     integ = scan.integrity
     if bad_summary is not None:
