@@ -82,3 +82,25 @@ def test_the_output_contract() -> None:
         assert any(needle in p for p in validate_output({"trajectory": tr}, 1.0)), (patch, needle)
     assert validate_output({"decision": {}}, 1.0) == ["output has no 'trajectory' object"]
     assert "decision is a list" in validate_output({**good, "decision": []}, 1.0)[0]
+
+
+def test_planner_inputs_are_the_single_source_of_the_frame(tmp_path) -> None:
+    """The planning module subscribes to the planner's Planner.inputs; an ADS config naming other
+    roles is a one-line error naming the file and the planner."""
+    import subprocess
+    import sys
+
+    from deft_gym.bus.ads import load_ads_config
+    from deft_gym.config import ConfigError
+    from deft_gym.modules.planning import frame_roles
+    from deft_gym.planner.lattice import LatticePlanner
+
+    assert frame_roles(LatticePlanner, load_ads_config().planning) == list(LatticePlanner.inputs)
+    bad = tmp_path / "ads.yaml"
+    bad.write_text("planning:\n  subscribe: [routing, localization]\n")
+    with pytest.raises(ConfigError, match=r"\['prediction', 'traffic_light'\] missing"):
+        frame_roles(LatticePlanner, load_ads_config(bad).planning, str(bad))
+    proc = subprocess.run([sys.executable, "-m", "deft_gym.cli.run", "left_turn", "--ads-config", str(bad),
+                           "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    assert proc.returncode == 2 and str(bad) in proc.stdout and "LatticePlanner.inputs" in proc.stdout
+    assert proc.stdout.strip().count("\n") == 0
