@@ -110,21 +110,23 @@ def test_a_none_that_changes_the_state_is_flagged(frames) -> None:
     assert v.frame == 0 and "v: largest deviation" in v.message
 
 
-def test_cli_checks_a_log_and_a_planner(lane_follow_log) -> None:
+def test_cli_checks_a_log_and_a_planner(lane_follow_log, capsys) -> None:
+    from extract.contract import main
+
     log = str(lane_follow_log.log_path)
     env = {**os.environ, "PYTHONPATH": str(TESTS)}
     ok = subprocess.run([sys.executable, "-m", "extract.contract", log, "--max-frames", "20"],
                         capture_output=True, text=True, env=env)
-    assert ok.returncode == 0, ok.stderr and "holds" in ok.stdout
-    bad = subprocess.run([sys.executable, "-m", "extract.contract", log, "--max-frames", "20", "--planner",
-                          "test_extract_support:HiddenStatePlanner", "--json"], capture_output=True, text=True, env=env)
-    assert bad.returncode == 1
-    rep = json.loads(bad.stdout)
+    assert ok.returncode == 0, ok.stderr
+    assert "holds" in ok.stdout
+    assert main([log, "--max-frames", "20", "--planner", "test_extract_support:HiddenStatePlanner", "--json"]) == 1
+    rep = json.loads(capsys.readouterr().out)
     assert rep["checks"]["snapshot_restore"] == "violated" and rep["violations"][0]["frame"] is not None
     for args, needle in [(["nope.mcap"], "no such file"), ([log, "--params", "[1]"], "JSON object"),
                          ([log, "--planner", "no.such:Planner"], "cannot import")]:
-        proc = subprocess.run([sys.executable, "-m", "extract.contract", *args], capture_output=True, text=True, env=env)
-        assert proc.returncode == 2 and needle in proc.stderr and proc.stderr.count("\n") == 1, proc.stderr
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert needle in err and err.count("\n") == 1, err
 
 
 def test_checking_frames_of_an_extraction(lane_follow_log, tmp_path) -> None:
