@@ -76,8 +76,9 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     positions are judged by ``theta`` [m]. ``test_suffix`` makes the test module name unique in
     a batch. ``truth``: True looks for
     ``truth.jsonl`` beside the log (used only to report ``truth_agreement``), a path names it,
-    False/None skips it. ``minimize_failure``: let the failure test replay the shortest suffix
-    of frames that still reproduces P_faulty exactly (:mod:`extract.minimize`).
+    False/None skips it. ``minimize_failure``: let the failure test start from the planner state
+    recorded at P_faulty's frame (planners that can be seeded) or replay the shortest suffix of
+    frames that still reproduces P_faulty exactly (:mod:`extract.minimize`).
     ``on_frame(done, total)`` reports progress. Raises :class:`LogError` /
     :class:`MappingError` (one-line messages) when the log or the mapping cannot be used."""
     t_start = time.perf_counter()
