@@ -303,8 +303,11 @@ class Evaluation:
                "--import-mode=importlib", f"--junitxml={xml}", *map(str, dirs)]
         if keyword:
             cmd += ["-k", keyword]
+        # the tests import this extract (and deft_gym), not another installed copy
+        root = str(Path(extract_directory.__code__.co_filename).resolve().parents[1])
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=self.out, env={**os.environ})
+        proc = subprocess.run(cmd, capture_output=True, text=True, cwd=self.out, env=env)
         wall = time.perf_counter() - t0
         cases = []
         root = ET.parse(xml).getroot() if xml.exists() else None

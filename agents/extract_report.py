@@ -146,7 +146,8 @@ def collect(ev: Evaluation, names: set[str], cold: float) -> dict[str, Any]:
             row[m] = {"failure_test_fails": f"{p['failed']}/{p['runs']}" if p["faulty"] else "no P_faulty",
                       "module_ttrf": statistics.mean(p["times"]) if p["times"] and p["failed"] == p["runs"] else None,
                       "extraction_s": extraction,
-                      "replayed": (f"{f['index'] - f.get('replay_from', 0) + 1}/{f['index'] + 1}" if f else None)}
+                      "replayed": (f"{f['index'] - f.get('replay_from', 0) + 1}/{f['index'] + 1}"
+                                   + (" seeded" if f.get("seeded") else "") if f else None)}
         if full is not None and "heuristic" in summaries and n in summaries["heuristic"]:
             stem = Path(summaries["heuristic"][n]["test_path"]).stem
             row["module_suite_s"] = sum(c["time"] for c in _cases_for(full, stem))
@@ -298,8 +299,10 @@ def _markdown(r: dict[str, Any]) -> tuple[str, str]:
     L += ["", "### Time to reproduce the failure (TTRF)", "",
           "System: wall time of reruns S1, S2, ... up to the first that collides with the same participant "
           "(censored at all reruns when none does). Module: duration of the failure test (a fresh planner "
-          "replaying the frames up to P_faulty - from the latest frame that reproduces it exactly, see "
-          "'frames replayed' for the first mode), mean of its executions; both warm (after imports).", "",
+          "seeded with its state recorded at the P_faulty frame and planning that frame ('1/N seeded'), where "
+          "the planner can be seeded and the seeded planner reproduces P_faulty exactly; otherwise replaying "
+          "the frames up to P_faulty from the latest frame that reproduces it exactly - see 'frames replayed' "
+          "for the first mode), mean of its executions; both warm (after imports).", "",
           "| scenario | reruns needed | system TTRF s | frames replayed | " +
           " | ".join(f"module TTRF s ({m})" for m in modes) + " |",
           "|---|---|---|---|" + "---|" * len(modes)]

@@ -3,10 +3,12 @@
     python -m agents.record left_turn --out runs/extract/renamed --topics configs/mappings/renamed_example.yaml
     python -m agents.record left_turn --out runs/extract/tuned --planner-params '{"w_speed": 4.0}'
     python -m agents.record left_turn --out runs/extract/hdr --headers --jitter-seed 7
+    PYTHONPATH=tests python -m agents.record left_turn --out runs/extract/lk --planner lane_keeper:LaneKeeperPlanner
 
 ``--topics`` renames the bus topics to those of a mapping file (a log as another stack would
 name them), ``--planner-params`` configures the planner differently from the default,
-``--headers`` makes planning outputs carry their inputs' sequence numbers. The library function
+``--headers`` makes planning outputs carry their inputs' sequence numbers, ``--planner`` runs
+another planner class. The library function
 :func:`record_episode` does the same for tests and the evaluation.
 """
 
@@ -43,9 +45,9 @@ def ads_overrides(topics: dict[str, str] | None = None, planner_params: dict[str
 
 def record_episode(scenario: Scenario | str | Path, out_dir: Path | str, *, jitter_seed: int | None = None,
                    topics: dict[str, str] | None = None, planner_params: dict[str, Any] | None = None,
-                   headers: bool = False) -> EpisodeResult:
+                   headers: bool = False, planner_class: str | None = None) -> EpisodeResult:
     """Run one episode into ``out_dir`` (``episode.mcap`` + ``truth.jsonl``)."""
-    ads = load_ads_config(None, ads_overrides(topics, planner_params, headers) or None)
+    ads = load_ads_config(None, ads_overrides(topics, planner_params, headers, planner_class) or None)
     return Simulation(scenario, ads, jitter_seed=jitter_seed, out_dir=out_dir).run()
 
 
@@ -57,6 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--topics", metavar="MAPPING", default=None, help="take topic names from this mapping YAML")
     ap.add_argument("--planner-params", metavar="JSON", default=None, help="planner parameters, e.g. '{\"w_speed\": 4}'")
     ap.add_argument("--headers", action="store_true", help="planning outputs carry debug.input_seqs")
+    ap.add_argument("--planner", metavar="MODULE:CLASS", default=None, help="planner class (default: the ADS config's)")
     args = ap.parse_args(argv)
     try:
         topics = dict(load_mapping(args.topics).topics) if args.topics else None
@@ -64,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         if params is not None and not isinstance(params, dict):
             raise ValueError("--planner-params: expected a JSON object")
         res = record_episode(load_scenario(args.scenario), args.out, jitter_seed=args.jitter_seed, topics=topics,
-                             planner_params=params, headers=args.headers)
+                             planner_params=params, headers=args.headers, planner_class=args.planner)
     except (ConfigError, MappingError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

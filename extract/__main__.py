@@ -26,7 +26,7 @@ from extract.episode import ExtractionResult, extract_episode
 from extract.logs import LogError
 from extract.mapping import MappingError, load_mapping
 from extract.search import MODES
-from extract.validator import SUMMARY_THETAS, theta_key
+from extract.validator import SUMMARY_THETAS, parse_tolerances, theta_key
 
 MEASURES = ("lsed", "frechet", "hausdorff")
 
@@ -42,6 +42,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--theta", type=float, default=0.0, metavar="T",
                     help="reproduction threshold [m] of the generated tests (default 0 = exact)")
     ap.add_argument("--measure", choices=MEASURES, default="lsed", help="trajectory distance (default lsed)")
+    ap.add_argument("--tolerance", action="append", default=[], metavar="FIELD=VALUE",
+                    help="tolerance of one output field other than positions, in its unit (v=0.01, heading=1e-6, "
+                         "decision=0.5 for the decision's numbers, default=... for unlisted fields); repeatable. "
+                         "Default 0: every field equal")
     ap.add_argument("--mapping", metavar="FILE", default=None,
                     help="topic-role mapping YAML (default configs/mappings/deft_gym.yaml)")
     ap.add_argument("--workers", type=int, default=1, metavar="N", help="parallel processes for a folder (default 1)")
@@ -52,6 +56,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         ap.error("--theta must be >= 0")
     if args.workers < 1:
         ap.error("--workers must be at least 1")
+    try:
+        args.tolerances = parse_tolerances(args.tolerance, args.theta).as_dict()
+    except ValueError as exc:
+        ap.error(str(exc))
     return args
 
 
@@ -59,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     console = Console(width=None if sys.stdout.isatty() else 130, highlight=False)
     kwargs: dict[str, Any] = {"mode": args.mode, "theta": args.theta, "measure": args.measure,
-                              "mapping": args.mapping, "emit_tests": not args.no_tests}
+                              "mapping": args.mapping, "emit_tests": not args.no_tests,
+                              "tolerances": args.tolerances}
     cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
     try:
         load_mapping(args.mapping)
@@ -92,21 +101,23 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _table(results: list[ExtractionResult], args: argparse.Namespace) -> Table:
-    t = Table(title=f"DeFT extraction: mode {args.mode}, {args.measure}, theta {args.theta:g} m",
+    t = Table(title=f"DeFT extraction: mode {args.mode}, {args.measure}, theta {args.theta:g} m (positions; "
+                    f"'all fields': every field within tolerance at theta)",
               title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1))
-    for col in ["scenario", "frames", *(f"<={theta_key(x)} m" for x in SUMMARY_THETAS), "ms/frame",
+    for col in ["scenario", "frames", *(f"<={theta_key(x)} m" for x in SUMMARY_THETAS), "all fields", "ms/frame",
                 "planner", "overhead", "truth", "P_faulty"]:
         t.add_column(col, justify="left" if col in ("scenario", "P_faulty") else "right", no_wrap=True)
     for r in results:
         s = r.summary
         if not r.ok:
-            t.add_row(Path(s["log"]).parent.name, "error", *[""] * 8)
+            t.add_row(Path(s["log"]).parent.name, "error", *[""] * 9)
             continue
         n = s["frames"] or 1
         f = s.get("faulty_trajectory")
         t.add_row(
             str(s["scenario"]) + (" (cached)" if s.get("skipped") else ""), str(s["frames"]),
             *(f"{100 * s['reproduced'][theta_key(x)] / n:.1f}%" for x in SUMMARY_THETAS),
+            "-" if s.get("reproduced_at_theta") is None else f"{100 * s['reproduced_at_theta'] / n:.1f}%",
             f"{s['ms_per_frame']:.2f}", f"{s['planner_ms_per_frame']:.2f}", f"{s['overhead_ms_per_frame']:.2f}",
             "-" if s.get("truth_agreement") is None else f"{100 * s['truth_agreement']:.1f}%",
             f"frame {f['index']} t={f['time']:.2f}s" if f else ("-" if not s.get("collision") else "none found"))

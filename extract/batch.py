@@ -19,7 +19,7 @@ from extract.emit import slug
 from extract.episode import ExtractionResult, extract_episode
 from extract.logs import LogError
 from extract.mapping import MappingError, load_mapping
-from extract.validator import SUMMARY_THETAS, theta_key
+from extract.validator import SUMMARY_THETAS, Tolerances, theta_key
 
 BATCH_FORMAT = "deft_gym.extraction-batch/1"
 
@@ -42,8 +42,11 @@ def episode_out_dir(log: Path, root: Path, out_root: Path) -> Path:
 
 
 def _options(kwargs: dict[str, Any]) -> dict[str, Any]:
-    return {"mode": kwargs.get("mode", "heuristic"), "theta": float(kwargs.get("theta", 0.0)),
-            "measure": kwargs.get("measure", "lsed"), "mapping": load_mapping(kwargs.get("mapping")).name}
+    theta = float(kwargs.get("theta", 0.0))
+    tol = kwargs.get("tolerances")
+    tol = tol if isinstance(tol, Tolerances) else Tolerances.from_dict(tol, theta)
+    return {"mode": kwargs.get("mode", "heuristic"), "theta": theta, "measure": kwargs.get("measure", "lsed"),
+            "mapping": load_mapping(kwargs.get("mapping")).name, "tolerances": tol.as_dict()}
 
 
 def _up_to_date(log: Path, out: Path, options: dict[str, Any]) -> dict[str, Any] | None:
@@ -116,6 +119,7 @@ def batch_summary(results: list[ExtractionResult], options: dict[str, Any]) -> d
     frames = sum(s["frames"] for s in ok)
     keys = [theta_key(t) for t in SUMMARY_THETAS]
     reproduced = {k: sum(s["reproduced"][k] for s in ok) for k in keys}
+    whole = {k: sum(s.get("reproduced_all_fields", {}).get(k, 0) for s in ok) for k in keys}
 
     def weighted(key: str) -> float | None:
         vals = [(s[key], s["frames"]) for s in ok if s.get(key) is not None]
@@ -126,6 +130,7 @@ def batch_summary(results: list[ExtractionResult], options: dict[str, Any]) -> d
         "format": BATCH_FORMAT, **options, "episodes": len(results), "failed": len(results) - len(ok),
         "frames": frames, "reproduced": reproduced,
         "reproduced_share": {k: (v / frames if frames else None) for k, v in reproduced.items()},
+        "reproduced_all_fields": whole, "reproduced_at_theta": sum(s.get("reproduced_at_theta", 0) for s in ok),
         "ms_per_frame": weighted("ms_per_frame"), "planner_ms_per_frame": weighted("planner_ms_per_frame"),
         "overhead_ms_per_frame": weighted("overhead_ms_per_frame"), "truth_agreement": weighted("truth_agreement"),
         "collisions": sum(1 for s in ok if s.get("collision")),

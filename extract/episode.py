@@ -19,17 +19,25 @@ from typing import Any
 import numpy as np
 
 from deft_gym.files import write_atomic
-from deft_gym.planner.base import load_planner
+from deft_gym.planner.base import load_planner, planner_provenance, validate_output
 from extract.emit import slug, test_module, write_frames
 from extract.io_filter import PlanningIOFilter
 from extract.logs import EpisodeLog, LogError, read_log
 from extract.mapping import MappingError, TopicMapping, load_mapping
-from extract.minimize import Minimised, frame_getter, shortest_replay
+from extract.minimize import Minimised, Seed, frame_getter, seeded_start, shortest_replay
 from extract.oracle import Faulty, ego_size, find_faulty, participant_track
-from extract.runtime import FORMAT, finite_or_none, source_digest
+from extract.runtime import FORMAT, finite_or_none
 from extract.search import FrameChoice, InputSearch, SearchConfig
 from extract.truth import truth_agreement
-from extract.validator import SUMMARY_THETAS, reproduced_counts, theta_key
+from extract.validator import (
+    SUMMARY_THETAS,
+    Comparison,
+    Tolerances,
+    compare,
+    field_summary,
+    reproduced_counts,
+    theta_key,
+)
 
 SUMMARY_FORMAT = "deft_gym.extraction/1"
 
@@ -43,6 +51,7 @@ class ExtractionResult:
     test_path: Path | None
     faulty: dict[str, Any] | None
     choices: list[FrameChoice] = field(default_factory=list, repr=False)
+    comparisons: list[Comparison] = field(default_factory=list, repr=False)
 
     @property
     def ok(self) -> bool:
@@ -57,45 +66,58 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
                     mapping: TopicMapping | Mapping[str, Any] | str | Path | None = None, measure: str = "lsed",
                     emit_tests: bool = True, test_suffix: str | None = None, truth: Path | str | bool | None = True,
                     search: SearchConfig | None = None, minimize_failure: bool = True,
+                    tolerances: Tolerances | Mapping[str, Any] | None = None,
                     on_frame: Callable[[int, int], None] | None = None) -> ExtractionResult:
     """Extract planning-module tests from one MCAP log.
 
     ``mapping``: None (deft_gym default), a YAML path, a dict or a :class:`TopicMapping`.
-    ``test_suffix`` makes the test module name unique in a batch. ``truth``: True looks for
+    ``tolerances``: how far each output field other than the positions may be from the
+    recorded one (:class:`extract.validator.Tolerances` or its dict form; default 0 = equal);
+    positions are judged by ``theta`` [m]. ``test_suffix`` makes the test module name unique in
+    a batch. ``truth``: True looks for
     ``truth.jsonl`` beside the log (used only to report ``truth_agreement``), a path names it,
-    False/None skips it. ``minimize_failure``: let the failure test replay the shortest suffix
-    of frames that still reproduces P_faulty exactly (:mod:`extract.minimize`).
+    False/None skips it. ``minimize_failure``: let the failure test start from the planner state
+    recorded at P_faulty's frame (planners that can be seeded) or replay the shortest suffix of
+    frames that still reproduces P_faulty exactly (:mod:`extract.minimize`).
     ``on_frame(done, total)`` reports progress. Raises :class:`LogError` /
     :class:`MappingError` (one-line messages) when the log or the mapping cannot be used."""
     t_start = time.perf_counter()
     log_path, out = Path(log), Path(out_dir)
     if theta < 0 or not math.isfinite(theta):
         raise ValueError(f"theta must be a finite distance >= 0 m, got {theta}")
+    tol = (Tolerances(theta, tolerances.fields, tolerances.decision, tolerances.default)
+           if isinstance(tolerances, Tolerances) else Tolerances.from_dict(tolerances, theta))
     cfg = search or SearchConfig(mode=mode, measure=measure)
     if search is not None and (search.mode != mode or search.measure != measure):
         cfg = SearchConfig(**{**search.__dict__, "mode": mode, "measure": measure})
     mp = load_mapping(mapping)
     elog = read_log(log_path, sorted(set(mp.topics.values())), mp.seq_field)
-    pif = PlanningIOFilter(elog, mp)
     planner_spec = _planner_spec(elog, mp)
+    pif = PlanningIOFilter(elog, mp, planner_spec["class"])
     t_setup = time.perf_counter()
     try:
         planner = load_planner(planner_spec["class"], planner_spec["map"], planner_spec["params"])
     except (ValueError, TypeError) as exc:  # unknown class, bad parameters (pydantic errors are ValueErrors)
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise MappingError(f"{log_path}: cannot build planner {planner_spec['class']!r}: {first}") from None
+    provenance = planner_provenance(type(planner))
     setup_s = time.perf_counter() - t_setup
-    planner_spec["source_sha256"] = source_digest(type(planner))
+    planner_spec["source_sha256"] = provenance["source_sha256"]
+    planner_spec["provenance"] = provenance
     n = len(pif.outputs)
-    engine = InputSearch(pif, planner, cfg)
-    done = [0]
 
-    def tick(_: FrameChoice) -> None:
-        done[0] += 1
+    def fresh() -> Any:
+        return load_planner(planner_spec["class"], planner_spec["map"], planner_spec["params"])
+
+    engine = InputSearch(pif, planner, cfg, factory=fresh)
+
+    def tick(fc: FrameChoice) -> None:
         if on_frame is not None:
-            on_frame(done[0], n)
+            on_frame(fc.output.index + 1, n)
 
     choices = engine.run(tick)
+    comparisons = [compare(c.output.payload, c.actual, tol, cfg.measure) for c in choices]
+    _contract_warnings(elog, engine, choices)
     for role, tm in pif.inputs.items():
         if tm.bad:
             elog.warnings.append(f"{len(tm.bad)} {role} message(s) with undecodable payloads were never used "
@@ -104,32 +126,39 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     meta = elog.episode_meta()
     outcome = elog.metadata.get(mp.outcome_metadata or "", {})
     scenario = str(meta.get("scenario_name") or log_path.parent.name or log_path.stem)
-    ego = ego_size((mp.ego.length, mp.ego.width), planner_spec["params"])
-    mini: list[Minimised] = []
+    ego, ego_note = ego_size((mp.ego.length, mp.ego.width), meta.get("ego"))
+    if ego_note:
+        elog.warnings.append(ego_note)
+    mini: list[Minimised | Seed] = []
 
-    def minimize(index: int) -> int:
-        frame = frame_getter([c.time for c in choices], lambda j: {
-            r: (pif.inputs[r].fresh(k) if k is not None else None) for r, k in choices[j].choice.items()})
-        mini.append(shortest_replay(lambda: load_planner(planner_spec["class"], planner_spec["map"],
-                                                         planner_spec["params"]),
-                                    frame, index, lambda j: choices[j].output.payload, cfg.measure))
-        return mini[-1].replay_from
+    def minimize(index: int) -> tuple[int, dict[str, Any] | None]:
+        """Where the failure test starts: seeded at ``index`` when the planner can be, else the
+        shortest suffix of frames that reproduces P_faulty."""
+        frame = frame_getter([c.time for c in choices], lambda j: engine.frame_inputs(choices[j].choice))
+        seed = seeded_start(fresh, frame, index, lambda j: choices[j].output.payload)
+        mini.append(seed)
+        if seed.state is not None:
+            return index, {"frame": index, "state": seed.state}
+        mini.append(shortest_replay(fresh, frame, index, lambda j: choices[j].output.payload, cfg.measure))
+        return mini[-1].replay_from, None
 
-    faulty, oracle, oracle_note = _oracle(elog, mp, outcome, choices, distances, ego, theta,
+    reproduced = [c.reproduced for c in comparisons]
+    faulty, oracle, oracle_note = _oracle(elog, mp, outcome, choices, distances, reproduced, ego, theta,
                                           minimize if minimize_failure else None)
 
     header = {
         "format": FORMAT, "planner": planner_spec, "roles": list(pif.roles), "scenario": scenario,
         "log": str(log_path.resolve()), "jitter_seed": meta.get("jitter_seed"), "mapping": mp.as_dict(),
-        "mode": cfg.mode, "theta": theta, "measure": cfg.measure, "outcome": outcome.get("outcome"),
-        "frames_index": [{"index": c.output.index, "time": c.time, "distance": finite_or_none(c.distance)}
-                         for c in choices],
+        "mode": cfg.mode, "theta": theta, "measure": cfg.measure, "tolerances": tol.as_dict(),
+        "outcome": outcome.get("outcome"),
+        "frames_index": [{"index": c.output.index, "time": c.time, "distance": finite_or_none(c.distance),
+                          "reproduced": cmp.reproduced} for c, cmp in zip(choices, comparisons)],
         "oracle": oracle, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     out.mkdir(parents=True, exist_ok=True)
     frames_path = write_frames(out / "frames.jsonl", header, choices, pif)
     agreement = truth_agreement(_truth_path(log_path, truth), choices, pif) if truth else None
-    summary = _summary(elog, log_path, scenario, meta, outcome, cfg, theta, choices, distances, engine,
+    summary = _summary(elog, log_path, scenario, meta, outcome, cfg, tol, choices, comparisons, engine,
                        faulty, oracle_note, agreement, mp)
     test_path = None
     if emit_tests:
@@ -138,11 +167,28 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
         test_path = write_atomic(out / f"{name}.py", test_module(header, summary, frames_path.name,
                                                                   name.removeprefix("test_")))
     total_s = time.perf_counter() - t_start
-    summary.update(_timing(total_s, setup_s, engine, n, mini[0] if mini else None))
+    summary.update(_timing(total_s, setup_s, engine, n, mini))
     summary["frames_path"] = str(frames_path)
     summary["test_path"] = str(test_path) if test_path else None
     write_atomic(out / "summary.json", json.dumps(summary, indent=2))
-    return ExtractionResult(summary, frames_path, test_path, summary["faulty_trajectory"], choices)
+    return ExtractionResult(summary, frames_path, test_path, summary["faulty_trajectory"], choices, comparisons)
+
+
+def _contract_warnings(elog: EpisodeLog, engine: InputSearch, choices: list[FrameChoice]) -> None:
+    """Warnings about the planner's contract seen while extracting: outputs that break the
+    output contract, an unfaithful snapshot/restore, replays that differ from fresh planners."""
+    bad = [(c.output.index, p) for c in choices for p in validate_output(c.actual, c.time)[:1]]
+    if bad:
+        elog.warnings.append(f"{len(bad)} replayed output(s) break the output contract, e.g. frame {bad[0][0]}: "
+                             f"{bad[0][1]} (deft_gym.planner.base.validate_output)")
+    if engine.restore_faithful is False:
+        elog.warnings.append(
+            f"the planner's snapshot()/restore() is not faithful: a fresh replay of the chosen frames differs at "
+            f"frame {engine.unfaithful_at} (state kept outside self.state?); frames from there were searched again "
+            "on fresh planners (check it with python -m extract.contract)")
+    if engine.nondeterministic_at is not None:
+        elog.warnings.append(f"the planner is not deterministic: two fresh replays of the same frames differ at "
+                             f"frame {engine.nondeterministic_at}")
 
 
 def _planner_spec(elog: EpisodeLog, mp: TopicMapping) -> dict[str, Any]:
@@ -164,8 +210,9 @@ def _truth_path(log_path: Path, truth: Path | str | bool | None) -> Path | None:
 
 
 def _oracle(elog: EpisodeLog, mp: TopicMapping, outcome: dict[str, Any], choices: list[FrameChoice],
-            distances: list[float], ego: tuple[float, float], theta: float,
-            minimize: Callable[[int], int] | None = None) -> tuple[Faulty | None, dict[str, Any], str | None]:
+            distances: list[float], reproduced: list[bool], ego: tuple[float, float], theta: float,
+            minimize: Callable[[int], tuple[int, dict[str, Any] | None]] | None = None
+            ) -> tuple[Faulty | None, dict[str, Any], str | None]:
     """P_faulty and the oracle data the failure test needs (empty without a collision)."""
     coll = outcome.get("collision")
     if not isinstance(coll, dict):
@@ -179,39 +226,56 @@ def _oracle(elog: EpisodeLog, mp: TopicMapping, outcome: dict[str, Any], choices
     if track is None:
         return None, {}, f"collision, but participant {coll.get('participant')} never appears in {topic}"
     outputs = [(c.output.index, c.time, c.output.publish_time, c.output.seq, c.output.payload) for c in choices]
-    faulty = find_faulty(outputs, distances, track, ego, float(coll["time"]), theta)
+    faulty = find_faulty(outputs, [d if ok else max(d, math.nextafter(theta, math.inf))
+                                   for d, ok in zip(distances, reproduced)], track, ego, float(coll["time"]), theta)
     if faulty is None:
         return None, {}, ("collision, but no planning output before it plans the ego into the participant: "
                           "the vehicle left its plan, so by DeFT's criterion the planner is not the culprit")
-    if minimize is not None and faulty.distance == 0.0:
-        faulty.replay_from = minimize(faulty.index)
+    seed = None
+    if minimize is not None and reproduced[faulty.index] and choices[faulty.index].exact:
+        faulty.replay_from, seed = minimize(faulty.index)
+        faulty.seeded = seed is not None
     oracle = {"collision": coll, "ego": {"length": ego[0], "width": ego[1]}, "track": track.as_dict(),
               "faulty": faulty.as_dict()}
-    note = None if faulty.distance <= theta else "P_faulty itself was not reproduced within theta"
+    if seed is not None:
+        oracle["seed"] = seed
+    note = None if reproduced[faulty.index] else "P_faulty itself was not reproduced (whole output within tolerances)"
     return faulty, oracle, note
 
 
 def _summary(elog: EpisodeLog, log_path: Path, scenario: str, meta: dict[str, Any], outcome: dict[str, Any],
-             cfg: SearchConfig, theta: float, choices: list[FrameChoice], distances: list[float],
+             cfg: SearchConfig, tol: Tolerances, choices: list[FrameChoice], comparisons: list[Comparison],
              engine: InputSearch, faulty: Faulty | None, oracle_note: str | None,
              agreement: dict[str, Any] | None, mp: TopicMapping) -> dict[str, Any]:
+    """``summary.json``: ``reproduced`` counts positions within each threshold (the paper's
+    measure); ``reproduced_all_fields`` the same with every other field within its tolerance;
+    ``reproduced_at_theta`` whole outputs at the extraction's theta; ``fields`` per field."""
     n = len(choices)
+    distances = [c.distance for c in choices]
     counts = reproduced_counts(distances)
+    rest_ok = [all(d.field == "position" for d in c.diffs) for c in comparisons]
+    whole = {theta_key(t): sum(1 for d, ok in zip(distances, rest_ok) if ok and d <= t) for t in SUMMARY_THETAS}
     finite = [d for d in distances if math.isfinite(d)]
     tries = np.array([c.tries for c in choices]) if choices else np.zeros(1)
     return {
-        "format": SUMMARY_FORMAT, "log": str(log_path), "log_status": elog.status, "scenario": scenario,
+        "format": SUMMARY_FORMAT, "log": str(log_path), "log_status": elog.status,
+        "log_integrity": elog.integrity.as_dict(), "scenario": scenario,
         "jitter_seed": meta.get("jitter_seed"), "outcome": outcome.get("outcome"),
-        "collision": outcome.get("collision"), "mode": cfg.mode, "theta": theta, "measure": cfg.measure,
-        "mapping": mp.name, "frames": n, "reproduced": counts,
+        "collision": outcome.get("collision"), "mode": cfg.mode, "theta": tol.theta, "measure": cfg.measure,
+        "tolerances": tol.as_dict(), "mapping": mp.name, "frames": n, "reproduced": counts,
         "reproduced_share": {k: (v / n if n else None) for k, v in counts.items()},
-        "reproduced_at_theta": sum(1 for d in distances if d <= theta),
-        "not_reproduced": [{"index": c.output.index, "time": c.time, "distance": finite_or_none(c.distance)}
-                           for c in choices if c.distance > max(theta, SUMMARY_THETAS[0])][:50],
+        "reproduced_all_fields": whole,
+        "reproduced_at_theta": sum(1 for c in comparisons if c.reproduced),
+        "fields": field_summary(comparisons, tol),
+        "not_reproduced": [{"index": c.output.index, "time": c.time, "distance": finite_or_none(c.distance),
+                            "fields": list(dict.fromkeys(d.field for d in cmp.diffs))}
+                           for c, cmp in zip(choices, comparisons) if not cmp.reproduced][:50],
         "distance": {"max": max(finite) if finite else None, "mean": float(np.mean(finite)) if finite else None,
                      "no_output": n - len(finite)},
         "search": {"plan_calls": engine.plan_calls, "tries_mean": float(tries.mean()), "tries_max": int(tries.max()),
-                   "stages": dict(Counter(c.stage for c in choices)), "planner_errors": engine.errors[:5]},
+                   "stages": dict(Counter(c.stage for c in choices)), "planner_errors": engine.errors[:5],
+                   "restores": engine.restores, "restore_faithful": engine.restore_faithful,
+                   "unfaithful_at": engine.unfaithful_at, "nondeterministic_at": engine.nondeterministic_at},
         "faulty_trajectory": faulty.as_dict() if faulty else None,
         "oracle_note": oracle_note,
         "truth_agreement": agreement["share"] if agreement else None,
@@ -221,21 +285,28 @@ def _summary(elog: EpisodeLog, log_path: Path, scenario: str, meta: dict[str, An
     }
 
 
-def _timing(total_s: float, setup_s: float, engine: InputSearch, n: int, mini: Minimised | None) -> dict[str, Any]:
+def _timing(total_s: float, setup_s: float, engine: InputSearch, n: int,
+            mini: list[Minimised | Seed]) -> dict[str, Any]:
     """Per-frame wall time of the extraction (without the one-time planner import and
     construction, ``planner_setup_ms``), split into the planner's own ``plan()`` time and the
-    rest (reading, search, validation, oracle, writing). Minimising the failure test (replays
-    through fresh planners) is reported apart, as ``failure_minimisation``."""
+    rest (reading, search, validation, oracle, writing). Preparing the failure test (seeding or
+    minimising: replays through fresh planners) is reported apart, as ``failure_minimisation``."""
     per = 1000.0 / max(n, 1)
-    mini_s = mini.seconds if mini else 0.0
+    mini_s = sum(m.seconds for m in mini)
     work = total_s - setup_s - mini_s
     out: dict[str, Any] = {
         "extraction_s": total_s, "ms_per_frame": work * per, "planner_ms_per_frame": engine.planner_s * per,
         "overhead_ms_per_frame": (work - engine.planner_s) * per, "planner_setup_ms": setup_s * 1000.0,
         "failure_minimisation": None}
-    if mini is not None:
-        out["failure_minimisation"] = {"seconds": mini_s, "candidates": mini.candidates,
-                                       "plan_calls": mini.plan_calls, "replay_from": mini.replay_from}
+    if mini:
+        seed = next((m for m in mini if isinstance(m, Seed)), None)
+        rest = next((m for m in mini if isinstance(m, Minimised)), None)
+        out["failure_minimisation"] = {
+            "seconds": mini_s, "seeded": seed is not None and seed.state is not None,
+            "seed_note": seed.note if seed is not None else None,
+            "candidates": rest.candidates if rest else 0,
+            "plan_calls": sum(m.plan_calls for m in mini),
+            "replay_from": rest.replay_from if rest else (seed.frame if seed else 0)}
     return out
 
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from deft_gym.bus.messages import NS_PER_S
 from extract.logs import EpisodeLog, LogError, TopicMessages
-from extract.mapping import MappingError, TopicMapping, get_field
+from extract.mapping import MappingError, TopicMapping, get_field, input_roles
 
 
 @dataclass
@@ -38,15 +38,23 @@ class Output:
 
 
 class PlanningIOFilter:
-    """Outputs of one log and, per input role, the candidate bound of every output."""
+    """Outputs of one log and, per input role, the candidate bound of every output. The input
+    roles are the planner's (``planner``: ``module:Class``, see :func:`extract.mapping.input_roles`),
+    else the mapping's ``inputs``."""
 
-    def __init__(self, log: EpisodeLog, mapping: TopicMapping) -> None:
+    def __init__(self, log: EpisodeLog, mapping: TopicMapping, planner: str | None = None) -> None:
         self.log, self.mapping = log, mapping
-        missing = [(role, mapping.topics[role]) for role in ["planning", *mapping.inputs]
+        if planner is not None:
+            roles = input_roles(mapping, planner)
+        elif mapping.inputs is not None:
+            roles = list(mapping.inputs)
+        else:
+            raise MappingError(f"{mapping.source}: inputs: not set, and no planner to take them from")
+        missing = [(role, mapping.topics[role]) for role in ["planning", *roles]
                    if mapping.topics[role] not in log.channel_roles]
         if missing:
             raise MappingError(_missing_message(log, mapping, missing))
-        self.roles = list(mapping.inputs)
+        self.roles = roles
         self.inputs: dict[str, TopicMessages] = {r: log.topics[mapping.topics[r]] for r in self.roles}
         self.planning = log.topics[mapping.topics["planning"]]
         self.outputs = self._outputs()

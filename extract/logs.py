@@ -1,10 +1,28 @@
-"""Reading episode logs: every message of the topics a mapping names, from any MCAP file.
+"""Reading episode logs: every message of the topics a mapping names, verified, from any MCAP file.
 
 The reader scans the records in file order, so it needs neither the summary section nor the
-footer: a log cut short (a crashed run's ``.tmp``, a partial copy) yields everything before the
-damage, and :attr:`EpisodeLog.status` says where reading stopped. Payloads are kept as the raw
-JSON bytes of the log and decoded on demand (:meth:`TopicMessages.payload`); the raw bytes are
-what the frames file stores, so frames round-trip bit-exactly.
+footer, and it trusts nothing it can check:
+
+- every chunk's content against its CRC-32; a chunk that fails is dropped whole (which of its
+  messages is damaged cannot be known) and reported with its offset, its time range and the
+  messages it held (topics and sequence numbers, as far as they can be read);
+- when the file has a summary section (verified by its own CRC): every chunk against the chunk
+  index (a record whose type byte or length was damaged is found at its indexed offset with its
+  indexed length; if its content passes the CRC it is kept), and the message count of every
+  channel against the statistics, so that nothing goes missing unnoticed;
+- the data section against its CRC (damage outside the chunks' contents: a record header, a
+  metadata record).
+
+Records of unknown type are reported with their offset and skipped (their content is kept when
+it is a chunk whose CRC passes: a damaged type byte). After a damaged record length the reader
+resynchronises: at the next indexed chunk, else at the next offset where a record verifies.
+A log cut short (a crashed run's ``.tmp``, a partial copy) yields every intact chunk before the
+cut, and the time range of what is missing. :attr:`EpisodeLog.integrity` says what was lost;
+logs without CRCs (written unchunked by earlier versions) are read as before, unverified.
+
+Payloads are kept as the raw JSON bytes of the log and decoded on demand
+(:meth:`TopicMessages.payload`); the raw bytes are what the frames file stores, so frames
+round-trip bit-exactly.
 """
 
 from __future__ import annotations
@@ -12,15 +30,18 @@ from __future__ import annotations
 import io
 import json
 import struct
+import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from mcap.data_stream import ReadDataStream
-from mcap.records import Channel, Chunk, Metadata
+from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Statistics
 
 from deft_gym.bus.codec import decode
+from deft_gym.bus.messages import NS_PER_S
 from extract.mapping import get_field
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -71,6 +92,93 @@ class TopicMessages:
 
 
 @dataclass
+class Damage:
+    """One damaged, unknown or missing part of a log: where (byte offset, time range [ns]) and
+    which messages it cost (per topic: count and the sequence numbers that could be read)."""
+
+    offset: int
+    kind: str  #: crc | record-type | record-length | unknown-record | truncated | data-crc | summary | count
+    detail: str
+    start_ns: int | None = None
+    end_ns: int | None = None
+    lost: dict[str, list[int]] = field(default_factory=dict)
+    unreadable: int = 0  #: further messages lost whose topic could not be read
+
+    @property
+    def messages(self) -> int:
+        return sum(len(v) for v in self.lost.values()) + self.unreadable
+
+    def text(self) -> str:
+        when = ""
+        if self.start_ns is not None and self.end_ns is None:
+            when = f" (t >= {self.start_ns / NS_PER_S:.3f} s)"
+        elif self.start_ns is not None:
+            when = f" (t {self.start_ns / NS_PER_S:.3f}-{self.end_ns / NS_PER_S:.3f} s)"
+        out = f"offset {self.offset}{when}: {self.detail}"
+        if self.lost or self.unreadable:
+            parts = [f"{t} {len(v)} ({_seq_ranges(v)})" if v and v[0] >= 0 else f"{t} {len(v)}"
+                     for t, v in sorted(self.lost.items())]
+            if self.unreadable:
+                parts.append(f"{self.unreadable} unreadable")
+            out += f"; {self.messages} message(s) lost: " + ", ".join(parts)
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"offset": self.offset, "kind": self.kind, "detail": self.detail,
+                "start_s": None if self.start_ns is None else self.start_ns / NS_PER_S,
+                "end_s": None if self.end_ns is None else self.end_ns / NS_PER_S,
+                "lost": {t: len(v) for t, v in self.lost.items()}, "unreadable": self.unreadable,
+                "text": self.text()}
+
+
+def _seq_ranges(seqs: list[int]) -> str:
+    """``[3, 4, 5, 9]`` -> ``"seq 3-5, 9"``."""
+    out: list[str] = []
+    for s in sorted(seqs):
+        if out and out[-1][1] == s - 1:
+            out[-1] = (out[-1][0], s)
+        else:
+            out.append((s, s))  # type: ignore[arg-type]
+    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in out)  # type: ignore[misc]
+    return "seq " + (text if len(text) < 80 else text[:77] + "...")
+
+
+@dataclass
+class Integrity:
+    """What verifying a log found: whether it carries CRCs and a summary, how many chunks
+    passed, every damage, and the message count per topic found intact vs written (the
+    summary's statistics; None without a summary)."""
+
+    crcs: bool = False
+    summary: bool = False
+    chunks: int = 0
+    chunks_ok: int = 0
+    damage: list[Damage] = field(default_factory=list)
+    found: dict[str, int] = field(default_factory=dict)
+    expected: dict[str, int] | None = None
+
+    @property
+    def intact(self) -> bool:
+        return not self.damage
+
+    def lost(self) -> dict[str, int]:
+        """Messages lost per topic (written - found when the statistics are known)."""
+        if self.expected is not None:
+            return {t: n - self.found.get(t, 0) for t, n in self.expected.items() if n > self.found.get(t, 0)}
+        out: dict[str, int] = {}
+        for d in self.damage:
+            for t, v in d.lost.items():
+                out[t] = out.get(t, 0) + len(v)
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"crcs": self.crcs, "summary": self.summary, "chunks": self.chunks, "chunks_ok": self.chunks_ok,
+                "intact": self.intact, "messages_found": sum(self.found.values()),
+                "messages_written": sum(self.expected.values()) if self.expected is not None else None,
+                "lost": self.lost(), "damage": [d.as_dict() for d in self.damage]}
+
+
+@dataclass
 class EpisodeLog:
     """What a log holds for extraction."""
 
@@ -80,6 +188,7 @@ class EpisodeLog:
     channel_roles: dict[str, str]
     status: str = "complete"
     warnings: list[str] = field(default_factory=list)
+    integrity: Integrity = field(default_factory=Integrity)
 
     @property
     def truncated(self) -> bool:
@@ -104,51 +213,88 @@ class _Scan:
     """A direct scan of MCAP records in a buffer: messages of the wanted channels are sliced out
     with one ``struct.unpack_from`` each (the generic reader parses every record into objects,
     ~5x slower); channels, metadata and compressed chunks go through the ``mcap`` record
-    classes."""
+    classes. Every chunk is verified (CRC, and against the summary's chunk index when there is
+    one) before its messages are taken."""
 
-    def __init__(self, wanted: set[str]) -> None:
+    def __init__(self, wanted: set[str], summary: _Summary | None) -> None:
         self.wanted = wanted
-        self.chan_topic: dict[int, str] = {}
-        self.roles: dict[str, str] = {}
+        self.summary = summary
+        self.chan_topic: dict[int, str] = dict(summary.channels) if summary else {}
+        self.roles: dict[str, str] = dict(summary.roles) if summary else {}
         self.rows: dict[str, tuple[list[int], list[int], list[bytes]]] = {t: ([], [], []) for t in wanted}
         self.metadata: dict[str, dict[str, Any]] = {}
+        self.counts: dict[int, int] = {}
         self.records = 0
         self.footer = False
+        self.data_end: tuple[int, int] | None = None  # (offset, data section CRC)
+        self.integrity = Integrity(summary=summary is not None)
+        self.top_messages = 0  # messages outside chunks (unchunked logs: no CRCs)
 
+    # -- the data section ------------------------------------------------------------------------
     def run(self, buf: bytes, pos: int, end: int) -> str | None:
-        """Scan records in ``buf[pos:end]``; returns why it stopped early, or None."""
-        unpack = struct.unpack_from
-        chan_topic, rows = self.chan_topic, self.rows
+        """Scan the top-level records of ``buf[pos:end]``; returns why it stopped before the
+        footer (None when it reached it)."""
+        index = self.summary.chunk_at if self.summary else {}
         while pos < end:
             if pos + 9 > end:
-                return f"{end - pos} stray bytes at offset {pos}"
+                return self._cut(pos, end, f"{end - pos} stray bytes at the end")
             op = buf[pos]
-            (length,) = unpack("<Q", buf, pos + 1)
+            (length,) = struct.unpack_from("<Q", buf, pos + 1)
+            ci = index.get(pos)
+            if ci is not None:
+                pos = self._indexed_chunk(buf, pos, op, length, ci, end)
+                continue
             body, stop = pos + 9, pos + 9 + length
-            if stop > end:
-                return f"record at offset {pos} runs past the end of the data"
-            if op == _MESSAGE:
-                cid, seq, _, pub = unpack("<HIQQ", buf, body)
-                topic = chan_topic.get(cid)
-                if topic is not None:
-                    r = rows[topic]
-                    r[0].append(pub)
-                    r[1].append(seq)
-                    r[2].append(buf[body + 22:stop])
+            if op == _CHUNK and (stop > end or chunk_head(buf, body, stop) is None):
+                real = _chunk_stop(buf, body, end)
+                if real is not None and real != stop and self._chunk(buf, body, real, pos, quiet=True):
+                    self._note(pos, "record-length", f"record length damaged ({length}; the chunk's own fields say "
+                               f"{real - body}): its content passes the CRC: kept", *struct.unpack_from("<QQ", buf, body))
+                    pos = real
+                    continue
+            if op not in _KNOWN or stop > end:
+                nxt = self._next_indexed(pos)
+                if op == _CHUNK and stop > end and nxt is None:
+                    return self._cut(pos, end, "the file ends inside a chunk", buf)
+                if op in _KNOWN or op == 0:
+                    why = f"record of type 0x{op:02x} at offset {pos} claims {length} bytes, past the end of the file"
+                    kind = "record-length"
+                else:
+                    why, kind = f"record of unknown type 0x{op:02x} ({length} bytes)", "unknown-record"
+                    if stop <= end and self._chunk(buf, body, stop, pos, quiet=True):
+                        self._note(pos, "record-type", f"record type byte damaged (0x{op:02x}); its content is a "
+                                   "chunk whose CRC verifies: kept", *struct.unpack_from("<QQ", buf, body))
+                        pos = stop
+                        continue
+                resume = nxt if nxt is not None else self._resync(buf, pos + 1, end)
+                if resume is None:
+                    if kind == "unknown-record" and stop <= end:  # MCAP: skip records of unknown type
+                        self._note(pos, kind, why + ": skipped")
+                        pos = stop
+                        continue
+                    return self._cut(pos, end, why + "; nothing verifiable after it", buf)
+                if kind == "unknown-record" and stop == resume:
+                    self._note(pos, kind, why + ": skipped", lost=self._peek_lost(buf, body, stop))
+                else:
+                    self._note(pos, kind, why + f"; resynchronised at offset {resume} ({resume - pos} bytes skipped)",
+                               lost=self._peek_lost(buf, body, min(resume, end)) if op == _CHUNK else None)
+                pos = resume
+                continue
+            if op == _CHUNK:
+                self._chunk(buf, body, stop, pos)
+            elif op == _MESSAGE:
+                self._message(buf, body, stop)
+                self.top_messages += 1
             elif op == _CHANNEL:
-                ch = Channel.read(ReadDataStream(io.BytesIO(buf[body:stop])))
-                self.roles[ch.topic] = ch.metadata.get("role", "")
-                if ch.topic in self.wanted:
-                    chan_topic[ch.id] = ch.topic
+                self._channel(buf, body, stop)
             elif op == _METADATA:
-                md = Metadata.read(ReadDataStream(io.BytesIO(buf[body:stop])))
-                self.metadata[md.name] = _meta_values(md)
-            elif op == _CHUNK:
-                chunk = Chunk.read(ReadDataStream(io.BytesIO(buf[body:stop])))
-                data = chunk.data if chunk.compression == "" else _decompress(chunk)
-                why = self.run(data, 0, len(data))
-                if why is not None:
-                    return f"chunk at offset {pos}: {why}"
+                try:
+                    md = Metadata.read(ReadDataStream(io.BytesIO(buf[body:stop])))
+                    self.metadata[md.name] = _meta_values(md)
+                except Exception as exc:
+                    self._note(pos, "unknown-record", f"metadata record does not parse ({type(exc).__name__})")
+            elif op == _DATA_END:
+                self.data_end = (pos, struct.unpack_from("<I", buf, body)[0] if length >= 4 else 0)
             elif op == _FOOTER:
                 self.footer = True
                 return None
@@ -156,8 +302,277 @@ class _Scan:
             pos = stop
         return None
 
+    def _message(self, buf: bytes, body: int, stop: int) -> None:
+        cid, seq, _, pub = struct.unpack_from("<HIQQ", buf, body)
+        self.counts[cid] = self.counts.get(cid, 0) + 1
+        topic = self.chan_topic.get(cid)
+        if topic is not None and topic in self.wanted:
+            r = self.rows[topic]
+            r[0].append(pub)
+            r[1].append(seq)
+            r[2].append(buf[body + 22:stop])
 
-_MESSAGE, _CHANNEL, _METADATA, _CHUNK, _FOOTER = 0x05, 0x04, 0x0C, 0x06, 0x02
+    def _channel(self, buf: bytes, body: int, stop: int) -> None:
+        ch = Channel.read(ReadDataStream(io.BytesIO(buf[body:stop])))
+        self.roles[ch.topic] = ch.metadata.get("role", "")
+        self.chan_topic[ch.id] = ch.topic
+
+    def _chunk(self, buf: bytes, body: int, stop: int, pos: int, quiet: bool = False) -> bool:
+        """Verify one chunk and take its messages; whether it was intact. A damaged one is noted
+        here unless ``quiet`` (the caller notes it, with more to say)."""
+        head = chunk_head(buf, body, stop)
+        if head is None:
+            if not quiet:
+                self.integrity.chunks += 1
+                self._note(pos, "record-length", "chunk fields do not add up to its record length (or it does "
+                           "not decompress): dropped")
+            return False
+        t0, t1, crc, data = head
+        self.integrity.crcs |= bool(crc)
+        if crc and zlib.crc32(data) != crc:
+            if not quiet:
+                self.integrity.chunks += 1
+                salvaged = self._salvage_channels(data)
+                self._note(pos, "crc", "chunk content fails its CRC-32: dropped" + salvaged, t0, t1, self._lost_in(data))
+            return False
+        if quiet and not crc:  # the content of a damaged record that nothing verifies: not taken
+            return False
+        self.integrity.chunks += 1
+        why = self._records(data)
+        if why is not None:
+            self._note(pos, "crc", f"chunk content does not parse ({why})", t0, t1)
+            return False
+        self.integrity.chunks_ok += 1
+        return True
+
+    def _records(self, data: bytes) -> str | None:
+        """Records inside a verified chunk (messages, channels, schemas)."""
+        pos, end = 0, len(data)
+        while pos < end:
+            if pos + 9 > end:
+                return f"{end - pos} stray bytes"
+            op = data[pos]
+            (length,) = struct.unpack_from("<Q", data, pos + 1)
+            body, stop = pos + 9, pos + 9 + length
+            if stop > end:
+                return f"record at offset {pos} runs past the chunk"
+            if op == _MESSAGE:
+                self._message(data, body, stop)
+            elif op == _CHANNEL:
+                self._channel(data, body, stop)
+            self.records += 1
+            pos = stop
+        return None
+
+    def _indexed_chunk(self, buf: bytes, pos: int, op: int, length: int, ci: ChunkIndex, end: int) -> int:
+        """A chunk the summary indexes at ``pos``: checked against the index (type byte, length),
+        read with the indexed length; returns where the next record starts."""
+        stop = pos + ci.chunk_length
+        notes = []
+        if op != _CHUNK:
+            notes.append(f"record type byte damaged (0x{op:02x}, the chunk index says a chunk)")
+        if length != ci.chunk_length - 9:
+            notes.append(f"record length damaged ({length}, the chunk index says {ci.chunk_length - 9})")
+        if stop > end:
+            return self._cut_at(pos, end, "the file ends inside an indexed chunk", ci)
+        ok = self._chunk(buf, pos + 9, stop, pos, quiet=bool(notes))
+        if notes:
+            if ok:
+                self._note(pos, "record-type" if op != _CHUNK else "record-length",
+                           "; ".join(notes) + ": read at its indexed offset and length, its content passes the CRC: kept",
+                           ci.message_start_time, ci.message_end_time)
+            else:
+                head = chunk_head(buf, pos + 9, stop)
+                self._note(pos, "record-type" if op != _CHUNK else "record-length", "; ".join(notes)
+                           + " and its content fails the CRC: dropped", ci.message_start_time, ci.message_end_time,
+                           self._lost_in(head[3]) if head else None)
+        return stop
+
+    def _next_indexed(self, pos: int) -> int | None:
+        if not self.summary:
+            return None
+        later = [o for o in self.summary.chunk_at if o > pos]
+        return min(later) if later else self.summary.data_end
+
+    def _resync(self, buf: bytes, pos: int, end: int) -> int | None:
+        """The next offset from ``pos`` where a record verifies: a chunk whose CRC passes, a
+        metadata record that parses and is followed by a known record, the data end."""
+        q = pos
+        while q < end:
+            cands = [i for i in (buf.find(b"\x06", q, end), buf.find(b"\x0c", q, end), buf.find(b"\x0f", q, end))
+                     if i >= 0]
+            if not cands:
+                return None
+            q = min(cands)
+            if q + 9 <= end:
+                (length,) = struct.unpack_from("<Q", buf, q + 1)
+                stop = q + 9 + length
+                if stop <= end:
+                    op = buf[q]
+                    if op == _CHUNK:
+                        head = chunk_head(buf, q + 9, stop)
+                        if head is not None and head[2] and zlib.crc32(head[3]) == head[2]:
+                            return q
+                    elif op == _DATA_END and length == 4 and stop + 9 <= end and buf[stop] in _KNOWN:
+                        return q
+                    elif op == _METADATA and stop + 9 <= end and buf[stop] in _KNOWN:
+                        try:
+                            Metadata.read(ReadDataStream(io.BytesIO(buf[q + 9:stop])))
+                            return q
+                        except Exception:
+                            pass
+            q += 1
+        return None
+
+    def _salvage_channels(self, data: bytes) -> str:
+        """Channel records of a damaged chunk whose topic the episode record lists (a log without
+        its summary knows its channels only from them): later, intact chunks stay readable."""
+        listed = set((self.metadata.get("deft_gym.episode", {}).get("topics") or {}).values())
+        taken = []
+        for op, body, stop in walk_records(data):
+            if op == _CHANNEL:
+                try:
+                    ch = Channel.read(ReadDataStream(io.BytesIO(data[body:stop])))
+                except Exception:
+                    ch = None
+                if ch is not None and ch.id not in self.chan_topic and ch.topic in listed:
+                    self._channel(data, body, stop)
+                    taken.append(ch.topic)
+        return f" (its {len(taken)} channel record(s) kept: their topics match the episode record)" if taken else ""
+
+    def _lost_in(self, data: bytes) -> dict[str, list[int]]:
+        """Topics and sequence numbers of the messages in a damaged chunk, as far as they read."""
+        lost: dict[str, list[int]] = {}
+        for op, body, stop in walk_records(data):
+            if op == _MESSAGE and stop - body >= 22:
+                cid, seq = struct.unpack_from("<HI", data, body)
+                lost.setdefault(self.chan_topic.get(cid, f"channel {cid}"), []).append(seq)
+        return lost
+
+    def _peek_lost(self, buf: bytes, body: int, stop: int) -> dict[str, list[int]] | None:
+        head = chunk_head(buf, body, stop)
+        return self._lost_in(head[3]) if head else None
+
+    def _note(self, pos: int, kind: str, detail: str, t0: int | None = None, t1: int | None = None,
+              lost: dict[str, list[int]] | None = None) -> None:
+        self.integrity.damage.append(Damage(pos, kind, detail, t0, t1, lost or {}))
+
+    def _cut(self, pos: int, end: int, why: str, buf: bytes | None = None) -> str:
+        """The file ends at ``end`` inside the record at ``pos`` (a chunk header still tells the
+        time range of what is missing)."""
+        t0 = None
+        if buf is not None and buf[pos] == _CHUNK and pos + 9 + 16 <= end:
+            (t0,) = struct.unpack_from("<Q", buf, pos + 9)
+        rest = "" if t0 is None else f"; every message from t={t0 / NS_PER_S:.3f} s on is missing"
+        self._note(pos, "truncated", f"{why} (offset {pos}, {end - pos} bytes there){rest}", t0, None)
+        return f"{why} at offset {pos}"
+
+    def _cut_at(self, pos: int, end: int, why: str, ci: ChunkIndex) -> int:
+        self._note(pos, "truncated", f"{why} (offset {pos}, {end - pos} of {ci.chunk_length} bytes there)",
+                   ci.message_start_time, ci.message_end_time)
+        return end
+
+
+_MESSAGE, _CHANNEL, _METADATA, _CHUNK, _FOOTER, _DATA_END = 0x05, 0x04, 0x0C, 0x06, 0x02, 0x0F
+_KNOWN = set(range(0x01, 0x11))  # the record types of MCAP v0 (header .. data end)
+
+
+def walk_records(data: bytes) -> Iterator[tuple[int, int, int]]:
+    """``(record type, body start, body end)`` of the records in ``data``, up to the first that
+    is not of a known type or does not fit (the records of a chunk that failed its CRC)."""
+    pos, end = 0, len(data)
+    while pos + 9 <= end:
+        op = data[pos]
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        if pos + 9 + length > end or op not in _KNOWN:
+            return
+        yield op, pos + 9, pos + 9 + length
+        pos += 9 + length
+
+
+def _chunk_stop(buf: bytes, body: int, end: int) -> int | None:
+    """Where a chunk whose record starts its body at ``body`` ends by its own fields (not its
+    record length), or None when they do not fit in ``buf[:end]``."""
+    try:
+        clen = struct.unpack_from("<I", buf, body + 28)[0]
+        (dlen,) = struct.unpack_from("<Q", buf, body + 32 + clen)
+    except struct.error:
+        return None
+    stop = body + 32 + clen + 8 + dlen
+    return stop if stop <= end else None
+
+
+def chunk_head(buf: bytes, body: int, stop: int) -> tuple[int, int, int, bytes] | None:
+    """``(start ns, end ns, CRC, uncompressed content)`` of a chunk body, or None when its
+    fields do not add up to the record (a damaged length) or it cannot be decompressed."""
+    try:
+        t0, t1, _size, crc, clen = struct.unpack_from("<QQQII", buf, body)
+        at = body + 32
+        compression = bytes(buf[at:at + clen]).decode()
+        (dlen,) = struct.unpack_from("<Q", buf, at + clen)
+        start = at + clen + 8
+        if start + dlen != stop:
+            return None
+        data = bytes(buf[start:stop])
+        if compression:
+            data = _decompress(Chunk(compression=compression, data=data, message_start_time=t0,
+                                     message_end_time=t1, uncompressed_crc=crc, uncompressed_size=_size))
+        return t0, t1, crc, data
+    except Exception:  # struct, UTF-8, zstd and lz4 errors alike
+        return None
+
+
+@dataclass
+class _Summary:
+    """What the summary section says (read only when its CRC passes)."""
+
+    channels: dict[int, str]
+    roles: dict[str, str]
+    chunk_at: dict[int, ChunkIndex]
+    statistics: Statistics | None
+    data_end: int
+
+
+def read_summary(buf: bytes) -> tuple[_Summary | None, Damage | None]:
+    """The summary section via the footer at the end of the file: ``(summary, None)``, or
+    ``(None, damage)`` when it is there but does not verify, or ``(None, None)`` without one."""
+    n = len(buf)
+    foot = n - 8 - 29
+    if n < 8 + 29 + 8 or buf[n - 8:] != MCAP_MAGIC or buf[foot] != _FOOTER:
+        return None, None
+    length, start, offsets, crc = struct.unpack_from("<QQQI", buf, foot + 1)
+    if length != 20 or not start:
+        return None, None
+    if not 8 <= start <= foot:
+        return None, Damage(foot, "summary", f"footer names a summary at offset {start}, outside the file")
+    if crc and zlib.crc32(struct.pack("<BQQQ", _FOOTER, 20, start, offsets), zlib.crc32(buf[start:foot])) != crc:
+        return None, Damage(start, "summary", "summary section fails its CRC-32: not used (chunks are verified "
+                            "by their own CRCs, message counts cannot be checked)")
+    channels: dict[int, str] = {}
+    roles: dict[str, str] = {}
+    chunk_at: dict[int, ChunkIndex] = {}
+    stats = None
+    pos = start
+    while pos + 9 <= foot:
+        op = buf[pos]
+        (length,) = struct.unpack_from("<Q", buf, pos + 1)
+        body = ReadDataStream(io.BytesIO(buf[pos + 9:pos + 9 + length]))
+        if op == _CHANNEL:
+            ch = Channel.read(body)
+            channels[ch.id] = ch.topic
+            roles[ch.topic] = ch.metadata.get("role", "")
+        elif op == 0x0B:
+            stats = Statistics.read(body)
+        elif op == 0x08:
+            ci = ChunkIndex.read(body)
+            chunk_at[ci.chunk_start_offset] = ci
+        pos += 9 + length
+    return _Summary(channels, roles, chunk_at, stats, _data_end_offset(buf, start)), None
+
+
+def _data_end_offset(buf: bytes, summary_start: int) -> int:
+    """Offset of the data end record (13 bytes just before the summary)."""
+    return summary_start - 13
 
 
 def _decompress(chunk: Chunk) -> bytes:
@@ -173,10 +588,12 @@ def _decompress(chunk: Chunk) -> bytes:
 
 
 def read_log(path: Path | str, topics: list[str], seq_field: str | None = None) -> EpisodeLog:
-    """Read the messages of ``topics`` (and all metadata records) from an MCAP file.
+    """Read the messages of ``topics`` (and all metadata records) from an MCAP file, verified
+    (see the module docstring).
 
-    Raises :class:`LogError` when the file is missing or not MCAP; damage later on ends reading
-    there and is reported in ``status`` (everything before it is kept)."""
+    Raises :class:`LogError` when the file is missing or not MCAP. Damage is reported in
+    :attr:`EpisodeLog.integrity`, ``status`` (``complete``, ``damaged: ...``, ``truncated: ...``)
+    and one warning per damage; every intact message is kept."""
     path = Path(path)
     try:
         buf = path.read_bytes()
@@ -185,14 +602,20 @@ def read_log(path: Path | str, topics: list[str], seq_field: str | None = None) 
     if buf[:len(MCAP_MAGIC)] != MCAP_MAGIC:
         what = "empty file" if not buf else "bad magic bytes"
         raise LogError(f"{path}: not an MCAP file ({what}); expected an episode log (.mcap)")
-    scan = _Scan(set(topics))
+    summary, bad_summary = read_summary(buf)
+    scan = _Scan(set(topics), summary)
+    integ = scan.integrity
+    if bad_summary is not None:
+        integ.damage.append(bad_summary)
     try:
-        why = scan.run(buf, len(MCAP_MAGIC), len(buf))
-    except Exception as exc:  # a damaged record body: mcap, struct, zstd and lz4 errors alike
+        why = scan.run(buf, len(MCAP_MAGIC), summary.data_end if summary else len(buf))
+        if summary is not None and why is None:
+            scan.run(buf, summary.data_end, summary.data_end + 13)
+            scan.footer = True  # read (and verified with the summary) first
+    except Exception as exc:  # a record body the mcap classes cannot read
         why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-    if why is None and not scan.footer:
-        why = "no footer"
-    status = "complete" if why is None else f"truncated after {scan.records} records ({why})"
+        scan._note(-1, "unknown-record", f"reading stopped: {why}")
+    _check_totals(scan, buf, summary)
     out: dict[str, TopicMessages] = {}
     for topic, (pub, seq, raw) in scan.rows.items():
         pub_a = np.asarray(pub, dtype=np.int64)
@@ -201,11 +624,60 @@ def read_log(path: Path | str, topics: list[str], seq_field: str | None = None) 
             order = np.argsort(pub_a, kind="stable")
             pub_a, seq_a, raw = pub_a[order], seq_a[order], [raw[i] for i in order]
         out[topic] = TopicMessages(topic, pub_a, seq_a, raw)
-    log = EpisodeLog(path, out, scan.metadata, scan.roles, status)
+    status = _status(integ, scan)
+    log = EpisodeLog(path, out, scan.metadata, scan.roles, status, integrity=integ)
     if seq_field:
         for tm in out.values():
             seqs = [get_field(tm.payload(i), seq_field) for i in range(len(tm))]
             tm.seq = np.asarray([s if isinstance(s, int) else -1 for s in seqs], dtype=np.int64)
-    if log.truncated:
-        log.warnings.append(f"{path}: {status}; extracting what is intact")
+    for d in integ.damage:
+        log.warnings.append(f"{path}: {d.text()}")
+    if integ.damage:
+        found = sum(integ.found.values())
+        written = f" of {sum(integ.expected.values())} written" if integ.expected is not None else ""
+        lost = ", ".join(f"{t} {n}" for t, n in sorted(integ.lost().items())) or "none known"
+        log.warnings.append(f"{path}: {status}; extracting the {found} intact messages{written} (lost: {lost})")
+    elif not integ.crcs and scan.top_messages:
+        log.warnings.append(f"{path}: the log carries no CRCs (written unchunked): its messages are not verified")
     return log
+
+
+def _check_totals(scan: _Scan, buf: bytes, summary: _Summary | None) -> None:
+    """Message counts per topic against the summary's statistics, and the data section CRC."""
+    integ = scan.integrity
+    for cid, n in scan.counts.items():
+        topic = scan.chan_topic.get(cid, f"channel {cid}")
+        integ.found[topic] = integ.found.get(topic, 0) + n
+    if summary is not None and summary.statistics is not None:
+        expected = {scan.chan_topic.get(cid, summary.channels.get(cid, f"channel {cid}")): n
+                    for cid, n in summary.statistics.channel_message_counts.items()}
+        integ.expected = expected
+        accounted = {t: integ.found.get(t, 0) for t in expected}
+        for d in integ.damage:
+            for t, v in d.lost.items():
+                accounted[t] = accounted.get(t, 0) + len(v)
+        missing = {t: n - accounted.get(t, 0) for t, n in expected.items() if n > accounted.get(t, 0)}
+        if missing:
+            integ.damage.append(Damage(-1, "count", "the summary's statistics count more messages than the file "
+                                       "holds, intact or in damaged chunks",
+                                       lost={t: [-1] * n for t, n in missing.items()}))
+    if scan.data_end is not None and scan.data_end[1]:
+        at, crc = scan.data_end
+        if zlib.crc32(buf[:at]) != crc and not any(d.kind != "count" for d in integ.damage):
+            integ.damage.append(Damage(at, "data-crc", "the data section fails its CRC-32 though every chunk passes "
+                                       "its own: damage outside the chunks' contents (a record header or a "
+                                       "metadata record)"))
+
+
+def _status(integ: Integrity, scan: _Scan) -> str:
+    if not integ.damage and not scan.footer:
+        integ.damage.append(Damage(-1, "truncated", "no footer: the file ends without the end of the log"))
+    if not integ.damage:
+        return "complete"
+    kinds = sorted({d.kind for d in integ.damage})
+    head = "truncated" if "truncated" in kinds else "damaged"
+    n = sum(integ.lost().values())
+    unknown = integ.expected is None and any(d.kind == "truncated" or (d.kind in ("crc", "record-length")
+                                                                          and not d.messages and "dropped" in d.detail)
+                                             for d in integ.damage)
+    return f"{head}: {len(integ.damage)} problem(s) ({', '.join(kinds)}); {n}{'+' if unknown else ''} message(s) lost"

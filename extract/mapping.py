@@ -16,6 +16,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from deft_gym.config import ConfigError, load_yaml
+from deft_gym.planner.base import planner_class, resolve_inputs
 
 ROOT = Path(__file__).resolve().parent.parent
 MAPPING_DIR = ROOT / "configs" / "mappings"
@@ -59,7 +60,7 @@ class TopicMapping(_Strict):
 
     name: str = "custom"
     topics: dict[str, str]
-    inputs: list[str] = Field(min_length=1)
+    inputs: list[str] | None = Field(None, min_length=1)  #: None: the planner's Planner.inputs
     trigger: str | None = None
     frame_time_field: str | None = "header.stamp"
     frame_time_hint: str | None = None
@@ -75,13 +76,14 @@ class TopicMapping(_Strict):
     def _consistent(self) -> TopicMapping:
         if "planning" not in self.topics:
             raise ValueError("topics: needs a 'planning' entry (the outputs to reproduce)")
-        missing = [r for r in self.inputs if r not in self.topics]
-        if missing:
-            raise ValueError(f"inputs: role(s) {missing} have no entry under topics")
-        if "planning" in self.inputs:
-            raise ValueError("inputs: 'planning' is the output, not an input")
-        if self.trigger is not None and self.trigger not in self.inputs:
-            raise ValueError(f"trigger: {self.trigger!r} is not one of inputs {self.inputs}")
+        if self.inputs is not None:
+            missing = [r for r in self.inputs if r not in self.topics]
+            if missing:
+                raise ValueError(f"inputs: role(s) {missing} have no entry under topics")
+            if "planning" in self.inputs:
+                raise ValueError("inputs: 'planning' is the output, not an input")
+            if self.trigger is not None and self.trigger not in self.inputs:
+                raise ValueError(f"trigger: {self.trigger!r} is not one of inputs {self.inputs}")
         return self
 
     def topic(self, role: str) -> str | None:
@@ -121,6 +123,23 @@ def _validate(data: dict[str, Any], source: str) -> TopicMapping:
             msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
             problems.append(f"{source}: {loc}: {msg}")
         raise MappingError("; ".join(problems)) from None
+
+
+def input_roles(mapping: TopicMapping, planner: str) -> list[str]:
+    """The roles of the planner's frame: ``planner``'s :attr:`Planner.inputs` (the single source);
+    a mapping that lists ``inputs`` must name the same roles. MappingError (one line) when they
+    differ, when a role has no topic or the trigger is not among them."""
+    try:
+        roles = resolve_inputs(planner_class(planner), mapping.inputs, f"{mapping.source}: inputs")
+    except ValueError as exc:
+        raise MappingError(str(exc)) from None
+    missing = [r for r in roles if r not in mapping.topics]
+    if missing:
+        raise MappingError(f"{mapping.source}: topics: no topic for role(s) {missing}, which {planner} reads "
+                           "(Planner.inputs)")
+    if mapping.trigger is not None and mapping.trigger not in roles:
+        raise MappingError(f"{mapping.source}: trigger: {mapping.trigger!r} is not one of the planner's inputs {roles}")
+    return roles
 
 
 def get_field(payload: Any, path: str) -> Any:

@@ -1,4 +1,11 @@
-"""Failure-test minimisation: the shortest frame sequence that still reproduces P_faulty.
+"""Failure-test minimisation: the fewest frames that still reproduce P_faulty.
+
+A planner that can be seeded (:meth:`deft_gym.planner.base.Planner.export_state`) gives the
+shortest test of all: :func:`seeded_start` records its state just before the P_faulty frame (a
+fresh planner fed the frames before it), and the failure test loads that state into a fresh
+planner and plans the one frame. It is used only when a second fresh planner, loaded with the
+state as the test will read it (after a JSON round trip), reproduces P_faulty's whole output bit
+for bit. Otherwise the shortest replayed suffix is searched as follows.
 
 The failure test of an episode replays frames through a fresh planner up to P_faulty, so that
 the planner's state (trajectory stitching, hysteresis) is what it was live. A fresh planner
@@ -20,8 +27,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from deft_gym.bus.codec import decode, encode
 from deft_gym.planner.base import Frame, Planner
-from extract.validator import distance
+from extract.validator import distance, same_output
 
 
 @dataclass
@@ -60,6 +68,40 @@ def shortest_replay(make_planner: Callable[[], Planner], frame: Callable[[int], 
         if out is not None and distance(target, out, measure) == 0.0:
             return Minimised(s, candidates, calls, time.perf_counter() - t0)
     return Minimised(0, candidates, calls, time.perf_counter() - t0)
+
+
+@dataclass
+class Seed:
+    """A recorded planner state for the failure test (``state`` None: not usable, see ``note``)."""
+
+    frame: int
+    state: dict[str, Any] | None
+    plan_calls: int
+    seconds: float
+    note: str | None = None
+
+
+def seeded_start(make_planner: Callable[[], Planner], frame: Callable[[int], Frame], index: int,
+                 expected: Callable[[int], dict[str, Any]]) -> Seed:
+    """The state a fresh planner has after frames ``0..index-1``, when loading it into another
+    fresh planner makes that one reproduce ``expected(index)`` exactly (the whole output)."""
+    t0 = time.perf_counter()
+    probe = make_planner()
+    if probe.export_state() is None:
+        return Seed(index, None, 0, time.perf_counter() - t0, f"{type(probe).__name__} cannot be seeded")
+    for j in range(index):
+        probe.plan(frame(j))
+    try:
+        state = decode(encode(probe.export_state()))  # as the test reads it from the frames file
+        seeded = make_planner()
+        seeded.load_state(state)
+        out = seeded.plan(frame(index))
+    except (TypeError, ValueError, KeyError) as exc:
+        return Seed(index, None, index + 1, time.perf_counter() - t0, f"seeding failed: {exc}")
+    if not same_output(expected(index), out):
+        return Seed(index, None, index + 1, time.perf_counter() - t0,
+                    "the seeded planner does not reproduce P_faulty exactly")
+    return Seed(index, state, index + 1, time.perf_counter() - t0)
 
 
 def frame_getter(times: Sequence[float], inputs: Callable[[int], dict[str, Any]]) -> Callable[[int], Frame]:

@@ -147,6 +147,7 @@ class Faulty:
     distance: float  #: extraction's distance of the reproduced output from P_faulty
     perceived: bool = True  #: the participant had been perceived by the frame time
     replay_from: int = 0  #: the failure test replays frames replay_from..index (see extract.minimize)
+    seeded: bool = False  #: ... from a planner seeded with its recorded state at ``index`` (replays one frame)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -180,8 +181,20 @@ def find_faulty(outputs: Sequence[tuple[int, float, float, int, Mapping[str, Any
                   track.participant, track.num, collision_time, len(faulty), float(distances[k]), seen)
 
 
-def ego_size(override: tuple[float | None, float | None], planner_params: Mapping[str, Any]) -> tuple[float, float]:
-    """Ego box [m]: the mapping's values, else the planner's ``ego_length``/``ego_width``, else 4.8 x 2.0."""
-    length = override[0] or planner_params.get("ego_length") or DEFAULT_EGO[0]
-    width = override[1] or planner_params.get("ego_width") or DEFAULT_EGO[1]
-    return float(length), float(width)
+def ego_size(override: tuple[float | None, float | None], logged: Mapping[str, Any] | None
+             ) -> tuple[tuple[float, float], str | None]:
+    """Ego box [m] and a warning when it had to be assumed: the mapping's values, else the
+    log's (the ``ego`` entry of the episode record: ``length``, ``width`` of the simulated
+    vehicle), else 4.8 x 2.0."""
+    logged = logged if isinstance(logged, Mapping) else {}
+    length = override[0] or _positive(logged.get("length"))
+    width = override[1] or _positive(logged.get("width"))
+    note = None
+    if not (length and width):
+        note = (f"the log states no ego size (episode record 'ego') and the mapping sets none (ego:); "
+                f"the collision oracle assumes {DEFAULT_EGO[0]} x {DEFAULT_EGO[1]} m")
+    return (float(length or DEFAULT_EGO[0]), float(width or DEFAULT_EGO[1])), note
+
+
+def _positive(v: Any) -> float | None:
+    return float(v) if isinstance(v, int | float) and not isinstance(v, bool) and v > 0 else None

@@ -14,19 +14,25 @@ and/or ``DEFT_PLANNER_PARAMS='{"name": value}'`` to run the same tests against a
 
 from __future__ import annotations
 
-import hashlib
-import inspect
 import json
 import math
 import os
+import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 from deft_gym.bus.codec import decode
-from deft_gym.planner.base import Frame, Planner, import_object, load_planner
+from deft_gym.planner.base import (
+    Frame,
+    Planner,
+    import_object,
+    load_planner,
+    planner_provenance,
+    source_digest,
+)
 from extract.oracle import Track, overlapping_points
-from extract.validator import distance
+from extract.validator import Comparison, Tolerances, compare, distance
 
 FORMAT = "deft_gym.frames/1"
 
@@ -109,7 +115,10 @@ class EpisodeReplay:
     """One episode's frames, replayed lazily and once, for the generated tests.
 
     ``output(i)`` advances the planner through frames ``0..i`` as needed, so a single test can
-    run alone (``pytest -k``) and still see the right planner state."""
+    run alone (``pytest -k``) and still see the right planner state. :meth:`check` is the
+    reproduction test: the first frame (in time order) whose whole replayed output differs from
+    the recorded one fails with the fields, values and decision that differ; every later frame
+    is reported as its consequence (xfail), since one stateful planner replays them all."""
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
@@ -118,11 +127,16 @@ class EpisodeReplay:
         self._frames: dict[int, dict[str, Any]] = {}
         self._planner: Planner | None = None
         self._outputs: list[dict[str, Any] | None] = []
+        self._comparisons: dict[int, Comparison] = {}
         self.theta = float(self.header.get("theta", 0.0))
         self.measure = str(self.header.get("measure", "lsed"))
-        cls = import_object(planner_class(self.header))  # import now (collection), not inside a test
+        self.tolerances = Tolerances.from_dict(self.header.get("tolerances"), self.theta)
+        self.index = {int(f["index"]): f for f in self.header["frames_index"]}
+        cls = import_planner(self.header)  # import now (collection), not inside a test
         recorded = self.header["planner"].get("source_sha256")
         self.source_changed = bool(recorded) and source_digest(cls) != recorded
+        self.changes = provenance_changes(self.header["planner"].get("provenance"), cls)
+        self.seed_note: str | None = None
 
     def frame(self, index: int) -> dict[str, Any]:
         """Frame record ``index`` (lines are decoded on first use: a failure test that replays
@@ -151,38 +165,93 @@ class EpisodeReplay:
     # -- reproduction tests -------------------------------------------------------------------
     def reproduction_cases(self) -> list[Any]:
         """One ``pytest.param`` per frame, named ``frame0042-t4.227s``; frames the extraction did
-        not reproduce within theta are marked xfail with their distance."""
+        not reproduce are marked xfail with what differed."""
         import pytest
 
         cases = []
         for f in self.header["frames_index"]:
             marks = []
-            if not (f["distance"] is not None and f["distance"] <= self.theta):
-                d = "no output" if f["distance"] is None else f"{f['distance']:.3g} m"
-                marks.append(pytest.mark.xfail(reason=f"not reproduced at extraction ({d} > theta)", strict=False))
+            if not self.reproduced_at_extraction(f["index"]):
+                d = "no output" if f["distance"] is None else f"position {f['distance']:.3g} m"
+                marks.append(pytest.mark.xfail(reason=f"not reproduced at extraction ({d})", strict=False))
             cases.append(pytest.param(f["index"], id=frame_id(f["index"], f["time"]), marks=marks))
         return cases
 
+    def reproduced_at_extraction(self, index: int) -> bool:
+        """Whether the extraction reproduced frame ``index`` (whole output, within tolerances)."""
+        f = self.index[index]
+        if "reproduced" in f:
+            return bool(f["reproduced"])
+        return f["distance"] is not None and f["distance"] <= self.theta  # frames files before fields
+
+    def comparison(self, index: int) -> Comparison:
+        """The replayed output of frame ``index`` against the recorded one (whole output)."""
+        c = self._comparisons.get(index)
+        if c is None:
+            c = self._comparisons[index] = compare(self.frame(index)["expected"], self.output(index),
+                                                   self.tolerances, self.measure)
+        return c
+
     def distance(self, index: int) -> float:
-        """Distance [m] of the replayed output from the recorded one."""
-        return distance(self.frame(index)["expected"], self.output(index), self.measure)
+        """Position distance [m] of the replayed output from the recorded one."""
+        return self.comparison(index).distance
+
+    def first_divergence(self, upto: int) -> int | None:
+        """The first frame ``<= upto`` reproduced at extraction whose replay is not (None: none)."""
+        for j in sorted(k for k in self.index if k <= upto):
+            if self.reproduced_at_extraction(j) and not self.comparison(j).reproduced:
+                return j
+        return None
+
+    def check(self, index: int) -> None:
+        """The reproduction test of frame ``index``: passes, fails as the first divergent frame
+        (the primary failure), or xfails as a consequence of an earlier one."""
+        import pytest
+
+        __tracebackhide__ = True  # pytest then reports the test's line only (cheap for many xfails)
+        j = self.first_divergence(index)
+        if j is None:
+            return
+        if j < index:
+            fields = ", ".join(dict.fromkeys(d.field for d in self.comparison(j).diffs))
+            pytest.xfail(f"a consequence of {self._where(j)}, the first frame that differs ({fields}); "
+                         "this frame replays after it")
+        pytest.fail(self.explain(index), pytrace=False)
 
     def explain(self, index: int) -> str:
-        """Why frame ``index`` is not reproduced: distance, and the first differing point."""
-        fr = self.frame(index)
-        out = self.output(index)
-        head = (f"frame {index} (t={fr['time']:.3f} s, planning seq {fr['planning_seq']}): ")
+        """Why frame ``index`` is not reproduced: every field beyond its tolerance at full
+        precision, the decision diff, and how many later frames differ as a consequence."""
+        c = self.comparison(index)
+        j = self.first_divergence(index)
+        lines = [self._notes() + f"{self._where(index)}: the replayed output differs from the recorded one"
+                 + (" - the first frame of this episode that does" if j == index else "")]
+        lines += ["  " + d.text() for d in c.diffs]
+        same = [k for k, v in c.deviations.items() if v == 0.0]
+        if same:
+            lines.append(f"  identical: {', '.join(same)}")
+        if j == index:
+            later = [k for k in sorted(self.index) if k > index and self.reproduced_at_extraction(k)]
+            differ = [k for k in later if not self.comparison(k).reproduced]
+            if differ:
+                lines.append(f"consequences: {len(differ)} of the {len(later)} later frames differ too "
+                             f"(frames {differ[0]}-{differ[-1]}); their tests xfail as consequences of this one")
+            elif later:
+                lines.append(f"consequences: none - the {len(later)} later frames reproduce")
+        return "\n".join(lines)
+
+    def _where(self, index: int) -> str:
+        fr = self.index[index]
+        seq = self.frame(index).get("planning_seq")
+        return f"frame {index} (t={fr['time']!r} s, planning seq {seq})"
+
+    def _notes(self) -> str:
+        notes = []
         if self.source_changed:
-            head = "[the planner's source file changed since extraction] " + head
-        if out is None:
-            return head + "the planner returned no output"
-        exp, act = fr["expected"]["trajectory"], out["trajectory"]
-        d = distance(fr["expected"], out, self.measure)
-        for k, (a, b) in enumerate(zip(zip(exp["x"], exp["y"]), zip(act["x"], act["y"]))):
-            if a != b:
-                return (head + f"{self.measure} {d:.6g} m > theta {self.theta} m; first differing point {k} "
-                        f"(t={exp['t'][k]:.2f} s): recorded ({a[0]:.3f}, {a[1]:.3f}), replayed ({b[0]:.3f}, {b[1]:.3f})")
-        return head + f"{self.measure} {d:.6g} m > theta {self.theta} m (timestamps or length differ)"
+            notes.append("the planner's source file changed since extraction")
+        notes += self.changes
+        if os.environ.get("DEFT_PLANNER") or os.environ.get("DEFT_PLANNER_PARAMS"):
+            notes.append(f"planner {planner_class(self.header)} {os.environ.get('DEFT_PLANNER_PARAMS', '')}".strip())
+        return "".join(f"[{n}] " for n in notes)
 
     # -- failure test (oracle transformation) ---------------------------------------------------
     def failure_cases(self) -> list[Any]:
@@ -195,49 +264,97 @@ class EpisodeReplay:
         fid = f"{frame_id(f['index'], f['time'])}-{_ident(f['participant'])}@{f['collision_time']:.2f}s"
         return [pytest.param(f["index"], id=fid)]
 
+    def faulty_output(self, index: int) -> dict[str, Any] | None:
+        """The planner's output at the P_faulty frame, reached the cheapest way the extraction
+        verified: a fresh planner seeded with the state recorded at that frame (planners that
+        declare it, :meth:`Planner.export_state`), else fed the shortest suffix of frames that
+        reproduced P_faulty (``replay_from``), else every frame. ``DEFT_FULL_PREFIX=1`` replays
+        them all."""
+        oracle = self.header["oracle"]
+        f = oracle["faulty"]
+        if os.environ.get("DEFT_FULL_PREFIX") or index != f["index"]:
+            return self.output(index)
+        seed = oracle.get("seed")
+        if seed is not None and int(seed["frame"]) == index:
+            planner = make_planner(self.header)
+            try:
+                planner.load_state(seed["state"])
+            except (ValueError, TypeError, KeyError) as exc:
+                self.seed_note = f"seeding failed ({exc}); replayed frames instead"
+            else:
+                return planner.plan(to_frame(self.frame(index)))
+        start = int(f.get("replay_from", 0))
+        if start == 0:
+            return self.output(index)
+        planner = make_planner(self.header)  # the shortest suffix that reproduced P_faulty (extract.minimize)
+        out = None
+        for j in range(start, index + 1):
+            out = planner.plan(to_frame(self.frame(j)))
+        return out
+
     def faulty_hit(self, index: int) -> str | None:
         """Why the replayed output of frame ``index`` is still the faulty plan, or None.
 
         Faulty: it plans the ego box onto the participant's recorded box at a planned time, or
-        it is within theta of the recorded P_faulty (paper eq. 3). A fresh planner replays the
-        frames from the header's ``replay_from`` (the shortest suffix that reproduced P_faulty
-        at extraction; ``DEFT_FULL_PREFIX=1`` replays them all)."""
+        it is within theta of the recorded P_faulty (paper eq. 3)."""
         oracle = self.header["oracle"]
         f = oracle["faulty"]
-        start = 0 if os.environ.get("DEFT_FULL_PREFIX") else int(f.get("replay_from", 0))
-        if start == 0 or index != f["index"]:
-            out = self.output(index)
-        else:  # the shortest suffix that reproduced P_faulty at extraction (extract.minimize)
-            planner = make_planner(self.header)
-            out = None
-            for j in range(start, index + 1):
-                out = planner.plan(to_frame(self.frame(j)))
+        out = self.faulty_output(index)
         if out is None:
             return None
         track = Track.from_dict(oracle["track"])
         ego = (float(oracle["ego"]["length"]), float(oracle["ego"]["width"]))
         hits = overlapping_points(out["trajectory"], track, ego)
         d = distance(self.frame(index)["expected"], out, self.measure)
+        note = self._notes() + (f"[{self.seed_note}] " if self.seed_note else "")
         if hits.size:
             k = int(hits[0])
             tr = out["trajectory"]
-            return (f"the planner still plans into the collision with {f['participant']}: frame {index} "
-                    f"(t={self.frame(index)['time']:.3f} s) plans the ego at ({tr['x'][k]:.2f}, {tr['y'][k]:.2f}) "
-                    f"at t={tr['t'][k]:.2f} s, overlapping {f['participant']}'s recorded position "
-                    f"({len(hits)} planned points overlap; {self.measure} from P_faulty {d:.3g} m)")
+            return (note + f"the planner still plans into the collision with {f['participant']}: frame {index} "
+                    f"(t={self.frame(index)['time']:.3f} s) plans the ego at ({tr['x'][k]!r}, {tr['y'][k]!r}) "
+                    f"at t={tr['t'][k]!r} s, overlapping {f['participant']}'s recorded position "
+                    f"({len(hits)} planned points overlap; {self.measure} from P_faulty {d!r} m)")
         if d <= self.theta:
-            return (f"the planner still produces P_faulty at frame {index}: {self.measure} {d:.3g} m "
+            return (note + f"the planner still produces P_faulty at frame {index}: {self.measure} {d!r} m "
                     f"<= theta {self.theta} m")
         return None
 
 
-def source_digest(cls: type) -> str | None:
-    """sha256 of the source file defining a planner class (None when it has none)."""
+def import_planner(header: dict[str, Any]) -> type:
+    """The planner class of a frames header (``DEFT_PLANNER`` overrides it). When it cannot be
+    imported from here, the folder it was imported from at extraction (``provenance.root``) is
+    put on ``sys.path`` and it is tried again: generated tests run from any directory."""
+    path = planner_class(header)
     try:
-        path = inspect.getsourcefile(cls)
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest() if path else None
-    except (OSError, TypeError):
-        return None
+        return import_object(path)
+    except ValueError as first:
+        root = ((header["planner"].get("provenance") or {}).get("root")) if path == header["planner"]["class"] else None
+        if not root or root in sys.path or not Path(root).is_dir():
+            raise FramesError(f"{first}; the frames file records no folder it could be imported from") from None
+        sys.path.insert(0, root)
+        try:
+            return import_object(path)
+        except ValueError as exc:
+            raise FramesError(f"{exc} (also with {root} on sys.path, where it was at extraction)") from None
+
+
+def provenance_changes(recorded: dict[str, Any] | None, cls: type) -> list[str]:
+    """What differs from the planner's provenance recorded at extraction: the package's and the
+    dependencies' versions, the Python version (one phrase each; empty when all agree)."""
+    if not recorded:
+        return []
+    now = planner_provenance(cls)
+    out = []
+    pairs = [("python", recorded.get("python"), now.get("python"))]
+    rp, np_ = recorded.get("package") or {}, now.get("package") or {}
+    if rp.get("name"):
+        pairs.append((rp["name"], rp.get("version"), np_.get("version") if np_.get("name") == rp["name"] else None))
+    for name, v in (recorded.get("dependencies") or {}).items():
+        pairs.append((name, v, (now.get("dependencies") or {}).get(name)))
+    for name, was, is_ in pairs:
+        if was != is_:
+            out.append(f"{name} {was} -> {is_ or 'not installed'} since extraction")
+    return out
 
 
 def frame_id(index: int, time: float) -> str:

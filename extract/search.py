@@ -3,8 +3,16 @@
 Outputs are processed in order by one planner instance whose state is carried from frame to
 frame, exactly as the module tests will replay them. For each output the search proposes
 candidate frames, runs the planner on each from a snapshot of its state, and keeps the first
-whose output the validator finds identical (restoring the snapshot after every miss), so no
-candidate ever re-runs the prefix. Modes:
+whose whole output (every trajectory field and the decision) the validator finds identical,
+restoring the snapshot after every miss, so no candidate ever re-runs the prefix.
+
+The answer must not depend on which candidates were tried. A planner whose ``restore()`` is
+not faithful (state kept outside ``self.state``, a snapshot that shares objects with the live
+state) would make it so; after the search, the chosen frames are replayed through a fresh
+planner (DeFT's Algorithm 1 validation run) whenever a snapshot was restored, and from the first
+output that replay does not give bit for bit, the search is redone without snapshots: every
+candidate runs on a fresh planner fed the frames chosen so far (slower, always right).
+Modes:
 
 ``heuristic``
     The paper's heuristics as a best-first search. H1: the frame time t_F lies between the
@@ -36,11 +44,12 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.bus.codec import encode
 from deft_gym.bus.messages import NS_PER_S
 from deft_gym.planner.base import Frame, Planner
 from extract.io_filter import Output, PlanningIOFilter
 from extract.mapping import get_field
-from extract.validator import distance, measure_fn
+from extract.validator import distance, measure_fn, same_output
 
 MODES = ("heuristic", "last", "headers")
 Choice = dict[str, int | None]
@@ -71,17 +80,23 @@ class FrameChoice:
     output: Output
     time: float  #: frame time t_F [s] given to the planner
     choice: Choice  #: message index per role (None: nothing received yet)
-    distance: float
+    distance: float  #: position distance [m] by the measure
     tries: int
     stage: str  #: first | ranked | relaxed | closest | last | headers | headers-fallback
     actual: dict[str, Any] | None = field(default=None, repr=False)
+    exact: bool = False  #: the whole output reproduced bit for bit
 
 
 class InputSearch:
-    """Runs one of the modes over all outputs of a :class:`PlanningIOFilter`."""
+    """Runs one of the modes over all outputs of a :class:`PlanningIOFilter`.
 
-    def __init__(self, pif: PlanningIOFilter, planner: Planner, cfg: SearchConfig) -> None:
+    ``factory`` builds fresh planners like ``planner`` (for the validation replay and the
+    snapshot-free fallback; without it the search trusts ``snapshot()``/``restore()``)."""
+
+    def __init__(self, pif: PlanningIOFilter, planner: Planner, cfg: SearchConfig,
+                 factory: Callable[[], Planner] | None = None) -> None:
         self.pif, self.planner, self.cfg = pif, planner, cfg
+        self.factory = factory
         self.measure = measure_fn(cfg.measure)
         self.roles = pif.roles
         d = pif.mapping.delivery
@@ -93,38 +108,96 @@ class InputSearch:
         self.plan_calls = 0
         self.errors: list[str] = []
         self._seq_index: dict[str, dict[int, int]] | None = None
+        self.restores = 0  #: snapshots restored (candidates tried after a miss)
+        #: None: not checked (no snapshot restored, or no factory); True: the validation replay
+        #: gave every chosen output; False: it did not, the search was redone without snapshots
+        self.restore_faithful: bool | None = None
+        self.unfaithful_at: int | None = None  #: first output the validation replay did not give
+        self.nondeterministic_at: int | None = None  #: ... even after the snapshot-free search
+        self._fresh = False
+        self._chosen: list[FrameChoice] = []
 
     # -- running ------------------------------------------------------------------------------
     def run(self, on_frame: Callable[[FrameChoice], None] | None = None) -> list[FrameChoice]:
-        """Choose a frame for every output, in order; ``on_frame`` sees each result."""
-        out: list[FrameChoice] = []
-        prev: Choice | None = None
-        synced = True
+        """Choose a frame for every output, in order; ``on_frame`` sees each result (an output
+        searched again after a failed validation replay is seen again)."""
+        out = self._chosen = []
+        self._run_from(0, on_frame)
+        if self.factory is None or not self.restores:
+            return out
+        k = self._validate(out)
+        self.restore_faithful = k is None
+        if k is None:
+            return out
+        self.unfaithful_at = k
+        self._fresh = True
+        del out[k:]
+        self.planner = self._replayed(k)
+        self._run_from(k, on_frame)
+        self.nondeterministic_at = self._validate(out)
+        return out
+
+    def _run_from(self, start: int, on_frame: Callable[[FrameChoice], None] | None) -> None:
+        out = self._chosen
+        prev = out[start - 1].choice if start else None
+        synced = out[start - 1].exact if start else True
         step = {"heuristic": self._heuristic, "last": self._last, "headers": self._headers}[self.cfg.mode]
-        for o in self.pif.outputs:
+        for o in self.pif.outputs[start:]:
             fc = step(o, prev, synced, out[-1] if out else None)
-            synced = fc.distance == 0.0
+            fc.exact = fc.distance == 0.0 and same_output(o.payload, fc.actual)
+            synced = fc.exact
             prev = fc.choice
             out.append(fc)
             if on_frame is not None:
                 on_frame(fc)
-        return out
+
+    def frame_inputs(self, choice: Choice) -> dict[str, Any]:
+        """Freshly decoded payloads of a choice (ValueError: one is not valid JSON)."""
+        return {role: (self.pif.inputs[role].fresh(j) if j is not None else None) for role, j in choice.items()}
+
+    def _validate(self, out: list[FrameChoice]) -> int | None:
+        """Replay the chosen frames through a fresh planner; the first output it does not give
+        bit for bit (None: all)."""
+        planner = self.factory()
+        for i, fc in enumerate(out):
+            got = self._call(planner, fc.time, fc.choice)
+            if not _same(got, fc.actual):
+                return i
+        return None
+
+    def _replayed(self, n: int) -> Planner:
+        """A fresh planner fed the first ``n`` chosen frames."""
+        planner = self.factory()
+        for fc in self._chosen[:n]:
+            self._call(planner, fc.time, fc.choice)
+        return planner
+
+    def _snapshot(self) -> Any:
+        """A token to return to the planner's current state (the number of chosen frames when
+        snapshots are not trusted)."""
+        return len(self._chosen) if self._fresh else self.planner.snapshot()
+
+    def _restore(self, snap: Any) -> None:
+        self.restores += 1
+        if self._fresh:
+            self.planner = self._replayed(snap)
+        else:
+            self.planner.restore(snap)
 
     def _plan(self, t: float, choice: Choice) -> dict[str, Any] | None:
-        inputs: dict[str, Any] = {}
-        for role, j in choice.items():
-            if j is None:
-                inputs[role] = None
-                continue
-            try:
-                inputs[role] = self.pif.inputs[role].fresh(j)
-            except ValueError:
-                if len(self.errors) < 20:
-                    self.errors.append(f"{role} message {j}: payload is not valid JSON")
-                return None
+        return self._call(self.planner, t, choice)
+
+    def _call(self, planner: Planner, t: float, choice: Choice) -> dict[str, Any] | None:
+        try:
+            inputs = self.frame_inputs(choice)
+        except ValueError:
+            if len(self.errors) < 20:
+                bad = [f"{r} message {j}" for r, j in choice.items() if j is not None and j in self.pif.inputs[r].bad]
+                self.errors.append(f"{', '.join(bad) or 'an input'}: payload is not valid JSON")
+            return None
         t0 = time.perf_counter()
         try:
-            return self.planner.plan(Frame(t, inputs))
+            return planner.plan(Frame(t, inputs))
         except Exception as exc:  # a candidate frame may be garbage to the planner
             if len(self.errors) < 20:
                 self.errors.append(f"planner raised {type(exc).__name__}: {exc} at t={t:.3f}")
@@ -199,7 +272,7 @@ class InputSearch:
             return fc
         t_ns = round(fc.time * NS_PER_S)
         snap_tries = fc.tries + self.cfg.refine_steps + 2
-        self.planner.restore(self._pre)
+        self._restore(self._pre)
         fc2 = self._search(o, [_Stage(fc.time, self._ranked(t_ns, prev, False), self.cfg.depth),
                                _Stage(fc.time, self._ranked(t_ns, prev, True), self.cfg.depth, name="relaxed")],
                            2 * self.cfg.depth)
@@ -209,13 +282,13 @@ class InputSearch:
     # -- the search loop -----------------------------------------------------------------------
     def _search(self, o: Output, stages: list[_Stage], budget: int, refine: int = 0) -> FrameChoice:
         """Try candidate frames stage by stage from one planner snapshot; keep the first that
-        reproduces the output exactly, else the closest one (whose state is then adopted).
-        ``refine``: golden-section steps on the frame time around the closest candidate (for
-        logs that do not state it: the distance is smooth in t_F for a fixed input choice)."""
-        planner = self.planner
-        snap = self._pre = planner.snapshot()
+        reproduces the whole output exactly, else the closest one (by position distance, then
+        whether the other fields match), whose state is then adopted. ``refine``:
+        golden-section steps on the frame time around the closest candidate (for logs that do
+        not state it: the distance is smooth in t_F for a fixed input choice)."""
+        snap = self._pre = self._snapshot()
         tried: set[tuple[float, tuple[int | None, ...]]] = set()
-        best: tuple[float, float, Choice] | None = None
+        best: tuple[float, bool, float, Choice] | None = None
         tries = 0
         for st in stages:
             n_here = 0
@@ -227,23 +300,24 @@ class InputSearch:
                     continue
                 tried.add(key)
                 if tries:
-                    planner.restore(snap)
+                    self._restore(snap)
                 tries += 1
                 n_here += 1
                 actual = self._plan(st.time, choice)
                 d = distance(o.payload, actual, self.measure)
-                if d == 0.0:
+                other = not (d == 0.0 and same_output(o.payload, actual))
+                if not other:
                     return FrameChoice(o, st.time, choice, 0.0, tries, "first" if tries == 1 else st.name, actual)
-                if best is None or d < best[0]:
-                    best = (d, st.time, choice)
+                if best is None or (d, other) < best[:2]:
+                    best = (d, other, st.time, choice)
         if best is None:
             t = o.frame_time if o.frame_time is not None else o.publish_time
             return FrameChoice(o, t, dict.fromkeys(self.roles), math.inf, tries, "closest")
-        _, t, choice = best
+        _, _, t, choice = best
         if refine:
             w = 2e-3 * max(1.0, self.pif.mapping.delivery.mean_ms)
             t = self._golden(o, snap, choice, t - w, min(t + w, o.publish_time), refine, best[0], t)
-        planner.restore(snap)
+        self._restore(snap)
         actual = self._plan(t, choice)  # adopt the closest candidate's state
         return FrameChoice(o, t, choice, distance(o.payload, actual, self.measure), tries, "closest", actual)
 
@@ -253,7 +327,7 @@ class InputSearch:
         g = (math.sqrt(5.0) - 1.0) / 2.0
 
         def f(t: float) -> float:
-            self.planner.restore(snap)
+            self._restore(snap)
             return distance(o.payload, self._plan(t, choice), self.measure)
 
         c, d = b - g * (b - a), a + g * (b - a)
@@ -381,3 +455,15 @@ class _Stage:
 
 def _one(choice: Choice) -> Iterator[Choice]:
     yield choice
+
+
+def _same(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:
+    """Two planner outputs equal bit for bit (NaN included)."""
+    if a is None or b is None:
+        return a is b
+    if a == b:
+        return True
+    try:
+        return encode(a) == encode(b)
+    except (TypeError, ValueError):
+        return False

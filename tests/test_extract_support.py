@@ -85,3 +85,27 @@ class ElsewherePlanner(LatticePlanner):
         if out is not None:
             out["trajectory"]["y"] = [y + 100.0 for y in out["trajectory"]["y"]]
         return out
+
+
+class HiddenStatePlanner(LatticePlanner):
+    """The reference planner with state kept outside ``self.state``, as CommonRoad's reactive
+    planner keeps its low-speed flag: a low-pass filtered start speed, updated by every call, that
+    shifts the plan by a few millimetres. A clean replay is deterministic; snapshot(), a call with
+    another frame and restore() leave the filter where the other frame put it."""
+
+    def __init__(self, map_spec: dict[str, Any], **params: Any) -> None:
+        super().__init__(map_spec, **params)
+        self._v_filtered = 0.0
+
+    def reset(self) -> None:
+        super().reset()
+        self._v_filtered = 0.0
+
+    def plan(self, frame: Any) -> dict[str, Any] | None:
+        out = super().plan(frame)
+        if out is not None:
+            v0 = out["trajectory"]["v"][0]
+            self._v_filtered = 0.8 * self._v_filtered + 0.2 * v0
+            shift = 0.0025 * (self._v_filtered > 4.0)
+            out["trajectory"]["x"] = [x + shift for x in out["trajectory"]["x"]]
+        return out

@@ -4,34 +4,60 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
+from deft_gym.planner.lattice import LatticePlanner
 from extract.emit import slug
-from extract.mapping import DEFAULT_MAPPING, MappingError, get_field, load_mapping
+from extract.mapping import DEFAULT_MAPPING, MappingError, get_field, input_roles, load_mapping
 from extract.oracle import Track, boxes_overlap, find_faulty, first_overlaps, overlapping_points
 from extract.search import InputSearch, SearchConfig
-from extract.validator import distance, identical, reproduced_counts
+from extract.validator import (
+    Tolerances,
+    compare,
+    distance,
+    identical,
+    parse_tolerances,
+    reproduced_counts,
+)
+
+LATTICE = "deft_gym.planner.lattice:LatticePlanner"
 
 
 def test_default_mapping_loads_and_names_roles() -> None:
     mp = load_mapping(None)
     assert mp.source == str(DEFAULT_MAPPING)
-    assert mp.inputs == ["routing", "localization", "traffic_light", "prediction"]
+    assert mp.inputs is None  # the planner's Planner.inputs
+    assert input_roles(mp, LATTICE) == list(LatticePlanner.inputs)
     assert mp.trigger == "prediction" and mp.frame_time_field == "header.stamp"
+
+
+def test_mapping_inputs_must_match_the_planner() -> None:
+    """Planner.inputs is the single source of the frame's roles: a mapping listing others, or a
+    trigger outside them, is a one-line error naming the mapping and the planner."""
+    base = yaml.safe_load(DEFAULT_MAPPING.read_text())
+    same = load_mapping({**base, "inputs": ["prediction", "routing", "localization", "traffic_light"]})
+    assert input_roles(same, LATTICE) == list(LatticePlanner.inputs)  # any order, the planner's order
+    for patch, needle in [({"inputs": ["routing", "localization", "prediction"]}, "['traffic_light'] missing"),
+                          ({"inputs": [*LatticePlanner.inputs, "chassis"]}, "['chassis'] not read by the planner"),
+                          ({"trigger": "chassis"}, "trigger: 'chassis' is not one of the planner's inputs")]:
+        with pytest.raises(MappingError, match=re.escape(needle)) as err:
+            input_roles(load_mapping({**base, "topics": {**base["topics"], "chassis": "/c"}, **patch}), LATTICE)
+        assert "\n" not in str(err.value) and "<dict>" in str(err.value)
 
 
 @pytest.mark.parametrize(("patch", "needle"), [
     ({"colour": 1}, "colour: unknown key"),
-    ({"trigger": "chassis"}, "trigger"),
+    ({"trigger": "chassis", "inputs": ["routing", "localization"]}, "trigger"),
     ({"inputs": ["routing", "odometry"]}, "odometry"),
     ({"topics": {"routing": "/r"}}, "planning"),
 ])
 def test_bad_mapping_names_file_and_field(tmp_path, patch, needle) -> None:
-    import yaml
-
     data = {**yaml.safe_load(DEFAULT_MAPPING.read_text()), **patch}
     path = tmp_path / "m.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -154,3 +180,56 @@ def test_ranking_is_best_first_and_follows_the_heuristics() -> None:
 def test_slug_makes_identifiers() -> None:
     assert slug("left_turn~cut3") == "left_turn_cut3"
     assert slug("3 lanes / merge") == "s_3_lanes_merge"
+
+
+def _payload(**over: Any) -> dict[str, Any]:
+    tr = {"t": [1.0, 1.2, 1.4], "x": [0.0, 1.0, 2.0], "y": [0.0, 0.0, 0.0], "v": [5.0, 5.0, 5.0],
+          "heading": [3.14, 3.1415, -3.1415], "a": [0.0, 0.0, 0.0]}
+    dec = {"behavior": "CRUISE", "cost": 1.5, "lane": ["a", "b", 0]}
+    for k, v in over.items():
+        if k.startswith("d_"):
+            dec[k[2:]] = v
+        else:
+            tr[k] = v
+    return {"header": {"seq": 1}, "trajectory": tr, "decision": dec}
+
+
+def test_whole_output_comparison_names_field_point_and_values() -> None:
+    """Positions by theta; every other field (and the decision) bit-exact by default, each
+    difference with the point of largest deviation and both values at full precision."""
+    rec = _payload()
+    assert compare(rec, _payload()).reproduced and compare(rec, None).diffs[0].field == "output"
+    c = compare(rec, _payload(v=[5.0, 5.0 + 1e-12, 5.0], d_behavior="FOLLOW"))
+    assert not c.reproduced and c.distance == 0.0
+    assert {d.field for d in c.diffs} == {"v", "decision.behavior"}
+    v = next(d for d in c.diffs if d.field == "v")
+    assert v.point == 1 and v.time == 1.2 and v.replayed == 5.0 + 1e-12 and repr(5.0 + 1e-12) in v.text()
+    assert "recorded 'CRUISE', replayed 'FOLLOW'" in c.text()
+    # tolerances per field, the decision's numbers, headings as wrapped angles, NaN == NaN
+    assert compare(rec, _payload(v=[5.0, 5.001, 5.0]), Tolerances(fields={"v": 0.01})).reproduced
+    assert compare(rec, _payload(d_cost=1.6), Tolerances(decision=0.2)).reproduced
+    assert not compare(rec, _payload(d_cost=1.6), Tolerances(decision=0.05)).reproduced
+    assert compare(rec, _payload(heading=[3.14, 3.1415, -3.1415 + 2 * math.pi])).reproduced is False  # bits differ
+    assert compare(rec, _payload(heading=[3.14, 3.1415, -3.1415 + 2 * math.pi]), Tolerances(fields={"heading": 1e-9})).reproduced
+    assert compare(_payload(a=[0.0, math.nan, 0.0]), _payload(a=[0.0, math.nan, 0.0])).reproduced
+    # positions: theta, and the point where they differ most
+    c = compare(rec, _payload(x=[0.0, 1.0, 2.5]))
+    assert [d.field for d in c.diffs] == ["position"] and c.diffs[0].point == 2 and c.distance == 0.5
+    assert compare(rec, _payload(x=[0.0, 1.0, 2.5]), Tolerances(theta=0.5)).reproduced
+    # missing, extra and re-shaped fields
+    extra = _payload()
+    extra["trajectory"]["kappa"] = [0.0, 0.0, 0.0]
+    assert [d.field for d in compare(rec, extra).diffs] == ["kappa"]
+    assert "2 replayed" in compare(rec, _payload(v=[5.0, 5.0])).text()
+    no_dec = _payload()
+    del no_dec["decision"]
+    assert compare(no_dec, dict(no_dec)).reproduced and not compare(rec, no_dec).reproduced
+
+
+def test_tolerance_options() -> None:
+    tol = parse_tolerances(["v=0.01", "decision=0.5", "default=1e-9"], theta=0.1)
+    assert tol.of("v") == 0.01 and tol.of("a") == 1e-9 and tol.decision == 0.5 and tol.theta == 0.1
+    assert Tolerances.from_dict(tol.as_dict()) == tol
+    for bad in (["v"], ["v=-1"], ["v=abc"], ["x=0.1"]):
+        with pytest.raises(ValueError, match="tolerance"):
+            parse_tolerances(bad)

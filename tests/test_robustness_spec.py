@@ -16,7 +16,7 @@ SPEC = TestSpecification.from_schemas()
 
 
 def test_spec_covers_every_topic_with_typed_fields() -> None:
-    assert set(SPEC.message_types) == {"routing", "localization", "chassis", "perception_obstacles",
+    assert set(SPEC.message_types) == {"routing", "map", "localization", "chassis", "perception_obstacles",
                                        "traffic_light", "prediction", "planning", "control"}
     f = SPEC.field("localization", "v")
     assert f is not None and f.type == "float" and f.unit == "m/s"

@@ -44,7 +44,7 @@ class JitterConfig(Strict):
     enabled: bool = True
     delivery: Duration = Duration(mean_ms=1.0, std_ms=0.6)
     drop_prob: float = Field(default=0.001, ge=0.0, lt=1.0)
-    reliable: list[str] = Field(default_factory=lambda: ["routing"],
+    reliable: list[str] = Field(default_factory=lambda: ["routing", "map"],
                                 description="topic roles whose deliveries are never lost (a drawn loss is "
                                 "redelivered), as Apollo's routing response is latched (transient local)")
     _roles = field_validator("reliable")(_known_roles)
@@ -74,7 +74,8 @@ class PlannerSpec(Strict):
 
 
 class PlanningConfig(ModuleConfig):
-    subscribe: list[str] = ["routing", "localization", "traffic_light", "prediction"]
+    subscribe: list[str] | None = Field(default=None, description="roles of the planner's frame; None (default): "
+                                        "the planner's Planner.inputs, which a list must match")
     trigger: str | None = "prediction"
     planner: PlannerSpec = PlannerSpec()
     publish_input_headers: bool = False

@@ -7,6 +7,9 @@ with a ``header`` (``seq``, ``stamp`` [s], ``module``), modelled on Apollo's ``c
 
 Topics are addressed by *role* in code (``"localization"``) and by *name* on the bus
 (``"/apollo/localization/pose"``); the mapping is configuration (:data:`DEFAULT_TOPICS`).
+Every field of every topic is documented in :data:`SCHEMAS` with its unit and its frame or time
+base (:data:`FRAMES`): positions are in highway-env's world frame (y down on screen) and refer to
+a vehicle's centre, lateral offsets are positive to the right, times are absolute sim seconds.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ class Message:
 
 ROLES = (
     "routing",
+    "map",
     "localization",
     "chassis",
     "perception_obstacles",
@@ -55,6 +59,7 @@ ROLES = (
 
 DEFAULT_TOPICS: dict[str, str] = {
     "routing": "/apollo/routing_response",
+    "map": "/deft_gym/map",
     "localization": "/apollo/localization/pose",
     "chassis": "/apollo/canbus/chassis",
     "perception_obstacles": "/apollo/perception/obstacles",
@@ -66,62 +71,97 @@ DEFAULT_TOPICS: dict[str, str] = {
 
 OBSTACLE_TYPES = ["VEHICLE", "CONE", "STATIC_VEHICLE", "UNKNOWN"]
 LIGHT_COLORS = ["GREEN", "YELLOW", "RED", "UNKNOWN"]
+#: the reference planner's decision behaviours (its own vocabulary; other planners have theirs)
 BEHAVIORS = ["CRUISE", "FOLLOW", "STOP", "NUDGE", "CHANGE_LANE", "ESTOP"]
 
 # ---------------------------------------------------------------------------------------------
-# JSON schemas. ``x-brittle`` marks fields that mean something to the middleware rather than to
-# the modules (ASTAA section 3.4.3 skips them by default); ``x-unit`` documents units.
+# JSON schemas. Every field has a ``description``; numbers have ``x-unit`` (``1``: a pure
+# number) and positions, headings and times ``x-frame`` (one of FRAMES). ``x-brittle`` marks
+# fields that mean something to the middleware rather than to the modules (ASTAA section 3.4.3
+# skips them by default). ``x-planner-defined`` marks an object whose keys are the planner's
+# own (the decision): the keys listed are the reference planner's, documented, not required.
+
+#: the coordinate frames and time bases fields refer to (``x-frame``)
+FRAMES = {
+    "world": "highway-env's world frame: x [m] and y [m] of the map, y pointing down on screen; "
+             "headings [rad] from +x towards +y (clockwise on screen), any real value",
+    "vehicle_centre": "world frame, the centre of the vehicle's bounding box (not the rear axle)",
+    "lane": "along one lane from its start: s [m] along the centre line; d [m] lateral, positive to the "
+            "right of the driving direction",
+    "sim_time": "absolute simulation time [s] since the episode started (the bus clock)",
+    "relative": "a duration or a spacing [s], not a point in time",
+}
 
 
-def _num(unit: str = "", **kw: Any) -> dict[str, Any]:
-    out: dict[str, Any] = {"type": "number", **kw}
-    if unit:
-        out["x-unit"] = unit
+def _num(unit: str, description: str, frame: str | None = None, **kw: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {"type": "number", "description": description, "x-unit": unit or "1", **kw}
+    if frame:
+        out["x-frame"] = frame
     return out
 
 
-def _series(unit: str) -> dict[str, Any]:
-    return {"type": "array", "items": _num(unit)}
+def _int(description: str, **kw: Any) -> dict[str, Any]:
+    return {"type": "integer", "description": description, **kw}
+
+
+def _str(description: str, **kw: Any) -> dict[str, Any]:
+    return {"type": "string", "description": description, **kw}
+
+
+def _series(unit: str, description: str, frame: str | None = None) -> dict[str, Any]:
+    return {"type": "array", "description": description, "items": _num(unit, description, frame)}
 
 
 HEADER_SCHEMA = {
     "type": "object",
+    "description": "Apollo-style message header",
     "properties": {
-        "seq": {"type": "integer", "x-brittle": True},
-        "stamp": _num("s", **{"x-brittle": True}),
-        "module": {"type": "string", "x-brittle": True},
+        "seq": _int("sequence number of the message on its topic, from 0", **{"x-brittle": True}),
+        "stamp": _num("s", "measurement time of sensor messages, frame time of prediction and planning "
+                      "outputs", "sim_time", **{"x-brittle": True}),
+        "module": _str("name of the publishing module", **{"x-brittle": True}),
     },
     "required": ["seq", "stamp", "module"],
 }
 
 LANE_ID_SCHEMA = {
     "type": "array",
-    "items": [{"type": "string"}, {"type": "string"}, {"type": "integer"}],
-    "description": "highway-env lane index (from node, to node, lane id)",
+    "items": [_str("from node"), _str("to node"), _int("lane index on the road: 0 the leftmost, growing to "
+                                                       "the right")],
+    "description": "lane id (highway-env lane index: from node, to node, lane index); [] for none",
 }
 
 TRAJECTORY_SCHEMA = {
     "type": "object",
+    "description": "the planned trajectory: equally long series, one entry per point (any number >= 2, "
+                   "any spacing)",
     "properties": {
-        "t": _series("s"),
-        "x": _series("m"),
-        "y": _series("m"),
-        "v": _series("m/s"),
-        "heading": _series("rad"),
-        "a": _series("m/s^2"),
+        "t": _series("s", "time of each point, absolute, strictly increasing; t[0] is the frame time "
+                     "(header.stamp)", "sim_time"),
+        "x": _series("m", "planned position of the ego's centre, x", "vehicle_centre"),
+        "y": _series("m", "planned position of the ego's centre, y", "vehicle_centre"),
+        "v": _series("m/s", "planned speed (>= 0)"),
+        "heading": _series("rad", "planned heading", "world"),
+        "a": _series("m/s^2", "planned acceleration along the path (negative: braking)"),
     },
     "required": ["t", "x", "y", "v", "heading", "a"],
 }
 
 
-def _obj(properties: dict[str, Any], title: str, optional: tuple[str, ...] = ()) -> dict[str, Any]:
+def _obj(properties: dict[str, Any], title: str, description: str, optional: tuple[str, ...] = ()) -> dict[str, Any]:
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": title,
+        "description": description,
         "type": "object",
         "properties": {"header": HEADER_SCHEMA, **properties},
         "required": ["header", *(k for k in properties if k not in optional)],
     }
+
+
+def _box(prefix: str) -> dict[str, Any]:
+    return {"length": _num("m", f"{prefix} bounding-box length (along its heading)"),
+            "width": _num("m", f"{prefix} bounding-box width")}
 
 
 SCHEMAS: dict[str, dict[str, Any]] = {
@@ -129,113 +169,182 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         {
             "segments": {
                 "type": "array",
+                "description": "the route, road by road, in driving order",
                 "items": {
                     "type": "object",
+                    "description": "one road of the route",
                     "properties": {
-                        "road": {"type": "array", "items": {"type": "string"}},
-                        "lanes": {"type": "array", "items": {"type": "integer"}},
+                        "road": {"type": "array", "description": "the road: [from node, to node] (see map.lanes)",
+                                 "items": _str("node name")},
+                        "lanes": {"type": "array", "description": "lane indices of this road from which the route "
+                                  "continues onto the next road (the destination lane on the last)",
+                                  "items": _int("lane index")},
                     },
                 },
             },
             "destination": {
                 "type": "object",
-                "properties": {"lane": LANE_ID_SCHEMA, "s": _num("m")},
+                "description": "where the ego must stop",
+                "properties": {"lane": LANE_ID_SCHEMA,
+                               "s": _num("m", "distance of the destination from the lane's start", "lane")},
             },
-            "cruise_speed": _num("m/s"),
+            "cruise_speed": _num("m/s", "the speed to drive at where the map allows it"),
         },
-        "deft_gym.RoutingResponse",
+        "deft_gym.RoutingResponse", "the lane-level route from the ego's start to its destination; published once "
+        "at start-up (latched)",
+    ),
+    "map": _obj(
+        {
+            "name": _str("map family (intersection, highway, uturn)"),
+            "lanes": {
+                "type": "array",
+                "description": "every lane of the map",
+                "items": {
+                    "type": "object",
+                    "description": "one lane",
+                    "properties": {
+                        "id": LANE_ID_SCHEMA,
+                        "x": _series("m", "centre line, x, from the lane's start to its end (exact at the points; "
+                                     "straight lanes have 2, curved ones one every 0.5 m or less)", "world"),
+                        "y": _series("m", "centre line, y", "world"),
+                        "s": _series("m", "arc length of each centre-line point from the lane's start", "lane"),
+                        "width": _num("m", "lane width"),
+                        "length": _num("m", "arc length of the centre line"),
+                        "speed_limit": _num("m/s", "speed limit"),
+                        "successors": {"type": "array", "description": "lanes that continue this one at its end",
+                                       "items": LANE_ID_SCHEMA},
+                        "left": {**LANE_ID_SCHEMA, "description": "the adjacent lane on the left, same road and "
+                                 "direction ([] for none)"},
+                        "right": {**LANE_ID_SCHEMA, "description": "the adjacent lane on the right ([] for none)"},
+                        "change_left": {"type": "boolean", "description": "a lane change to the left lane is allowed"},
+                        "change_right": {"type": "boolean", "description": "a lane change to the right lane is allowed"},
+                        "junction": {"type": "boolean", "description": "the lane is inside a junction"},
+                    },
+                },
+            },
+            "stop_lines": {
+                "type": "array",
+                "description": "stop lines controlled by traffic lights",
+                "items": {
+                    "type": "object",
+                    "description": "one stop line",
+                    "properties": {
+                        "lane": LANE_ID_SCHEMA,
+                        "s": _num("m", "position of the stop line along the lane", "lane"),
+                        "x": _num("m", "where the stop line crosses the lane's centre line, x", "world"),
+                        "y": _num("m", "... y", "world"),
+                        "light_id": _str("the traffic light controlling it (traffic_light.lights[].id)"),
+                    },
+                },
+            },
+            "lights": {"type": "array", "description": "ids of the traffic lights", "items": _str("light id")},
+        },
+        "deft_gym.Map", "the road map as data (lanes as polylines with widths, successors and neighbours, stop "
+        "lines, light ids); published once at start-up with the route (latched)",
     ),
     "localization": _obj(
         {
-            "x": _num("m"),
-            "y": _num("m"),
-            "heading": _num("rad"),
-            "v": _num("m/s"),
-            "a": _num("m/s^2"),
-            "yaw_rate": _num("rad/s"),
+            "x": _num("m", "ego position, x", "vehicle_centre"),
+            "y": _num("m", "ego position, y", "vehicle_centre"),
+            "heading": _num("rad", "ego heading", "world"),
+            "v": _num("m/s", "ego speed (>= 0)"),
+            "a": _num("m/s^2", "ego acceleration along its heading"),
+            "yaw_rate": _num("rad/s", "rate of change of the heading"),
         },
-        "deft_gym.LocalizationEstimate",
+        "deft_gym.LocalizationEstimate", "the ego's pose (ground truth plus seeded noise)",
     ),
     "chassis": _obj(
         {
-            "speed": _num("m/s"),
-            "steering": _num("rad"),
-            "acceleration": _num("m/s^2"),
+            "speed": _num("m/s", "wheel speed"),
+            "steering": _num("rad", "front-wheel steering angle, positive towards +heading (right on screen)"),
+            "acceleration": _num("m/s^2", "longitudinal acceleration"),
         },
-        "deft_gym.Chassis",
+        "deft_gym.Chassis", "the vehicle's own sensors",
     ),
     "perception_obstacles": _obj(
         {
             "obstacles": {
                 "type": "array",
+                "description": "obstacles within perception range",
                 "items": {
                     "type": "object",
+                    "description": "one obstacle",
                     "properties": {
-                        "id": {"type": "integer"},
-                        "type": {"type": "string", "enum": OBSTACLE_TYPES},
-                        "x": _num("m"),
-                        "y": _num("m"),
-                        "heading": _num("rad"),
-                        "v": _num("m/s"),
-                        "length": _num("m"),
-                        "width": _num("m"),
+                        "id": _int("obstacle id, stable over the episode"),
+                        "type": _str("obstacle type", enum=OBSTACLE_TYPES),
+                        "x": _num("m", "position, x", "vehicle_centre"),
+                        "y": _num("m", "position, y", "vehicle_centre"),
+                        "heading": _num("rad", "heading", "world"),
+                        "v": _num("m/s", "speed (>= 0)"),
+                        **_box("obstacle"),
                     },
                 },
             }
         },
-        "deft_gym.PerceptionObstacles",
+        "deft_gym.PerceptionObstacles", "perceived obstacles at header.stamp",
     ),
     "traffic_light": _obj(
         {
             "lights": {
                 "type": "array",
+                "description": "every traffic light of the map (empty where there are none)",
                 "items": {
                     "type": "object",
+                    "description": "one light",
                     "properties": {
-                        "id": {"type": "string"},
-                        "color": {"type": "string", "enum": LIGHT_COLORS},
+                        "id": _str("light id (map.stop_lines[].light_id)"),
+                        "color": _str("the light's colour", enum=LIGHT_COLORS),
                     },
                 },
             }
         },
-        "deft_gym.TrafficLightDetection",
+        "deft_gym.TrafficLightDetection", "detected light colours at header.stamp",
     ),
     "prediction": _obj(
         {
-            "perception_stamp": _num("s", **{"x-brittle": True}),
+            "perception_stamp": _num("s", "header.stamp of the perception message predicted from", "sim_time",
+                                     **{"x-brittle": True}),
             "obstacles": {
                 "type": "array",
+                "description": "predicted obstacles",
                 "items": {
                     "type": "object",
+                    "description": "one obstacle and its predicted path",
                     "properties": {
-                        "id": {"type": "integer"},
-                        "type": {"type": "string", "enum": OBSTACLE_TYPES},
-                        "length": _num("m"),
-                        "width": _num("m"),
-                        "is_static": {"type": "boolean"},
-                        "t0": _num("s"),
-                        "dt": _num("s"),
-                        "x": _series("m"),
-                        "y": _series("m"),
-                        "heading": _series("rad"),
-                        "v": _num("m/s"),
+                        "id": _int("obstacle id (as in perception)"),
+                        "type": _str("obstacle type", enum=OBSTACLE_TYPES),
+                        **_box("obstacle"),
+                        "is_static": {"type": "boolean", "description": "predicted not to move (one point)"},
+                        "t0": _num("s", "time of the first predicted point, absolute (the perception stamp)",
+                                   "sim_time"),
+                        "dt": _num("s", "time between predicted points", "relative"),
+                        "x": _series("m", "predicted position at t0 + k dt, x (held at the last point after the "
+                                     "end)", "vehicle_centre"),
+                        "y": _series("m", "predicted position at t0 + k dt, y", "vehicle_centre"),
+                        "heading": _series("rad", "predicted heading at t0 + k dt", "world"),
+                        "v": _num("m/s", "current speed (>= 0)"),
                     },
                 },
             },
         },
-        "deft_gym.PredictionObstacles",
+        "deft_gym.PredictionObstacles", "predicted obstacle paths; triggers planning",
     ),
     "planning": _obj(
         {
             "trajectory": TRAJECTORY_SCHEMA,
             "decision": {
                 "type": "object",
+                "description": "optional, planner-defined: what the planner chose, in its own terms (compared by "
+                               "the extracted tests like the trajectory). The keys below are the reference "
+                               "planner's",
+                "x-planner-defined": True,
                 "properties": {
-                    "behavior": {"type": "string", "enum": BEHAVIORS},
-                    "lane": LANE_ID_SCHEMA,
-                    "target_lane": LANE_ID_SCHEMA,
-                    "stitched": {"type": "boolean"},
-                    "cost": _num(),
+                    "behavior": _str("reference planner: the behaviour of the chosen plan", enum=BEHAVIORS),
+                    "lane": {**LANE_ID_SCHEMA, "description": "reference planner: the lane it located the ego on"},
+                    "target_lane": {**LANE_ID_SCHEMA, "description": "reference planner: the lane it plans to end in"},
+                    "stitched": {"type": "boolean", "description": "reference planner: the plan starts on the previous "
+                                 "plan (trajectory stitching) rather than at the localization pose"},
+                    "cost": _num("", "reference planner: the chosen candidate's cost (-1: none feasible)"),
                 },
             },
             "debug": {
@@ -244,15 +353,16 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                 "number of the message the planner consumed (Apollo's debug field)",
             },
         },
-        "deft_gym.ADCTrajectory",
-        optional=("debug",),
+        "deft_gym.ADCTrajectory", "the planner's output; header.stamp is the frame time",
+        optional=("debug", "decision"),
     ),
     "control": _obj(
         {
-            "steering": _num("rad"),
-            "acceleration": _num("m/s^2"),
-            "trajectory_seq": {"type": "integer", "x-brittle": True},
+            "steering": _num("rad", "front-wheel steering angle command"),
+            "acceleration": _num("m/s^2", "longitudinal acceleration command"),
+            "trajectory_seq": _int("header.seq of the planning message being tracked (-1: none)",
+                                   **{"x-brittle": True}),
         },
-        "deft_gym.ControlCommand",
+        "deft_gym.ControlCommand", "the control command applied by the simulator",
     ),
 }

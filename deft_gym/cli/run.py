@@ -23,10 +23,12 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from deft_gym.bus.ads import load_ads_config
+from deft_gym.bus.ads import DEFAULT_ADS_CONFIG, load_ads_config
 from deft_gym.bus.jitter import os_seed
 from deft_gym.config import ConfigError
 from deft_gym.files import write_atomic
+from deft_gym.modules.planning import frame_roles
+from deft_gym.planner.base import planner_class
 from deft_gym.planner.trajectory import lockstep_divergence
 from deft_gym.scenarios.scenario import load_scenario
 from deft_gym.sim.simulation import Simulation
@@ -68,8 +70,9 @@ def main(argv: list[str] | None = None) -> int:
         scenario = load_scenario(args.scenario)
         overrides = {"planning": {"publish_input_headers": True}} if args.headers else None
         ads = load_ads_config(args.ads_config, overrides)
-    except ConfigError as err:
-        console.print(f"[red]error:[/red] {err}", highlight=False)
+        frame_roles(planner_class(ads.planning.planner.cls), ads.planning, str(args.ads_config or DEFAULT_ADS_CONFIG))
+    except (ConfigError, ValueError) as err:
+        console.print(f"[red]error:[/red] {err}", highlight=False, soft_wrap=True)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -14,14 +14,26 @@ from typing import Any
 from deft_gym.bus.ads import PlanningConfig
 from deft_gym.bus.bus import Node, header
 from deft_gym.bus.messages import NS_PER_S, Message
-from deft_gym.planner.base import Frame, Planner
+from deft_gym.config import ConfigError
+from deft_gym.planner.base import Frame, Planner, resolve_inputs
+
+
+def frame_roles(planner: type[Planner], cfg: PlanningConfig, source: str = "ADS config") -> list[str]:
+    """The roles of the planner's frame: its :attr:`Planner.inputs`; ConfigError (one line, naming
+    ``source``) when the ADS config's ``planning.subscribe`` names other roles."""
+    try:
+        return resolve_inputs(planner, cfg.subscribe)
+    except ValueError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
 
 
 class PlanningNode(Node):
     """Planner behind the bus: frame in, trajectory out."""
 
     def __init__(self, planner: Planner, cfg: PlanningConfig, topics: dict[str, str]) -> None:
-        self.role_topics = {role: topics[role] for role in cfg.subscribe}
+        #: the roles of the frame: the planner's inputs (Planner.inputs)
+        self.roles = frame_roles(type(planner), cfg)
+        self.role_topics = {role: topics[role] for role in self.roles}
         trigger = topics[cfg.trigger] if cfg.trigger else None
         super().__init__("planning", list(self.role_topics.values()), trigger=trigger,
                          processing=cfg.processing)

@@ -1,22 +1,53 @@
 """The planner interface: a stateful, deterministic function from frames to trajectories.
 
 A :class:`Frame` is what the planning module consumed in one cycle: the payload of the latest
-message received on each subscribed topic role (``None`` when nothing arrived yet) and the frame
-time. :meth:`Planner.plan` returns the planning payload (``trajectory`` + ``decision``) or
-``None`` when it cannot plan yet; a call that returns ``None`` must leave the state unchanged.
+message received on each role the planner reads (:attr:`Planner.inputs`; ``None`` when nothing
+arrived yet) and the frame time. The payloads are plain JSON values whose fields, units and
+frames are documented in their schemas (:data:`deft_gym.bus.messages.SCHEMAS`); the ``map`` role
+carries the road map as data, so a planner needs nothing of deft_gym's internals.
 
-Contract (what DeFT relies on): same construction arguments + same sequence of frames ->
-bit-identical outputs. Anything time-dependent must come from ``frame.time``, never a clock.
+**Output contract** (:func:`validate_output`): :meth:`Planner.plan` returns ``None`` when it
+cannot plan yet, and then must leave its state unchanged; otherwise a dict with
+
+- ``trajectory``: equally long lists (at least 2 points) of finite numbers ``t`` (absolute sim
+  time [s], strictly increasing, ``t[0]`` = the frame time), ``x``, ``y`` (world frame [m], the
+  vehicle centre), ``v`` (speed [m/s]), ``heading`` (world frame [rad], from +x towards +y),
+  ``a`` (acceleration along the path [m/s^2]); other number series may follow (compared too);
+- ``decision`` (optional): a JSON object describing the choice, in the planner's own terms;
+- ``debug`` (optional): anything; never compared.
+
+Any number of points and any spacing: nothing outside a planner assumes another's shape.
+
+**State contract** (what DeFT relies on): same construction arguments + same sequence of frames
+-> bit-identical outputs; everything time-dependent comes from ``frame.time``, never a clock, and
+no global random generator is used; everything that changes from cycle to cycle lives in
+``self.state``, so that :meth:`Planner.snapshot`/:meth:`Planner.restore` return to a state
+exactly (the input search tries several candidate frames from one state). ``python -m
+extract.contract`` checks all of it on a log's frames. A planner may also declare that it can
+be *seeded* (:meth:`Planner.export_state`/:meth:`Planner.load_state`): a failure test then
+starts from the state at its frame instead of replaying every frame before it.
 """
 
 from __future__ import annotations
 
 import copy
+import functools
 import importlib
+import itertools
+import math
+import sys
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
+
+import numpy as np
+
+#: the trajectory series every output must carry (see the module docstring)
+TRAJECTORY_FIELDS = ("t", "x", "y", "v", "heading", "a")
+#: how far ``trajectory.t[0]`` may be from the frame time [s]
+T0_TOLERANCE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -34,11 +65,12 @@ class Planner(ABC):
     """Base class of planners that plug into the planning module and into extracted tests.
 
     Subclasses keep everything that changes from cycle to cycle in ``self.state`` so that
-    :meth:`snapshot`/:meth:`restore` are cheap (the DeFT input search uses them to try several
-    candidate frames from the same planner state).
+    :meth:`snapshot`/:meth:`restore` are cheap and exact (the DeFT input search uses them to try
+    several candidate frames from the same planner state).
     """
 
-    #: topic roles the planner needs in its frame
+    #: topic roles the planner reads, its frame: the single source for the planning module's
+    #: subscriptions (``planning.subscribe`` in the ADS config) and the extractor's mapping
     inputs: tuple[str, ...] = ("routing", "localization", "traffic_light", "prediction")
 
     def __init__(self, map_spec: Mapping[str, Any], **params: Any) -> None:
@@ -69,6 +101,16 @@ class Planner(ABC):
         """Return to a state taken with :meth:`snapshot`."""
         self.state = copy.deepcopy(snapshot)
 
+    def export_state(self) -> dict[str, Any] | None:
+        """The state as plain JSON values, to seed a fresh planner with (:meth:`load_state`), or
+        None: this planner cannot be seeded (the default). Apollo's planner is seeded this way
+        by its previous trajectory (the trajectory stitcher)."""
+        return None
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        """Continue from a state :meth:`export_state` gave; ValueError when it cannot."""
+        raise ValueError(f"{type(self).__name__} cannot be seeded (its export_state() gives None)")
+
 
 def import_object(path: str) -> Any:
     """Import ``package.module:Name``."""
@@ -84,17 +126,176 @@ def import_object(path: str) -> Any:
 def planner_fingerprint(cls_path: str) -> str:
     """SHA-256 of the source file defining a planner class: a log records it, so a test can tell
     that the planner it was extracted for has changed."""
+    return source_digest(import_object(cls_path)) or ""
+
+
+def source_digest(cls: type) -> str | None:
+    """SHA-256 of the source file defining a class (None when it has none)."""
     import hashlib
     import inspect
-    from pathlib import Path
 
-    src = inspect.getsourcefile(import_object(cls_path))
-    return hashlib.sha256(Path(src).read_bytes()).hexdigest() if src else ""
+    try:
+        path = inspect.getsourcefile(cls)
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest() if path else None
+    except (OSError, TypeError):
+        return None
+
+
+@functools.cache
+def planner_provenance(cls: type) -> dict[str, Any]:
+    """How to import a planner class anywhere and what it was built from: ``class``
+    (``module:Name``), ``root`` (the ``sys.path`` folder its top-level package is in),
+    ``source`` (its file relative to ``root``), ``source_sha256``, ``package`` (the installed
+    distribution providing it, with version, or None), ``dependencies`` (versions of the
+    distributions its module and its package import or require) and ``python``."""
+    import inspect
+    from importlib import metadata
+
+    from packaging.requirements import Requirement
+
+    module = sys.modules.get(cls.__module__) or importlib.import_module(cls.__module__)
+    try:
+        src = inspect.getsourcefile(cls)
+    except TypeError:
+        src = None
+    path = Path(src).resolve() if src else None
+    top = cls.__module__.split(".")[0]
+    root = _root_of(path, cls.__module__) if path else None
+    dists = metadata.packages_distributions()
+    own = (dists.get(top) or [None])[0]
+    deps: dict[str, str] = {}
+    names = {v.__name__.split(".")[0] for v in vars(module).values() if isinstance(v, type(sys))}
+    names |= {getattr(v, "__module__", "").split(".")[0] for v in vars(module).values()
+              if isinstance(v, type) or callable(v)}
+    wanted = {d for n in names if n and n != top for d in dists.get(n, [])}
+    if own:
+        for text in metadata.requires(own) or []:
+            req = Requirement(text)
+            if req.marker is None or "extra" not in str(req.marker):
+                wanted.add(req.name)
+    for d in sorted(wanted):
+        try:
+            deps[d] = metadata.version(d)
+        except metadata.PackageNotFoundError:
+            continue
+    return {
+        "class": f"{cls.__module__}:{cls.__qualname__}",
+        "root": str(root) if root else None,
+        "source": str(path.relative_to(root)) if path and root else (str(path) if path else None),
+        "source_sha256": source_digest(cls),
+        "package": {"name": own, "version": metadata.version(own)} if own else None,
+        "dependencies": deps,
+        "python": ".".join(map(str, sys.version_info[:3])),
+    }
+
+
+def _root_of(path: Path, module: str) -> Path | None:
+    """The folder that holds a module's top-level package (what goes on ``sys.path``)."""
+    parts = module.split(".")
+    up = len(parts) - (1 if path.name != "__init__.py" else 0)
+    root = path.parent
+    for _ in range(up):
+        root = root.parent
+    return root if root.exists() else None
 
 
 def load_planner(cls_path: str, map_spec: Mapping[str, Any], params: Mapping[str, Any] | None = None) -> Planner:
     """Instantiate a planner from its class path, the map spec and its parameters."""
+    return planner_class(cls_path)(map_spec, **dict(params or {}))
+
+
+def planner_class(cls_path: str) -> type[Planner]:
+    """The :class:`Planner` subclass ``module:Class`` names (ValueError otherwise)."""
     cls = import_object(cls_path)
     if not (isinstance(cls, type) and issubclass(cls, Planner)):
         raise ValueError(f"{cls_path} is not a deft_gym.planner.base.Planner subclass")
-    return cls(map_spec, **dict(params or {}))
+    return cls
+
+
+def resolve_inputs(cls: type[Planner], configured: Sequence[str] | None, where: str = "planning.subscribe") -> list[str]:
+    """The roles a planner reads: its class's :attr:`Planner.inputs`; a configured list must name
+    the same roles (in any order), else ValueError saying what differs."""
+    declared = list(cls.inputs)
+    if configured is None or sorted(configured) == sorted(declared):
+        return declared
+    extra, missing = sorted(set(configured) - set(declared)), sorted(set(declared) - set(configured))
+    what = "; ".join(filter(None, [f"{extra} not read by the planner" if extra else "",
+                                   f"{missing} missing" if missing else ""]))
+    raise ValueError(f"{where} {list(configured)} does not match {cls.__module__}:{cls.__qualname__}.inputs "
+                     f"{declared} ({what}); leave it out to use the planner's")
+
+
+# -- the output contract --------------------------------------------------------------------------
+def validate_output(out: Any, frame_time: float) -> list[str]:
+    """What is wrong with a planner output under the output contract (the module docstring),
+    one short phrase each; empty when it is valid. ``None`` (no plan) is valid."""
+    if out is None:
+        return []
+    if not isinstance(out, Mapping):
+        return [f"output is a {type(out).__name__}, expected a dict with 'trajectory'"]
+    tr = out.get("trajectory")
+    if not isinstance(tr, Mapping):
+        return ["output has no 'trajectory' object"]
+    problems = []
+    n = None
+    numbers = {float, int}
+    for key in [*TRAJECTORY_FIELDS, *(k for k in tr if k not in TRAJECTORY_FIELDS)]:
+        col = tr.get(key)
+        if col is None:
+            problems.append(f"trajectory.{key} missing")
+            continue
+        if not isinstance(col, list | tuple) or not set(map(type, col)) <= numbers:
+            problems.append(f"trajectory.{key} is not a list of numbers")
+            continue
+        if not all(map(math.isfinite, col)):
+            problems.append(f"trajectory.{key} has a non-finite value")
+        if n is None:
+            n = len(col)
+        elif len(col) != n:
+            problems.append(f"trajectory.{key} has {len(col)} points, trajectory.t {n}")
+    t = tr.get("t")
+    if isinstance(t, list | tuple) and set(map(type, t)) <= numbers:
+        if len(t) < 2:
+            problems.append(f"trajectory has {len(t)} point(s), expected at least 2")
+        elif not all(b > a for a, b in itertools.pairwise(t)):
+            problems.append("trajectory.t is not strictly increasing")
+        if t and not abs(t[0] - frame_time) <= T0_TOLERANCE:
+            problems.append(f"trajectory.t[0] = {t[0]!r} s, expected the frame time {frame_time!r} s (absolute times)")
+    dec = out.get("decision")
+    if dec is not None and not isinstance(dec, Mapping):
+        problems.append(f"decision is a {type(dec).__name__}, expected an object")
+    return problems
+
+
+# -- seeding: plain values of a state --------------------------------------------------------------
+def to_plain(value: Any) -> Any:
+    """A state value as plain JSON values that :func:`from_plain` turns back into the same value
+    (numpy arrays keep dtype, shape and every bit; tuples stay tuples)."""
+    if isinstance(value, np.ndarray):
+        return {"__ndarray__": value.tolist(), "dtype": value.dtype.str, "shape": list(value.shape)}
+    if isinstance(value, tuple):
+        return {"__tuple__": [to_plain(v) for v in value]}
+    if isinstance(value, list):
+        return [to_plain(v) for v in value]
+    if isinstance(value, Mapping):
+        if not all(isinstance(k, str) for k in value):
+            raise TypeError("state dicts must have string keys to be exported")
+        return {k: to_plain(v) for k, v in value.items()}
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    raise TypeError(f"cannot export a {type(value).__name__} as plain state")
+
+
+def from_plain(value: Any) -> Any:
+    """Inverse of :func:`to_plain`."""
+    if isinstance(value, list):
+        return [from_plain(v) for v in value]
+    if isinstance(value, Mapping):
+        if "__ndarray__" in value:
+            return np.array(value["__ndarray__"], dtype=np.dtype(value["dtype"])).reshape(value["shape"])
+        if "__tuple__" in value:
+            return tuple(from_plain(v) for v in value["__tuple__"])
+        return {k: from_plain(v) for k, v in value.items()}
+    return value

@@ -25,14 +25,14 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from deft_gym.planner.base import Frame, Planner
+from deft_gym.planner.base import Frame, Planner, from_plain, to_plain
 from deft_gym.planner.decision import LaneDecider
 from deft_gym.world.geometry import ReferenceLine, wrap_angle
 from deft_gym.world.roadmap import LaneId, shared_roadmap
@@ -319,6 +319,17 @@ class LatticePlanner(Planner):
     def hard_clearance(cls, params: Any) -> float:
         """The hard lateral buffer ``lat_buffer_hard`` [m]."""
         return LatticeParams.model_validate(dict(params)).lat_buffer_hard
+
+    def export_state(self) -> dict[str, Any]:
+        """Every :class:`LatticeState` field as plain values (seeds a failure test at its frame)."""
+        return {f.name: to_plain(getattr(self.state, f.name)) for f in fields(LatticeState)}
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        """Continue from :meth:`export_state`'s values; ValueError when a field is missing."""
+        missing = [f.name for f in fields(LatticeState) if f.name not in state]
+        if missing:
+            raise ValueError(f"LatticePlanner state lacks {missing}")
+        self.state = LatticeState(**{f.name: from_plain(state[f.name]) for f in fields(LatticeState)})
 
     # =========================================================================================
     def plan(self, frame: Frame) -> dict[str, Any] | None:

@@ -1,6 +1,8 @@
 """Episode logs: every bus message at its publish time in an MCAP file, plus the truth file.
 
-The MCAP file (unchunked by default, zstd chunks with ``compress``) has one channel per topic (JSON encoding, a JSON schema per topic) and metadata
+The MCAP file (chunks with CRCs and a summary section with message counts and a chunk index,
+see :class:`deft_gym.record.worker.EpisodeLog`; zstd chunks with ``compress``) has one channel
+per topic (JSON encoding, a JSON schema per topic) and metadata
 records ``deft_gym.episode`` (scenario, seeds, configuration; written first) and
 ``deft_gym.outcome`` (written last). It is written to ``<name>.tmp`` and renamed when complete,
 so a finished log is never partial; a crashed run leaves the ``.tmp`` for inspection.

@@ -93,19 +93,27 @@ class _HardenedControl(_Sanitizing):
 class _HardenedPlanning(_Sanitizing):
     """Planning: valid inputs (routes checked on the planner's map), valid outputs only; when the
     planner cannot plan (no valid route) or its output is invalid, it reports the failure with an
-    emergency stop from the last valid pose (behaviour ``ESTOP``) instead of falling silent."""
+    emergency stop from the last valid pose (its own decision: behaviour ``ESTOP``, source
+    ``hardening``) instead of falling silent. The stop covers the horizon of the planner's last
+    valid output at its point spacing (``stop_horizon`` s at ``stop_dt`` s before there is one),
+    so nothing here assumes a planner's trajectory shape or decision vocabulary."""
 
     stop_decel = 3.0  # [m/s^2]
+    stop_horizon = 6.0  # [s] before the planner's first valid output
+    stop_dt = 0.2  # [s]
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         roadmap = shared_roadmap(self.planner.map_spec)
         self._setup({t: r for r, t in self.role_topics.items()}, roadmap)
         self.fallbacks = 0
+        self._shape = (round(self.stop_horizon / self.stop_dt) + 1, self.stop_dt)
 
     def compute(self, now_ns: int) -> Any:
         out = super().compute(now_ns)  # type: ignore[misc]
         if out and not any(problem("planning", p) for _, p in out):
+            t = out[0][1]["trajectory"]["t"]
+            self._shape = (len(t), round((t[-1] - t[0]) / (len(t) - 1), 9))  # spacing to the ns
             return out
         loc = self.latest.get(self.role_topics.get("localization", ""))
         if loc is None:
@@ -114,7 +122,7 @@ class _HardenedPlanning(_Sanitizing):
         return [(self.out_topic, self._emergency_stop(now_ns / NS_PER_S, loc.payload))]
 
     def _emergency_stop(self, t0: float, pose: dict[str, Any]) -> dict[str, Any]:
-        n, dt = 31, 0.2
+        n, dt = self._shape
         h, v0 = pose["heading"], max(0.0, pose["v"])
         ts = [t0 + k * dt for k in range(n)]
         vs = [max(0.0, v0 - self.stop_decel * k * dt) for k in range(n)]
@@ -126,8 +134,7 @@ class _HardenedPlanning(_Sanitizing):
                 "trajectory": {"t": ts, "x": [pose["x"] + d * math.cos(h) for d in ss],
                                "y": [pose["y"] + d * math.sin(h) for d in ss], "v": vs, "heading": [h] * n,
                                "a": [-self.stop_decel if v > 0 else 0.0 for v in vs]},
-                "decision": {"behavior": "ESTOP", "lane": [], "target_lane": [], "stitched": False,
-                             "cost": -1.0}}
+                "decision": {"behavior": "ESTOP", "source": "hardening"}}
 
 
 class _HardenedPrediction(_Sanitizing):

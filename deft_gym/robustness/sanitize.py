@@ -63,6 +63,8 @@ def _schema_problem(value: Any, schema: dict[str, Any], path: str) -> str | None
     elif t == "object":
         if not isinstance(value, dict):
             return f"{path}: not an object"
+        if schema.get("x-planner-defined"):  # the planner's own keys (a decision): any object
+            return None
         props = schema.get("properties", {})
         for key in schema.get("required", ()):
             if key not in value:

@@ -16,6 +16,7 @@ intersection env.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -330,6 +331,38 @@ class RoadMap:
                 ok = [goal[2]]
             segments.append({"road": list(road), "lanes": ok})
         return segments
+
+    def as_data(self, step: float = 0.5) -> dict[str, Any]:
+        """The map as plain data (the ``map`` message, :data:`deft_gym.bus.messages.SCHEMAS`):
+        every lane's centre line as a polyline (its two ends for a straight lane, points at most
+        ``step`` [m] apart otherwise, exact at the points) with its arc lengths, width, length,
+        speed limit, successors, left/right neighbours and whether a change to them is allowed;
+        stop lines and light ids. A fresh copy on every call."""
+        lanes = []
+        for lid in self.lane_ids:
+            g = self.geoms[lid]
+            n = 2 if g.kind == "straight" else max(2, math.ceil(g.length / step) + 1)
+            s = np.linspace(0.0, g.length, n)
+            xy = g.xy(s)
+            a, b, k = lid
+            n_road = len(self.network.graph[a][b])
+            left = (a, b, k - 1) if k > 0 else None
+            right = (a, b, k + 1) if k + 1 < n_road else None
+            change = self.changeable_neighbours(lid)
+            lanes.append({
+                "id": list(lid), "x": xy[:, 0].tolist(), "y": xy[:, 1].tolist(), "s": s.tolist(),
+                "width": float(g.width), "length": float(g.length),
+                "speed_limit": float(self.lanes[lid].speed_limit or self.spec.speed_limit),
+                "successors": [list(x) for x in self.successors[lid]],
+                "left": list(left) if left else [], "right": list(right) if right else [],
+                "change_left": left in change, "change_right": right in change,
+                "junction": (a, b) in self.junction_roads})
+        stops = []
+        for sl in self.stop_lines:
+            x, y = self.geoms[sl.lane].xy(np.array(sl.s)).tolist()
+            stops.append({"lane": list(sl.lane), "s": float(sl.s), "x": x, "y": y, "light_id": sl.light_id})
+        return {"name": self.spec.type, "lanes": lanes, "stop_lines": stops,
+                "lights": sorted({sl.light_id for sl in self.stop_lines})}
 
     @cached_property
     def bounds(self) -> tuple[float, float, float, float]:
