@@ -124,7 +124,7 @@ class Placer:
 
     def vehicle(self, layout: Layout, t0: float, sigma: float, lateral: float, speed_factor: float,
                 manoeuvre: str, ego_xy: np.ndarray | None = None, skip: str | None = None,
-                trajectory_ok: Any = None, max_completions: int = 6,
+                trajectory_ok: Any = None, max_completions: int = 3,
                 rng: np.random.Generator | None = None) -> Trajectory | None:
         """A feasible trajectory for a vehicle appearing at ``t0`` [s] near ``(sigma, lateral)``
         with ``speed_factor`` x its lane's speed limit and a first-window ``manoeuvre`` (keep |
