@@ -150,13 +150,21 @@ def test_finished_items_are_not_repeated_and_artifacts_come_back(tmp_path: Path)
     assert serial == results[:2]
 
 
-def test_training_with_envs_on_ray_actors(tmp_path: Path) -> None:
+def test_training_with_envs_on_ray_actors_matches_subprocess_envs(tmp_path: Path) -> None:
+    """``agents.train --ray``: PPO unchanged, the envs in Ray actors; the episodes are those of
+    SubprocVecEnv's processes (pids and timings aside)."""
     from agents import train
 
-    out = tmp_path / "run"
-    assert train.main(["--config", "configs/train/demo.yaml", "--timesteps", "64", "--out", str(out),
-                       "--no-progress", "--ray"]) == 0
+    for name, extra in (("ray", ["--ray"]), ("subproc", [])):
+        assert train.main(["--config", "configs/train/demo.yaml", "--timesteps", "64", "--out", str(tmp_path / name),
+                           "--no-progress", *extra]) == 0
+    out = tmp_path / "ray"
     summary = json.loads((out / "summary.json").read_text())
     assert summary["timesteps"] >= 64 and (out / "model.zip").exists()
     assert sorted(p.name for p in out.glob("episodes-*.jsonl")) == ["episodes-0.jsonl", "episodes-1.jsonl"]
     assert not list(out.glob(".execution-token-*"))
+    for rank in (0, 1):
+        ray_eps, sub_eps = (without_timings([{k: v for k, v in r.items() if k != "pid"}
+                                             for r in read_jsonl(tmp_path / n / f"episodes-{rank}.jsonl")])
+                            for n in ("ray", "subproc"))
+        assert ray_eps and ray_eps == sub_eps

@@ -43,17 +43,34 @@ def connect(backend: Backend, flag: str = "--ray") -> None:
         raise BackendError(f"{flag}: {RAY_MISSING}") from None
     if ray.is_initialized():
         return
-    env = {"PYTHONPATH": os.pathsep.join([*code_paths(), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    path = os.pathsep.join([*code_paths(), *filter(None, [os.environ.get("PYTHONPATH")])])
     try:
-        if backend.address:
-            ray.init(address=backend.address, runtime_env={"env_vars": env}, log_to_driver=True)
-        else:
+        if backend.address:  # the cluster's workers get the path and the warm-up through the job's runtime env
+            ray.init(address=backend.address, log_to_driver=True, runtime_env={
+                "env_vars": {"PYTHONPATH": path}, "worker_process_setup_hook": f"{__name__}.warm_worker"})
+        else:  # a local instance's workers inherit this environment: the workers Ray starts with it serve at once
+            os.environ["PYTHONPATH"] = path
             ray.init(num_cpus=backend.workers, object_store_memory=LOCAL_OBJECT_STORE, include_dashboard=False,
-                     runtime_env={"env_vars": env}, log_to_driver=True)
+                     log_to_driver=True)
+            warm = ray.remote(num_cpus=1)(warm_worker)
+            for _ in range(backend.workers):  # import the simulation while the driver prepares its items
+                warm.remote()
     except (ConnectionError, RuntimeError, ValueError, TimeoutError) as err:
         where = f"the Ray cluster at {backend.address}" if backend.address else "a local Ray instance"
         first = (str(err).strip().splitlines() or [type(err).__name__])[0]
         raise BackendError(f"{flag}: cannot connect to {where}: {first}") from None
+
+
+WARM_MODULES = ("deft_gym.sim.simulation",)  # what every campaign's items import (highway-env, the ADS)
+
+
+def warm_worker() -> None:
+    """Ray runs this when it starts a worker process (before any task): the simulation stack is
+    imported while the driver still prepares its items, not when the first item arrives."""
+    import importlib
+
+    for m in WARM_MODULES:
+        importlib.import_module(m)
 
 
 _READY: set[int] = set()  # ids of the initializers this worker process has run
