@@ -6,8 +6,10 @@
 Runs the same campaign - the adversary evaluation (``evaluate``, default) or the calibration
 (``calibrate``: issue 21's 256 runs) - once per backend and worker count, each in a fresh
 interpreter (start-up, Ray's included, is part of the figure), and prints wall time, throughput
-[simulated scenarios/s], speed-up and efficiency against one worker of the same backend, and the
-fit ``T = a + b/W`` (``a``: what stays serial). It also checks that every run wrote the same
+[simulated scenarios/s], speed-up and efficiency against one worker of the same backend, the
+time the items themselves took (wall and, for the evaluation, CPU, summed over items: when it
+grows with workers, the cores are shared with something else), the load average, and the fit
+``T = a + b/W`` (``a``: what stays serial). It also checks that every run wrote the same
 records (timings aside) and measures the driver's cost per item of each backend (an empty item).
 Writes ``OUT/scale.json``.
 """
@@ -41,10 +43,6 @@ def campaign_command(campaign: str, out: Path, workers: int, backend: str, a: ar
     scen = [f"configs/scenarios/{s}.yaml" for s in (a.scenarios.split(",") if a.scenarios else CAL_SCENARIOS)]
     return [sys.executable, "-m", "deft_gym.cli.calibrate", "--scenarios", *scen, "--variants", "2", "--cut-ins", "3",
             "--brakes", "3", "--reruns", str(a.reruns), "--workers", str(workers), "--out", str(out), *ray]
-
-
-def record_of(campaign: str, out: Path) -> list[Any]:
-    return without_timings(read_jsonl(out / ("records.jsonl" if campaign == "evaluate" else "runs.jsonl")))
 
 
 def driver_cost(backend: Backend, n: int) -> float:
@@ -86,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     env = {**os.environ, "RAY_DEDUP_LOGS": "1"}
     print(f"{a.campaign}: {os.cpu_count()} CPUs here; each run in a fresh interpreter")
     print(f"{'backend':8s} {'workers':>7s} {'wall [s]':>9s} {'items':>6s} {'items/s':>8s} {'speed-up':>8s} "
-          f"{'efficiency':>10s}")
+          f"{'efficiency':>10s} {'items [s]':>10s} {'CPU [s]':>9s} {'load':>5s}")
     for backend in backends:
         for w in counts:
             out = a.out / f"{a.campaign}-{backend}-{w}"
@@ -102,17 +100,24 @@ def main(argv: list[str] | None = None) -> int:
                 print(proc.stdout[-2000:], proc.stderr[-3000:], file=sys.stderr)
                 print(f"error: the {backend} run with {w} workers failed", file=sys.stderr)
                 return 1
-            recs = record_of(a.campaign, out)
+            raw = read_jsonl(out / ("records.jsonl" if a.campaign == "evaluate" else "runs.jsonl"))
+            recs = without_timings(raw)
             reference = recs if reference is None else reference
+            # [s] what the items themselves took: CPU (evaluate records it) and wall, summed over items
+            item_cpu = sum(r.get("cpu_seconds", 0.0) for r in raw)
+            item_wall = sum(r.get("seconds", r.get("wall_time", 0.0)) for r in raw)
             base = next((r for r in rows if r["backend"] == backend and r["workers"] == 1), None)
             row = {"backend": backend, "workers": w, "wall_s": round(wall, 2), "items": len(recs),
-                   "items_per_s": round(len(recs) / wall, 3), "same_records": recs == reference}
+                   "items_per_s": round(len(recs) / wall, 3), "same_records": recs == reference,
+                   "item_wall_s": round(item_wall, 2), "item_cpu_s": round(item_cpu, 2) if item_cpu else None,
+                   "load_average": os.getloadavg()[0]}
             if base is not None:
                 row["speedup"] = round(base["wall_s"] / wall, 3)
                 row["efficiency"] = round(base["wall_s"] / (w * wall), 3)
             rows.append(row)
             print(f"{backend:8s} {w:7d} {wall:9.1f} {len(recs):6d} {row['items_per_s']:8.2f} "
-                  f"{row.get('speedup', 1.0):8.2f} {row.get('efficiency', 1.0):10.0%}", flush=True)
+                  f"{row.get('speedup', 1.0):8.2f} {row.get('efficiency', 1.0):10.0%} {item_wall:10.1f} "
+                  f"{item_cpu or float('nan'):9.1f} {row['load_average']:5.1f}", flush=True)
     fits = {}
     for backend in backends:
         pts = [(r["workers"], r["wall_s"]) for r in rows if r["backend"] == backend]

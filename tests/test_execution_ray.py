@@ -168,3 +168,24 @@ def test_training_with_envs_on_ray_actors_matches_subprocess_envs(tmp_path: Path
                                              for r in read_jsonl(tmp_path / n / f"episodes-{rank}.jsonl")])
                             for n in ("ray", "subproc"))
         assert ray_eps and ray_eps == sub_eps
+
+
+def test_batch_extraction_on_ray_with_logs_and_tests_travelling(tmp_path: Path) -> None:
+    """Batch extraction as Ray tasks, its inputs (logs) and artifacts (frames, tests) forced to
+    travel: the same extraction as in this process."""
+    from deft_gym.sim.simulation import run_episode
+    from extract.batch import extract_directory
+
+    for i, name in enumerate(("take_exit", "left_turn")):
+        run_episode(ROOT / "configs" / "scenarios" / f"{name}.yaml", jitter_seed=i, out_dir=tmp_path / "runs" / name,
+                    keep_planning=False)
+    here = extract_directory(tmp_path / "runs", tmp_path / "here")
+    with Executor(RAY, run_dir=tmp_path / "far", artifacts_mode="return") as ex:
+        far = extract_directory(tmp_path / "runs", tmp_path / "far", executor=ex)
+    assert [r.ok for r in far] == [True, True]
+    def same(s: dict) -> dict:  # what does not name the output folder, a time or a duration
+        return {k: v for k, v in s.items() if not any(w in k for w in ("ms", "path", "created", "_s"))}
+
+    for a, b in zip(here, far):
+        assert same(a.summary) == same(b.summary)
+        assert b.test_path is not None and b.test_path.read_text()

@@ -50,8 +50,10 @@ def connect(backend: Backend, flag: str = "--ray") -> None:
                 "env_vars": {"PYTHONPATH": path}, "worker_process_setup_hook": f"{__name__}.warm_worker"})
         else:  # a local instance's workers inherit this environment: the workers Ray starts with it serve at once
             os.environ["PYTHONPATH"] = path
+            # Ray runs its workers at nice 15; on a machine shared with other work that starves
+            # a campaign the local backend would run at normal priority
             ray.init(num_cpus=backend.workers, object_store_memory=LOCAL_OBJECT_STORE, include_dashboard=False,
-                     log_to_driver=True)
+                     log_to_driver=True, _system_config={"worker_niceness": 0})
             warm = ray.remote(num_cpus=1)(warm_worker)
             for _ in range(backend.workers):  # import the simulation while the driver prepares its items
                 warm.remote()
