@@ -260,8 +260,11 @@ def job_artifacts(job: dict[str, Any]) -> list[Path]:
     return [_log_root(job)] if job["log_failures"] else []
 
 
-# modules a local worker starts with already imported (a fork of a warm forkserver)
-WORKER_PRELOAD = ("deft_gym.envs.adversary", "agents.search", "stable_baselines3")
+def worker_preload(methods: list[str]) -> tuple[str, ...]:
+    """Modules a local worker starts with already imported (a fork of a warm forkserver); torch
+    (stable_baselines3) only where the env methods need it."""
+    rl = any(m in ("rl", "random_online") for m in methods)
+    return ("deft_gym.envs.adversary", "agents.search", *(("stable_baselines3",) if rl else ()))
 
 
 # -- main -----------------------------------------------------------------------------------------
@@ -337,8 +340,8 @@ def main(argv: list[str] | None = None) -> int:
         from tqdm import tqdm
 
         bar = tqdm(total=total, unit="scn", disable=args.no_progress, smoothing=0.05)
-        with Executor(backend, initializer=init_pool_worker, initargs=(cfg.workers,), preload=WORKER_PRELOAD,
-                      run_dir=out) as ex:
+        with Executor(backend, initializer=init_pool_worker, initargs=(cfg.workers,),
+                      preload=worker_preload(cfg.methods), run_dir=out) as ex:
             # in job order, whatever order they finish in: the same records on every backend
             for recs in ex.map(run_job, jobs, progress=bar.update, item_progress=True, artifacts=job_artifacts):
                 for r in recs:
