@@ -88,3 +88,46 @@ def test_a_campaign_without_ray_says_how_to_get_it(monkeypatch: pytest.MonkeyPat
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: --ray: Ray is not installed") and "deft-gym[ray]" in err
     assert len(err.splitlines()) == 1
+
+
+# the evaluation of issue 17 on a tiny budget: a search method and a baseline, a seed and a
+# held-out generated scenario, both placement rules (8 jobs of 2 simulated scenarios)
+EVAL_ARGS = ["--methods", "decictor,random", "--budget", "2", "--scenarios", "lane_follow_static",
+             "--held-out", "1", "--placements", "closest,uniform", "--seed", "3", "--no-progress"]
+
+
+def test_evaluation_the_same_records_for_one_and_two_workers_and_after_a_resume(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """agents.evaluate on the execution layer: the records (timings aside) do not depend on the
+    number of workers, and a run cut mid-job resumes into the same file (finished jobs kept,
+    the cut job simulated again)."""
+    from agents import evaluate
+    from deft_gym.files import read_jsonl
+
+    assert evaluate.main([*EVAL_ARGS, "--workers", "1", "--out", str(tmp_path / "one")]) == 0
+    one = read_jsonl(tmp_path / "one" / "records.jsonl")
+    assert len(one) == 16 and {r["scenario_kind"] for r in one} == {"seed", "held_out"}
+    assert [(r["method"], r["placement"]) for r in one[:8:2]] == [
+        ("decictor", "closest"), ("decictor", "uniform"), ("random", "closest"), ("random", "uniform")]
+    cut = tmp_path / "two" / "records.jsonl"
+    cut.parent.mkdir()
+    lines = (tmp_path / "one" / "records.jsonl").read_text().splitlines(keepends=True)
+    cut.write_text("".join(lines[:5]) + lines[5][:40])  # two jobs done, one half done, a line cut by a kill
+    capsys.readouterr()
+    assert evaluate.main([*EVAL_ARGS, "--workers", "2", "--out", str(tmp_path / "two")]) == 0
+    assert "6 jobs, 12 simulated scenarios, 2 local worker processes" in capsys.readouterr().out
+    two = read_jsonl(cut)
+    assert two[:4] == one[:4]  # the finished jobs were kept as they were
+    assert without_timings(two) == without_timings(one)
+    assert (tmp_path / "two" / "table.md").exists() and (tmp_path / "two" / "summary.json").exists()
+
+
+def test_the_execution_layer_is_not_simulation_code() -> None:
+    """Changing deft_gym.execution leaves the code fingerprint (so reference-run caches and
+    evaluation records made before it stay valid)."""
+    from deft_gym.search.trace import code_fingerprint
+
+    pkg = ROOT / "deft_gym"
+    changed = code_fingerprint(pkg, read=lambda f: b"# changed\n" + f.read_bytes() if "execution" in f.parts
+                               else f.read_bytes())
+    assert changed == code_fingerprint(pkg)

@@ -41,18 +41,19 @@ def _records(path: Path) -> list[dict]:
     return without_timings(read_jsonl(path))
 
 
-def test_evaluation_records_identical_on_every_backend_and_worker_count(tmp_path: Path) -> None:
+def test_evaluation_records_identical_on_ray_and_local_processes(tmp_path: Path) -> None:
+    """agents.evaluate with --ray: the records (timings aside) of local processes, in the same
+    order (tests/test_execution.py: one and two local workers, and a resume, give them too)."""
+    from test_execution import EVAL_ARGS
+
     from agents import evaluate
 
-    args = ["--methods", "random,random_delta", "--budget", "2", "--scenarios", "lane_follow_static,left_turn",
-            "--held-out", "0", "--placements", "closest", "--seed", "3", "--no-progress"]
     runs = {}
-    for name, extra in (("local1", ["--workers", "1"]), ("local2", ["--workers", "2"]),
-                        ("ray2", ["--workers", "2", "--ray"])):
-        assert evaluate.main([*args, *extra, "--out", str(tmp_path / name)]) == 0
+    for name, extra in (("local2", ["--workers", "2"]), ("ray2", ["--workers", "2", "--ray"])):
+        assert evaluate.main([*EVAL_ARGS, *extra, "--out", str(tmp_path / name)]) == 0
         runs[name] = _records(tmp_path / name / "records.jsonl")
-    assert len(runs["local1"]) == 8
-    assert runs["local1"] == runs["local2"] == runs["ray2"]
+    assert len(runs["local2"]) == 16
+    assert runs["local2"] == runs["ray2"]
 
 
 def _campaign(tmp_path: Path):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import queue as queue_mod
+import sys
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -37,7 +38,11 @@ class LocalPool:
     def __init__(self, workers: int, initializer: Callable[..., None] | None, initargs: tuple[Any, ...],
                  preload: Sequence[str]) -> None:
         ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload([m for m in preload if m and m != "__main__"])
+        # not the module run as ``python -m MOD``: each worker runs it as ``__mp_main__`` anyway,
+        # and finding it already imported makes runpy warn in every worker
+        main_spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+        skip = {"", "__main__", getattr(main_spec, "name", None)}
+        ctx.set_forkserver_preload([m for m in preload if m not in skip])
         self.concurrency = workers
         self.queue = ctx.Queue()
         self.pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init,
