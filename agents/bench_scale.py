@@ -127,6 +127,11 @@ def main(argv: list[str] | None = None) -> int:
             x = np.array([[1.0, 1.0 / w] for w, _ in pts])
             (ser, par), *_ = np.linalg.lstsq(x, np.array([t for _, t in pts]), rcond=None)
             fits[backend] = {"serial_s": round(float(ser), 2), "parallel_s": round(float(par), 2)}
+            if par <= 0:  # more workers were not faster: no serial share to speak of
+                fits[backend]["note"] = "wall time did not fall with workers"
+                print(f"{backend}: no fit of T = a + b / W: the wall time did not fall with workers (where the "
+                      f"items' wall time grows and their CPU time does not, the cores are shared: see the load)")
+                continue
             print(f"{backend}: T = {ser:.1f} s + {par:.1f} s / W  (serial share {ser / (ser + par):.0%} at W = 1)")
     costs = {}
     for backend in backends:
