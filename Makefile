@@ -1,5 +1,6 @@
 # DeFT-Gym: `make demo` runs the main job end to end on a small budget, `make test` the test suite.
-# Both create .venv on first use (torch==2.13.0 first, so pip never resolves a CUDA build).
+# Both create .venv on first use (torch==2.13.0 first, so pip never resolves a CUDA build), with
+# the ray extra, so the Ray backend's tests run too.
 
 PYTHON ?= python3.11
 VENV   := .venv
@@ -14,7 +15,7 @@ $(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules
 	test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e ".[dev]"
+	$(PY) -m pip install --quiet -e ".[dev,ray]"
 	touch $(STAMP)
 
 demo: $(STAMP)

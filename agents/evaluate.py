@@ -8,7 +8,9 @@ Methods: ``rl`` (the trained adversary, stochastic actions), ``decictor`` (Decic
 actions in the adversary env: the env without learning, an ablation).
 
 Every (method, placement rule, scenario, repeat) is one job of ``budget`` simulated scenarios;
-jobs run in parallel worker processes. Outputs in ``--out``:
+jobs run in parallel worker processes, or as Ray tasks with ``--ray`` / ``--ray-address ADDR``
+(:mod:`deft_gym.execution`; the records are the same on every backend and number of workers).
+Outputs in ``--out``:
 
 - ``records.jsonl`` - one line per simulated scenario (append-only; a rerun with the same
   ``--out`` skips the jobs already complete, so an interrupted evaluation resumes);
@@ -31,9 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import sys
-import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -42,6 +42,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.config import ConfigError, load_mapping, validate
+from deft_gym.execution import Executor, add_backend_arguments, backend_from_args
 from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
 from deft_gym.record.recorder import init_pool_worker
 from deft_gym.search.context import SEED_SCENARIOS
@@ -94,6 +95,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="keep MCAP logs of failing scenarios and extract tests from them")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--no-progress", action="store_true")
+    add_backend_arguments(p)
     return p.parse_args(argv)
 
 
@@ -254,8 +256,16 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
     return recs
 
 
-def _job_entry(args: tuple[dict[str, Any], Any]) -> list[dict[str, Any]]:
-    return run_job(*args)
+def job_artifacts(job: dict[str, Any]) -> list[Path]:
+    """What a job writes into the run folder: its episode logs and extracted tests."""
+    return [_log_root(job)] if job["log_failures"] else []
+
+
+def worker_preload(methods: list[str]) -> tuple[str, ...]:
+    """Modules a local worker starts with already imported (a fork of a warm forkserver); torch
+    (stable_baselines3) only where the env methods need it."""
+    rl = any(m in ("rl", "random_online") for m in methods)
+    return ("deft_gym.envs.adversary", "agents.search", *(("stable_baselines3",) if rl else ()))
 
 
 # -- main -----------------------------------------------------------------------------------------
@@ -263,6 +273,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         cfg = load_eval_config(args)
+        backend = backend_from_args(args, cfg.workers)
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -324,33 +335,20 @@ def main(argv: list[str] | None = None) -> int:
     # rewrite the journal without partial jobs, then append as jobs finish
     write_atomic(rec_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
     total = sum(j["budget"] for j in jobs)
-    print(f"{len(jobs)} jobs, {total} simulated scenarios, {cfg.workers} workers -> {out}")
+    print(f"{len(jobs)} jobs, {total} simulated scenarios, {backend.describe()} -> {out}")
     t0 = time.time()
     if jobs:
         from tqdm import tqdm
 
-        ctx = mp.get_context("forkserver")
-        with ctx.Manager() as manager:
-            queue = manager.Queue()
-            bar = tqdm(total=total, unit="scn", disable=args.no_progress, smoothing=0.05)
-
-            def pump() -> None:
-                while True:
-                    item = queue.get()
-                    if item is None:
-                        return
-                    bar.update(item)
-
-            th = threading.Thread(target=pump, daemon=True)
-            th.start()
-            with ctx.Pool(cfg.workers, init_pool_worker, (cfg.workers,)) as pool:
-                for recs in pool.imap_unordered(_job_entry, [(j, queue) for j in jobs]):
-                    for r in recs:
-                        append_jsonl(rec_path, r)
-                    records.extend(recs)
-            queue.put(None)
-            th.join()
-            bar.close()
+        bar = tqdm(total=total, unit="scn", disable=args.no_progress, smoothing=0.05)
+        with Executor(backend, initializer=init_pool_worker, initargs=(cfg.workers,),
+                      preload=worker_preload(cfg.methods), run_dir=out) as ex:
+            # in job order, whatever order they finish in: the same records on every backend
+            for recs in ex.map(run_job, jobs, progress=bar.update, item_progress=True, artifacts=job_artifacts):
+                for r in recs:
+                    append_jsonl(rec_path, r)
+                records.extend(recs)
+        bar.close()
     from agents.eval_report import build_summary, headline_markdown, targets_markdown, write_report
     from agents.stats import RecordError
 

@@ -38,7 +38,6 @@ import time
 import xml.etree.ElementTree as ET
 from collections import defaultdict
 from collections.abc import Callable
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -49,7 +48,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from agents.extract_report import write_report
 from agents.record import ads_overrides
 from deft_gym.bus.ads import load_ads_config
-from deft_gym.files import append_jsonl, read_jsonl, write_atomic
+from deft_gym.config import ConfigError
+from deft_gym.execution import Backend, Executor, Record, add_backend_arguments, backend_from_args
+from deft_gym.files import write_atomic
 from deft_gym.planner.trajectory import lsed
 from deft_gym.record.recorder import init_pool_worker
 from deft_gym.scenarios.scenario import (
@@ -67,23 +68,6 @@ from extract.validator import distance
 
 RQ1_THETAS = (0.0, 0.1, 0.23, 1.62, 6.99, 17.15)
 FAILURE_K = "does_not_plan_into_collision"
-
-
-# -- records (append-only, resumable) ------------------------------------------------------------
-class Records:
-    """JSON lines under ``DIR/records/<name>.jsonl``: appended as work finishes, read on restart."""
-
-    def __init__(self, root: Path, name: str) -> None:
-        self.path = root / "records" / f"{name}.jsonl"
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.rows: list[dict[str, Any]] = read_jsonl(self.path)  # a line cut by an interruption is skipped
-
-    def add(self, row: dict[str, Any]) -> None:
-        self.rows.append(row)
-        append_jsonl(self.path, row)
-
-    def keys(self, *fields: str) -> set[tuple[Any, ...]]:
-        return {tuple(r.get(f) for f in fields) for r in self.rows}
 
 
 # -- scenario pool -------------------------------------------------------------------------------
@@ -185,36 +169,32 @@ def _rerun_job(args: tuple[str, dict[str, Any], int, int, str, str | None]) -> d
 class Evaluation:
     """All phases; each skips what its records already hold."""
 
-    def __init__(self, args: argparse.Namespace, console: Console) -> None:
+    def __init__(self, args: argparse.Namespace, console: Console, executor: Executor | None = None) -> None:
         self.args, self.console = args, console
         self.out = Path(args.out).resolve()
         self.out.mkdir(parents=True, exist_ok=True)
-        self.s0 = Records(self.out, "s0")
-        self.reruns = Records(self.out, "reruns")
-        self.rounds = Records(self.out, "module_rounds")
-        self.full = Records(self.out, "module_full")
-        self.replays = Records(self.out, "replay_check")
+        # records (append-only, resumable): appended as work finishes, read on restart
+        self.s0, self.reruns, self.rounds, self.full, self.replays = (
+            Record(self.out / "records" / f"{name}.jsonl")
+            for name in ("s0", "reruns", "module_rounds", "module_full", "replay_check"))
         self.planner, self.planner_sha = pin_planner(self.out) if args.pin_planner else (None, None)
+        self.ex = executor or Executor(Backend("local", args.workers), initializer=init_pool_worker,
+                                       initargs=(args.workers,), run_dir=self.out)
 
     def progress(self) -> Progress:
         cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
         return Progress(*cols, console=self.console, transient=True)
 
     def _pool_map(self, fn: Callable[[Any], dict[str, Any]], jobs: list[Any], desc: str,
-                  sink: Callable[[dict[str, Any]], None]) -> None:
+                  sink: Callable[[dict[str, Any]], None], **files: Any) -> None:
+        """``fn`` over ``jobs`` on the executor, rows to ``sink`` in job order (``files``:
+        :meth:`deft_gym.execution.Executor.map`'s ``artifacts`` and ``inputs``)."""
         if not jobs:
             return
         with self.progress() as prog:
             task = prog.add_task(desc, total=len(jobs))
-            if self.args.workers > 1:
-                with get_context("spawn").Pool(self.args.workers, init_pool_worker, (self.args.workers,)) as pool:
-                    for row in pool.imap_unordered(fn, jobs):
-                        sink(row)
-                        prog.advance(task)
-            else:
-                for j in jobs:
-                    sink(fn(j))
-                    prog.advance(task)
+            for row in self.ex.map(fn, jobs, progress=lambda n: prog.advance(task, n), **files):
+                sink(row)
 
     # phase 1: S0 of every scenario (logged, with input headers)
     def run_s0(self, pool: list[tuple[str, dict[str, Any]]], extra: bool = False) -> None:
@@ -231,7 +211,8 @@ class Evaluation:
                     shutil.rmtree(Path(row["log"]).parent.parent, ignore_errors=True)
             self.s0.add(row)
 
-        self._pool_map(_s0_job, jobs, "S0 runs" + (" (extra cut-ins)" if extra else ""), keep)
+        self._pool_map(_s0_job, jobs, "S0 runs" + (" (extra cut-ins)" if extra else ""), keep,
+                       artifacts=lambda j: [j[3]])
 
     def evaluated(self) -> set[str]:
         """Names of the scenarios in the evaluation (extra ones only when they collided)."""
@@ -247,7 +228,7 @@ class Evaluation:
                     prog.advance(task)
 
                 extract_directory(self.out / "runs", self.out / "deft" / mode, mode=mode, workers=self.args.workers,
-                                  on_episode=tick)
+                                  on_episode=tick, executor=self.ex)
 
     def deft_dir(self, mode: str, name: str) -> Path:
         return self.out / "deft" / mode / _dirname(name) / "S0"
@@ -264,7 +245,7 @@ class Evaluation:
                  str(self.out / "runs" / _dirname(d["name"]) / "S0" / "plans.json"), self.planner)
                 for _, d in pool if d["name"] not in colliding
                 for k in range(1, self.args.reruns) if (d["name"], k) not in done]
-        self._pool_map(_rerun_job, jobs, "reruns (no collision in S0)", self.reruns.add)
+        self._pool_map(_rerun_job, jobs, "reruns (no collision in S0)", self.reruns.add, inputs=lambda j: [j[4]])
 
     # phase 4: collision scenarios - reruns and module-test executions, interleaved and timed
     def collisions(self, pool: list[tuple[str, dict[str, Any]]]) -> None:
@@ -368,6 +349,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--jitter-seed", type=int, default=1000, help="S_k uses jitter seed S+k (default 1000)")
     ap.add_argument("--workers", type=int, default=2, help="parallel processes for S0, extraction, reruns (default 2)")
     ap.add_argument("--out", default="runs/extract/eval", help="output folder (default runs/extract/eval)")
+    add_backend_arguments(ap)
     ap.add_argument("--report-only", action="store_true", help="re-render report.md, results.json and plots "
                     "from the records of OUT")
     ap.add_argument("--no-pin-planner", dest="pin_planner", action="store_false",
@@ -383,7 +365,17 @@ def main(argv: list[str] | None = None) -> int:
     console = Console(width=None if sys.stdout.isatty() else 120, highlight=False)
     seeds = args.scenarios or [str(p) for p in list_scenarios() if not p.name.startswith("bench")]
     t0 = time.perf_counter()
-    ev = Evaluation(args, console)
+    ev = Evaluation(args, console)  # pins the planner first: Ray's workers import it from there
+    try:
+        backend = backend_from_args(args, args.workers)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    with Executor(backend, initializer=init_pool_worker, initargs=(args.workers,), run_dir=ev.out) as ev.ex:
+        return _run(args, console, ev, seeds, t0)
+
+
+def _run(args: argparse.Namespace, console: Console, ev: Evaluation, seeds: list[str], t0: float) -> int:
     if args.report_only:
         previous = ev.out / "results.json"
         old = json.loads(previous.read_text()) if previous.exists() else {}

@@ -28,6 +28,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, load_mapping
+from deft_gym.execution import add_backend_arguments, backend_from_args
 
 SUBCOMMANDS = ("replay", "check", "spec", "compare", "subsystem")
 console = Console(stderr=True, width=None if sys.stderr.isatty() else 160)
@@ -64,6 +65,7 @@ def campaign_parser() -> argparse.ArgumentParser:
     ap.add_argument("--brittle", action="store_true", help="also inject into brittle fields (stamps, seq numbers)")
     ap.add_argument("--invariants", default=None, help="invariants YAML (default configs/invariants/default.yaml)")
     ap.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
+    add_backend_arguments(ap)
     ap.add_argument("--minimise", choices=("all", "planted", "none"), default="all",
                     help="minimise every distinct finding (default), only planted-fault findings, or none")
     ap.add_argument("--until-found", action="store_true",
@@ -99,6 +101,7 @@ def run_campaign_cli(argv: list[str]) -> int:
     from deft_gym.robustness.runner import build_ads
 
     build_ads(campaign.base_case(cfg.scenarios[0], 0, "check"))
+    backend = backend_from_args(args, args.workers)
     out = Path(args.out)
     with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   TextColumn("{task.fields[info]}"), console=console) as prog:
@@ -113,7 +116,8 @@ def run_campaign_cli(argv: list[str]) -> int:
                         f"violations {counts['violations']}  harness errors {counts['harness_errors']}")
             prog.update(tasks[stage], completed=done, total=total or None, info=info)
 
-        summary = run_campaign(campaign, out, args.budget, args.workers, args.minimise, report, args.until_found)
+        summary = run_campaign(campaign, out, args.budget, args.workers, args.minimise, report, args.until_found,
+                               backend)
     print_summary(summary, out)
     return 0
 

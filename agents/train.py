@@ -2,6 +2,7 @@
 
     python -m agents.train --config configs/train/adversary.yaml [--timesteps N] [--out runs/adversary/x]
     python -m agents.train --config ... --resume runs/adversary/x/checkpoints/ppo_20000_steps.zip
+    python -m agents.train --config ... --ray [--ray-address ADDR]   # envs as Ray actors
 
 The run folder holds ``config.yaml`` (the resolved configuration), ``tb/`` (TensorBoard),
 ``checkpoints/`` (every ``checkpoint_every`` steps), ``monitor/`` (per-env episode CSVs),
@@ -27,6 +28,7 @@ import yaml
 
 from agents.config import ALGOS, TrainConfig, load_train_config
 from deft_gym.config import ConfigError
+from deft_gym.execution import Backend, add_backend_arguments, backend_from_args
 from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
 from deft_gym.record.recorder import init_pool_worker
 
@@ -42,6 +44,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: config, 2)")
     p.add_argument("--algo", choices=ALGOS, default=None)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_backend_arguments(p)  # --ray: the envs as Ray actors (deft_gym.execution.vec_env), PPO unchanged
     return p.parse_args(argv)
 
 
@@ -73,9 +76,13 @@ def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1) ->
     return thunk
 
 
-def make_vec_env(cfg: TrainConfig, out: Path | None) -> Any:
+def make_vec_env(cfg: TrainConfig, out: Path | None, backend: Backend | None = None) -> Any:
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
+    if backend is not None and backend.kind == "ray":
+        from deft_gym.execution.vec_env import RayVecEnv
+
+        return RayVecEnv([make_env(cfg, i, out, cfg.n_envs) for i in range(cfg.n_envs)], run_dir=out)
     if cfg.vec_env == "subproc" and cfg.n_envs > 1:
         return SubprocVecEnv([make_env(cfg, i, out, cfg.n_envs) for i in range(cfg.n_envs)],
                              start_method="forkserver")
@@ -167,6 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = load_train_config(args.config, {"timesteps": args.timesteps, "seed": args.seed,
                                               "n_envs": args.n_envs, "algo": args.algo})
+        backend = backend_from_args(args, cfg.n_envs)
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -192,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(1)  # the cores belong to the simulation workers
     algo_cls = {"ppo": PPO, "a2c": A2C}[cfg.algo]
-    vec_env = make_vec_env(cfg, out)
+    vec_env = make_vec_env(cfg, out, backend)
     if args.resume is not None:
         model = algo_cls.load(args.resume, env=vec_env, tensorboard_log=str(out / "tb"), device="cpu")
         print(f"resumed from {args.resume} at {model.num_timesteps} steps")

@@ -21,6 +21,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from deft_gym.execution import BackendError, Executor, add_backend_arguments, backend_from_args
 from extract.batch import extract_directory, find_logs
 from extract.episode import ExtractionResult, extract_episode
 from extract.logs import LogError
@@ -49,6 +50,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--mapping", metavar="FILE", default=None,
                     help="topic-role mapping YAML (default configs/mappings/deft_gym.yaml)")
     ap.add_argument("--workers", type=int, default=1, metavar="N", help="parallel processes for a folder (default 1)")
+    add_backend_arguments(ap)
     ap.add_argument("--no-tests", action="store_true", help="write frames and summary only")
     ap.add_argument("--force", action="store_true", help="redo episodes whose extraction is up to date")
     args = ap.parse_args(argv)
@@ -71,6 +73,11 @@ def main(argv: list[str] | None = None) -> int:
                               "tolerances": args.tolerances}
     cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
     try:
+        backend = backend_from_args(args, args.workers)
+    except BackendError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    try:
         load_mapping(args.mapping)
         root = Path(args.log)
         logs = find_logs(root)
@@ -84,8 +91,9 @@ def main(argv: list[str] | None = None) -> int:
                 results = [res]
             else:
                 task = progress.add_task(f"{len(logs)} logs", total=len(logs))
-                results = extract_directory(root, args.out, workers=args.workers, force=args.force,
-                                            on_episode=lambda _: progress.advance(task), **kwargs)
+                with Executor(backend, run_dir=args.out) as ex:
+                    results = extract_directory(root, args.out, workers=args.workers, force=args.force,
+                                                on_episode=lambda _: progress.advance(task), executor=ex, **kwargs)
     except (LogError, MappingError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

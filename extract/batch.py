@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
+from deft_gym.execution import Backend, Executor
 from deft_gym.files import write_atomic
 from extract.emit import slug
 from extract.episode import ExtractionResult, extract_episode
@@ -71,12 +71,24 @@ def _job(args: tuple[str, str, str, dict[str, Any]]) -> ExtractionResult:
         return ExtractionResult({"log": log, "error": str(exc), "frames": 0}, None, None, None)
 
 
+def _job_files(job: tuple[str, str, str, dict[str, Any]]) -> list[str]:
+    """What one episode's extraction writes: its output folder."""
+    return [job[1]]
+
+
+def _job_inputs(job: tuple[str, str, str, dict[str, Any]]) -> list[str]:
+    """What it reads: the log and the truth file beside it (if any)."""
+    return [job[0], str(Path(job[0]).with_name("truth.jsonl"))]
+
+
 def extract_directory(root: Path | str, out_root: Path | str, *, workers: int = 1, force: bool = False,
                       on_episode: Callable[[ExtractionResult], None] | None = None,
-                      **kwargs: Any) -> list[ExtractionResult]:
+                      executor: Executor | None = None, **kwargs: Any) -> list[ExtractionResult]:
     """Extract every log under ``root`` into ``out_root`` (keyword arguments as
     :func:`extract.extract_episode`); a log that fails gives a result whose summary has
-    ``error`` instead of stopping the batch. Writes ``out_root/summary.json``."""
+    ``error`` instead of stopping the batch. Episodes run on ``executor`` (default: ``workers``
+    local processes; :mod:`deft_gym.execution`), results in log order. Writes
+    ``out_root/summary.json``."""
     root, out_root = Path(root), Path(out_root)
     logs = find_logs(root)
     if not logs:
@@ -97,17 +109,18 @@ def extract_directory(root: Path | str, out_root: Path | str, *, workers: int = 
             continue
         rel = out.relative_to(out_root) if out != out_root else Path(log.stem)
         jobs.append((i, (str(log), str(out), slug(str(rel)), kwargs)))
-    if workers > 1 and len(jobs) > 1:
-        with get_context("spawn").Pool(min(workers, len(jobs))) as pool:
-            for (i, _), res in zip(jobs, pool.imap(_job, [a for _, a in jobs])):
-                results[i] = res
-                if on_episode is not None:
-                    on_episode(res)
-    else:
-        for i, a in jobs:
-            results[i] = res = _job(a)
+    own = executor is None
+    ex = executor or Executor(Backend("local", max(1, min(workers, len(jobs)))), run_dir=out_root)
+    try:
+        # the logs travel to a node that does not share them; the extraction comes back
+        for (i, _), res in zip(jobs, ex.map(_job, [a for _, a in jobs], artifacts=_job_files,
+                                            inputs=_job_inputs)):
+            results[i] = res
             if on_episode is not None:
                 on_episode(res)
+    finally:
+        if own:
+            ex.close()
     final = [r for r in results if r is not None]
     write_atomic(out_root / "summary.json", json.dumps(batch_summary(final, options), indent=2))
     return final

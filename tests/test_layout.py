@@ -1,6 +1,8 @@
 """The package layout (docs/architecture.md): every import goes to the same or a lower layer,
 module-level imports have no cycles, ``extract`` imports only the log, the mapping and the
-planner interface, and ``deft_gym/`` holds packages plus two cross-cutting modules."""
+planner interface (plus configuration, files and the execution layer), and ``deft_gym/`` holds
+packages plus two cross-cutting modules (the third cross-cutting part, ``deft_gym.execution``, is a
+package)."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 # lowest first; a module may import its own layer and those below it
 LAYERS: list[tuple[str, ...]] = [
-    ("deft_gym.config", "deft_gym.files"),
+    ("deft_gym.config", "deft_gym.files", "deft_gym.execution"),
     ("deft_gym.world",),
     ("deft_gym.bus",),
     ("deft_gym.record",),
@@ -27,9 +29,11 @@ LAYERS: list[tuple[str, ...]] = [
     ("agents",),
 ]
 # what extract may import of deft_gym: the log (bus messages and their codec), the planner
-# interface (and trajectory measures), configuration and file helpers
+# interface (and trajectory measures), configuration, file helpers and the execution layer
 EXTRACT_MAY_IMPORT = ("deft_gym.bus.codec", "deft_gym.bus.messages", "deft_gym.planner.base",
-                      "deft_gym.planner.trajectory", "deft_gym.config", "deft_gym.files")
+                      "deft_gym.planner.trajectory", "deft_gym.config", "deft_gym.files", "deft_gym.execution")
+# the cross-cutting layer 0 imports nothing of deft_gym above it
+LAYER0_MAY_IMPORT = ("deft_gym.config", "deft_gym.files", "deft_gym.execution")
 TOP_LEVEL_MODULES = {"__init__.py", "config.py", "files.py"}
 OWN = ("deft_gym", "extract", "agents")
 
@@ -130,6 +134,12 @@ def test_no_import_cycles_between_modules() -> None:
     cycles = [c for c in cycles if not all(x == c[0] or x.startswith(c[0] + ".") or c[0].startswith(x + ".")
                                           for x in c)]
     assert cycles == []
+
+
+def test_execution_layer_imports_only_config_and_files() -> None:
+    bad = [f"{p.relative_to(ROOT)}:{line}: {t}" for p in sorted((ROOT / "deft_gym" / "execution").rglob("*.py"))
+           for t, line in imports(p) if not t.startswith(LAYER0_MAY_IMPORT)]
+    assert bad == []
 
 
 def test_deft_gym_top_level_holds_packages_and_two_cross_cutting_modules() -> None:

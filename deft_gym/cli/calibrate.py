@@ -14,8 +14,10 @@ Two shares are reported:
 - **any-rerun definition**: a collision scenario collides in at least one rerun; it is flaky when
   it does not collide in all of them (counts every scenario that *can* collide, so it is higher).
 
-Every finished run is appended to ``OUT/runs.jsonl``; an interrupted calibration resumes from it
-(runs already there are not repeated). The summary goes to ``OUT/calibration.json``.
+Every finished run is appended to ``OUT/runs.jsonl`` in run order; an interrupted calibration
+resumes from it (runs already there are not repeated). The summary goes to ``OUT/calibration.json``.
+Variants and runs are work items of :mod:`deft_gym.execution`: local processes, or Ray tasks with
+``--ray`` / ``--ray-address ADDR``.
 """
 
 from __future__ import annotations
@@ -24,7 +26,6 @@ import argparse
 import hashlib
 import json
 import sys
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +33,9 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from deft_gym.bus.ads import load_ads_config
-from deft_gym.files import append_jsonl, read_jsonl, write_atomic
+from deft_gym.config import ConfigError
+from deft_gym.execution import Executor, Record, add_backend_arguments, backend_from_args
+from deft_gym.files import write_atomic
 from deft_gym.scenarios.scenario import (
     list_scenarios,
     load_scenario,
@@ -53,6 +56,23 @@ def _job(args: tuple[dict[str, Any], int, str | None, str]) -> dict[str, Any]:
             "sim_time": s["sim_time"], "wall_time": s["wall_time"]}
 
 
+def _variants(args: tuple[str, int, float, int, int, str | None]) -> list[tuple[dict[str, Any], str]]:
+    """The variants of one seed scenario (perturbations, cut-ins, hard brakes: the cut-ins and
+    brakes need its reference run) as ``(scenario dict, key)``."""
+    path, n_variants, strength, cut_ins, brakes, ads_config = args
+    seed_sc = load_scenario(path)
+    variants = [perturb(seed_sc, seed=v, strength=strength) if v else seed_sc for v in range(n_variants)]
+    if cut_ins or brakes:
+        ref = reference_path(seed_sc)
+        variants += [inject_cut_in(seed_sc, ref, seed=c) for c in range(cut_ins)]
+        variants += [inject_hard_brake(seed_sc, ref, seed=c) for c in range(brakes)]
+    out = []
+    for var in variants:
+        data = scenario_to_dict(var)
+        out.append((data, hashlib.sha256(json.dumps([data, ads_config], sort_keys=True).encode()).hexdigest()[:16]))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m deft_gym.cli.calibrate", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenarios", nargs="*", default=None, help="seed scenarios (default: all in configs/scenarios except bench_*)")
@@ -65,39 +85,36 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
     ap.add_argument("--ads-config", default=None, help="ADS config YAML (default configs/ads/default.yaml)")
     ap.add_argument("--out", default="runs/calibration", help="output folder")
+    add_backend_arguments(ap)
     args = ap.parse_args(argv)
     console = Console(width=None if sys.stdout.isatty() else 120)
+    try:
+        backend = backend_from_args(args, args.workers)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     paths = args.scenarios or [str(p) for p in list_scenarios() if not p.name.startswith("bench")]
-    jobs = []
-    for path in paths:
-        seed_sc = load_scenario(path)
-        variants = [perturb(seed_sc, seed=v, strength=args.strength) if v else seed_sc
-                    for v in range(args.variants)]
-        if args.cut_ins or args.brakes:
-            path = reference_path(seed_sc)
-            variants += [inject_cut_in(seed_sc, path, seed=c) for c in range(args.cut_ins)]
-            variants += [inject_hard_brake(seed_sc, path, seed=c) for c in range(args.brakes)]
-        for var in variants:
-            data = scenario_to_dict(var)
-            key = hashlib.sha256(json.dumps([data, args.ads_config], sort_keys=True).encode()).hexdigest()[:16]
-            jobs += [(data, args.jitter_seed + r, args.ads_config, key) for r in range(args.reruns)]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    log_path = out / "runs.jsonl"
     ads_name = args.ads_config or "configs/ads/default.yaml"
-    results = read_jsonl(log_path)  # the same scenario data and ADS config -> the same key
-    done = {(r.get("key"), r["seed"]) for r in results}
-    todo = [j for j in jobs if (j[3], j[1]) not in done]
-    if done:
-        console.print(f"resuming: {len(jobs) - len(todo)} of {len(jobs)} runs already in {log_path}")
+    record = Record(out / "runs.jsonl")  # the same scenario data and ADS config -> the same key
     cols = [TextColumn("[bold]calibration"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
-    with Progress(*cols, console=console, transient=True) as progress, \
-            get_context("spawn").Pool(args.workers) as pool:
+    with Executor(backend, preload=("deft_gym.sim.simulation",)) as ex, \
+            Progress(*cols, console=console, transient=True) as progress:
+        # the variants of every seed scenario (reference runs included) are work items too
+        task = progress.add_task("variants", total=len(paths))
+        jobs = [(data, args.jitter_seed + r, args.ads_config, key)
+                for variants in ex.map(_variants, [(p, args.variants, args.strength, args.cut_ins, args.brakes,
+                                                    args.ads_config) for p in paths],
+                                       progress=lambda n: progress.advance(task, n))
+                for data, key in variants for r in range(args.reruns)]
+        todo = record.todo(jobs, lambda j: (j[3], j[1]), "key", "seed")
+        if len(todo) < len(jobs):
+            console.print(f"resuming: {len(jobs) - len(todo)} of {len(jobs)} runs already in {record.path}")
         task = progress.add_task("runs", total=len(todo))
-        for res in pool.imap_unordered(_job, todo, chunksize=2):
-            append_jsonl(log_path, res)
-            results.append(res)
-            progress.advance(task)
+        for res in ex.map(_job, todo, progress=lambda n: progress.advance(task, n)):
+            record.add(res)
+    results = record.rows
     wanted = {(j[3], j[1]) for j in jobs}
     doc = summarise([r for r in results if (r.get("key"), r["seed"]) in wanted])
     doc.update({"reruns": args.reruns, "variants": args.variants, "cut_ins": args.cut_ins,

@@ -20,15 +20,14 @@ import re
 import time
 import traceback
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, load_mapping, validate
+from deft_gym.execution import Backend, Executor, Record
 from deft_gym.files import append_jsonl, read_jsonl, write_atomic
 from deft_gym.record.recorder import init_pool_worker
 from deft_gym.robustness.faults import PLANTED_FAULTS, SIGNATURES
@@ -155,16 +154,6 @@ def _run_baseline(job: tuple[Campaign, str, int]) -> dict[str, Any]:
     return {"scenario": scenario, "jitter_seed": seed, "result": result.as_dict()}
 
 
-def _map(fn: Callable[[Any], dict[str, Any]], jobs: list[Any], workers: int) -> Any:
-    if workers <= 1 or len(jobs) <= 1:
-        for j in jobs:
-            yield fn(j)
-        return
-    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("fork"), initializer=init_pool_worker,
-                             initargs=(workers,)) as ex:
-        yield from ex.map(fn, jobs, chunksize=1)
-
-
 def slug(signature: str) -> str:
     """A file name for a signature."""
     return re.sub(r"[^A-Za-z0-9]+", "_", signature).strip("_")[:120]
@@ -173,11 +162,21 @@ def slug(signature: str) -> str:
 # -- the campaign ----------------------------------------------------------------------------
 def run_campaign(campaign: Campaign, out: Path, budget: int, workers: int = 1, minimise_findings: str = "all",
                  progress: Callable[[str, int, int, dict[str, Any]], None] | None = None,
-                 until_found: bool = False) -> dict[str, Any]:
+                 until_found: bool = False, backend: Backend | None = None) -> dict[str, Any]:
     """Run (or resume) a campaign of ``budget`` tests into ``out``; returns the summary.
 
     ``minimise_findings``: ``all`` distinct findings, only ``planted`` faults' findings, or
-    ``none``; ``until_found``: stop the tests once every planted fault was found."""
+    ``none``; ``until_found``: stop the tests once every planted fault was found. Tests run on
+    ``backend`` (default: ``workers`` local processes); rows are appended in test order, so the
+    records do not depend on the backend or the number of workers."""
+    backend = backend or Backend("local", workers)
+    with Executor(backend, initializer=init_pool_worker, initargs=(backend.workers,), run_dir=out) as ex:
+        return _run_campaign(campaign, out, budget, ex, minimise_findings, progress, until_found)
+
+
+def _run_campaign(campaign: Campaign, out: Path, budget: int, ex: Executor, minimise_findings: str,
+                  progress: Callable[[str, int, int, dict[str, Any]], None] | None,
+                  until_found: bool) -> dict[str, Any]:
     wall0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     (out / "cases").mkdir(exist_ok=True)
@@ -194,28 +193,28 @@ def run_campaign(campaign: Campaign, out: Path, budget: int, workers: int = 1, m
     report = progress or (lambda *a: None)
 
     # 1. baseline: one unmodified run per scenario and jitter seed
-    base_path = out / "baseline.jsonl"
-    baseline = {(r["scenario"], r["jitter_seed"]): r for r in read_jsonl(base_path)}
+    base = Record(out / "baseline.jsonl", fsync=True)
+    baseline = {(r["scenario"], r["jitter_seed"]): r for r in base.rows}
     jobs = [(campaign, s, j) for s in campaign.config.scenarios for j in campaign.jitter_seeds()
             if (s, j) not in baseline]
-    for row in _map(_run_baseline, jobs, workers):
-        append_jsonl(base_path, row, fsync=True)
+    for row in ex.map(_run_baseline, jobs):
+        base.add(row)
         baseline[(row["scenario"], row["jitter_seed"])] = row
         report("baseline", len(baseline), len(campaign.config.scenarios) * len(campaign.jitter_seeds()), {})
     nominal = {k: set(v["result"]["signatures"]) for k, v in baseline.items()}
 
     # 2. tests
-    runs_path = out / "runs.jsonl"
-    rows = {r["index"]: r for r in read_jsonl(runs_path) if r.get("index", budget) < budget}
+    runs = Record(out / "runs.jsonl", fsync=True)
+    rows = {r["index"]: r for r in runs.rows if r.get("index", budget) < budget}
     todo = [i for i in range(budget) if i not in rows]
     # 3. planted faults (inline, in test order): which finding disappears without the fault
     attribution = _Attribution(campaign, out / "attribution.jsonl")
     for i in sorted(rows):
         attribution.check(rows[i])
     if not (until_found and attribution.done):
-        for res in _map(_run_one, [(campaign, i) for i in todo], workers):
+        for res in ex.map(_run_one, [(campaign, i) for i in todo]):
             row = _row(res, nominal)
-            append_jsonl(runs_path, row, fsync=True)
+            runs.add(row)
             rows[row["index"]] = row
             if row["findings"]:
                 case = TestCase.model_validate(res["case"])
@@ -234,7 +233,7 @@ def run_campaign(campaign: Campaign, out: Path, budget: int, workers: int = 1, m
     if minimise_findings == "none":
         minimised: list[dict[str, Any]] = []
     else:
-        minimised = _minimise_all(campaign, ordered, planted, out, report, minimise_findings == "planted")
+        minimised = _minimise_all(campaign, ordered, planted, out, report, ex, minimise_findings == "planted")
     summary = _summary(campaign, ordered, baseline, planted, minimised, budget, time.perf_counter() - wall0)
     write_atomic(out / "summary.json", json.dumps(summary, indent=1, sort_keys=False, allow_nan=True) + "\n")
     return summary
@@ -321,7 +320,7 @@ class _Attribution:
 
 
 def _minimise_all(campaign: Campaign, rows: list[dict[str, Any]], planted: dict[str, dict[str, Any]], out: Path,
-                  report: Callable[..., None], planted_only: bool = False) -> list[dict[str, Any]]:
+                  report: Callable[..., None], ex: Executor, planted_only: bool = False) -> list[dict[str, Any]]:
     cfg = campaign.config.minimise
     targets: dict[tuple[int, str], list[str]] = {}
     for fault, info in planted.items():
@@ -335,28 +334,36 @@ def _minimise_all(campaign: Campaign, rows: list[dict[str, Any]], planted: dict[
         if not any(sig == s and idx == i for idx, sig in targets):
             targets.setdefault((i, s), [])
     (out / "minimised").mkdir(exist_ok=True)
-    spec = TestSpecification.from_schemas()
+    names = {key: slug(key[1]) + (f"__run{key[0]:05d}" if faults else "") for key, faults in targets.items()}
+    infos = {key: json.loads(p.read_text()) for key in targets
+             if (p := out / "minimised" / f"{names[key]}.info.json").exists()}
+    # each distinct finding is minimised as one work item (in parallel; written in target order)
+    jobs = [(campaign, key[0], key[1], str(out / "minimised" / f"{names[key]}.json"), cfg.max_replays)
+            for key in sorted(targets) if key not in infos]
+    ticks = iter(range(len(infos) + 1, len(targets) + 1))
+    for key, info in zip([k for k in sorted(targets) if k not in infos],
+                         ex.map(_minimise_job, jobs, artifacts=lambda j: [j[3], j[3][:-len(".json")]],
+                                progress=lambda n: report("minimise", next(ticks), len(targets), {}))):
+        info["planted_faults"] = targets[key]
+        write_atomic(out / "minimised" / f"{names[key]}.info.json", json.dumps(info, indent=1, sort_keys=True))
+        infos[key] = info
     done = []
-    for k, ((index, signature), faults) in enumerate(sorted(targets.items())):
-        name = slug(signature) + (f"__run{index:05d}" if faults else "")
-        path = out / "minimised" / f"{name}.json"
-        info_path = out / "minimised" / f"{name}.info.json"
-        if info_path.exists():
-            done.append(json.loads(info_path.read_text()))
-        else:
-            try:
-                info = _minimise_one(campaign, index, signature, path, cfg.max_replays, spec)
-            except Exception:
-                info = {"signature": signature, "run": index, "reproduced": False,
-                        "harness_error": traceback.format_exc(limit=-4)}
-            info["planted_faults"] = faults
-            write_atomic(info_path, json.dumps(info, indent=1, sort_keys=True))
-            done.append(info)
+    for key, faults in sorted(targets.items()):
+        done.append(infos[key])
         for fault in faults:
-            planted[fault]["minimised"] = {key: done[-1].get(key) for key in
+            planted[fault]["minimised"] = {k: done[-1].get(k) for k in
                                            ("case", "dimensionality", "replays", "reproduced", "deterministic")}
-        report("minimise", k + 1, len(targets), {})
     return done
+
+
+def _minimise_job(job: tuple[Campaign, int, str, str, int]) -> dict[str, Any]:
+    """Minimise one finding (a work item); a harness error is reported, not raised."""
+    campaign, index, signature, path, max_replays = job
+    try:
+        return _minimise_one(campaign, index, signature, Path(path), max_replays, TestSpecification.from_schemas())
+    except Exception:
+        return {"signature": signature, "run": index, "reproduced": False,
+                "harness_error": traceback.format_exc(limit=-4)}
 
 
 def _minimise_one(campaign: Campaign, index: int, signature: str, path: Path, max_replays: int,
