@@ -1,0 +1,131 @@
+"""Fault injection: resume without loss, outputs that never collide, crashing and hanging modules,
+bad inputs that must be one-line errors. Every test drives the real code (real logs, real
+simulations, real SB3 checkpoints); the long ones are marked slow."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from deft_gym.envs.sink import EpisodeSink
+from deft_gym.files import append_jsonl, read_jsonl
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+# -- data loss ---------------------------------------------------------------------------------
+def test_sink_on_an_existing_run_continues_numbering_and_deletes_nothing_it_did_not_make(tmp_path):
+    old = tmp_path / "episodes" / "w0-000001-take_exit"
+    old.mkdir(parents=True)
+    (old / "episode.mcap").write_bytes(b"kept failure")
+    user = tmp_path / "episodes" / "w0-000002-mine"
+    user.mkdir()
+    (user / "notes.txt").write_text("a user's file")
+    append_jsonl(tmp_path / "episodes-0.jsonl", {"scenario": "take_exit", "failure": "collision", "kept": True})
+
+    sink = EpisodeSink(tmp_path, worker=0, keep_passing=0.0, extract=False)
+    d = sink.episode_dir("take_exit")
+    assert d.name == "w0-000003-take_exit"  # after the highest number on disk, never a reused one
+    assert (old / "episode.mcap").read_bytes() == b"kept failure" and (user / "notes.txt").exists()
+    sink.finish(d, {"scenario": "take_exit", "failure": None}, {})  # passing, not kept: its own folder goes
+    assert not d.exists()
+    sink.finish(user, {"scenario": "take_exit", "failure": None}, {}, keep=False)  # not its folder: stays
+    assert (user / "notes.txt").read_text() == "a user's file"
+    lines = read_jsonl(tmp_path / "episodes-0.jsonl")
+    assert len(lines) == 3 and lines[0]["kept"] and all("env_steps" in x for x in lines[1:])
+
+
+def test_resume_rolls_back_the_episodes_after_its_checkpoint_once(tmp_path):
+    """A resumed run's journals keep every line (append-only); the summary counts the episodes
+    journalled after the checkpoint's step once - the ones redone after the resume - not twice."""
+    from agents.train import mark_resume, summarize_run
+
+    for steps, fail in [(10, "collision"), (20, None), (30, "nods"), (40, None)]:
+        append_jsonl(tmp_path / "episodes-0.jsonl", {"scenario": "s", "valid": True, "failure": fail,
+                                                     "env_steps": steps})
+    mark_resume(tmp_path, 1, 25, tmp_path / "checkpoints" / "ppo_25_steps.zip")  # 30 and 40 rolled back
+    for steps, fail in [(30, None), (40, "collision")]:
+        append_jsonl(tmp_path / "episodes-0.jsonl", {"scenario": "s", "valid": True, "failure": fail,
+                                                     "env_steps": steps})
+    s = summarize_run(tmp_path)
+    assert (s["episodes"], s["collisions"], s["nods"], s["rolled_back_episodes"]) == (4, 2, 0, 2)
+    assert len(read_jsonl(tmp_path / "episodes-0.jsonl")) == 7  # nothing deleted
+
+
+def test_train_resume_from_a_missing_or_truncated_checkpoint_is_one_line(tmp_path, capsys):
+    from agents import train
+
+    missing = tmp_path / "ckpt" / "ppo_64_steps.zip"
+    assert train.main(["--config", "configs/train/demo.yaml", "--out", str(tmp_path / "run"),
+                       "--resume", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "ppo_64_steps.zip:" in err and ".zip.zip" not in err
+    missing.parent.mkdir()
+    missing.write_bytes(b"PK\x03\x04 truncated")
+    assert train.main(["--config", "configs/train/demo.yaml", "--out", str(tmp_path / "run"),
+                       "--resume", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not a readable SB3 checkpoint" in err
+    assert not (tmp_path / "run").exists()  # refused before any work
+
+
+@pytest.mark.slow
+def test_train_resume_appends_monitor_and_journal_and_keeps_kept_logs(tmp_path):
+    """Train, then resume from the last checkpoint: the Monitor CSV and the journal only grow,
+    every kept episode folder of the first session is still there, numbering continues."""
+    from agents import train
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text("name: tiny\nalgo: ppo\ntimesteps: 48\nseed: 0\nn_envs: 1\nvec_env: dummy\n"
+                   "checkpoint_every: 24\nalgo_kwargs: {n_steps: 24, batch_size: 24, n_epochs: 1}\n"
+                   "log_episodes: true\nenv: {scenarios: [lane_follow_static], record: failures, "
+                   "keep_passing: 1.0, extract: false}\n")
+    out = tmp_path / "run"
+    assert train.main(["--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    monitor = out / "monitor" / "env0.monitor.csv"
+    rows0 = monitor.read_text().splitlines()
+    kept0 = {p.name: p.stat().st_mtime_ns for p in (out / "episodes").iterdir()}
+    journal0 = read_jsonl(out / "episodes-0.jsonl")
+    assert kept0 and journal0
+    ckpt = sorted((out / "checkpoints").glob("ppo_*_steps.zip"))[0]
+    assert not list((out / "checkpoints").glob("*.tmp*"))
+    assert train.main(["--config", str(cfg), "--out", str(out), "--resume", str(ckpt), "--timesteps", "72",
+                       "--no-progress"]) == 0
+    rows1 = monitor.read_text().splitlines()
+    assert rows1[:len(rows0)] == rows0 and len(rows1) > len(rows0)  # appended, one header
+    assert sum(1 for r in rows1 if r.startswith("r,l,t")) == 1
+    kept1 = {p.name: p.stat().st_mtime_ns for p in (out / "episodes").iterdir()}
+    assert all(kept1.get(k) == v for k, v in kept0.items())  # nothing of the first session touched
+    journal1 = read_jsonl(out / "episodes-0.jsonl")
+    assert journal1[:len(journal0)] == journal0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["episodes"] + summary["rolled_back_episodes"] == len(journal1) - 1  # one resume marker
+
+
+def test_extract_folder_gives_colliding_logs_distinct_outputs(tmp_path, lane_follow_log):
+    from extract.batch import extract_directory
+
+    root = tmp_path / "logs"
+    (root / "lfs").mkdir(parents=True)
+    shutil.copy(lane_follow_log.log_path, root / "lfs" / "episode.mcap")
+    shutil.copy(lane_follow_log.log_path, root / "lfs.mcap")
+    results = extract_directory(root, tmp_path / "out", emit_tests=False)
+    dirs = {Path(r.summary["frames_path"]).parent for r in results}
+    assert len(results) == 2 and len(dirs) == 2, dirs
+    assert {d.name for d in dirs} == {"lfs", "lfs.mcap"}
+    for d in dirs:
+        assert json.loads((d / "summary.json").read_text())["frames"] == results[0].summary["frames"]
+
+
+def test_demo_never_deletes_folders_it_did_not_write(tmp_path, capsys):
+    from agents import demo
+
+    (tmp_path / "train").mkdir()
+    (tmp_path / "train" / "precious.txt").write_text("not the demo's")
+    assert demo.main(["--out", str(tmp_path), "--timesteps", "8"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "did not write" in err
+    assert (tmp_path / "train" / "precious.txt").exists()
