@@ -129,3 +129,124 @@ def test_demo_never_deletes_folders_it_did_not_write(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "did not write" in err
     assert (tmp_path / "train" / "precious.txt").exists()
+
+
+# -- failures never hidden: crashing, hanging, NaN-emitting and silent modules ----------------------
+FAULTY = "fault_planners:FaultyPlanner"
+LANE_FOLLOW = ROOT / "configs" / "scenarios" / "lane_follow_static.yaml"
+
+
+def faulty_ads(fault: str, after: int = 20, **params):
+    from agents.record import ads_overrides
+    from deft_gym.bus.ads import load_ads_config
+
+    return load_ads_config(None, ads_overrides(planner_class=FAULTY,
+                                               planner_params={"fault": fault, "after": after, **params}))
+
+
+def log_outcome(log: str | Path) -> dict:
+    from extract.logs import read_log
+
+    return read_log(Path(log), []).metadata["deft_gym.outcome"]
+
+
+@pytest.fixture(scope="module")
+def crash_run(tmp_path_factory):
+    from deft_gym.sim.simulation import Simulation
+
+    out = tmp_path_factory.mktemp("crash")
+    return Simulation(LANE_FOLLOW, faulty_ads("raise"), jitter_seed=7, out_dir=out).run()
+
+
+def test_a_module_that_raises_ends_the_episode_as_a_crash_in_result_and_log(crash_run):
+    s = crash_run.summary()
+    assert s["outcome"] == "crash" and not s["task_completed"]
+    f = s["failure"]
+    assert (f["kind"], f["module"], f["exception"]) == ("crash", "planning", "ZeroDivisionError: planted fault")
+    assert 0 < f["time"] < 5 and crash_run.sim_time < 5  # it ended there, not at the timeout
+    rec = log_outcome(crash_run.log_path)
+    assert rec["outcome"] == "crash" and rec["failure"]["module"] == "planning"
+
+
+def test_the_extractor_reports_the_crash_of_the_run_it_extracts(crash_run, tmp_path):
+    from extract import extract_episode
+
+    s = extract_episode(crash_run.log_path, tmp_path, emit_tests=False).summary
+    assert s["outcome"] == "crash" and s["findings"]["run_failure"]["module"] == "planning"
+    assert any("crash of module planning" in w for w in s["warnings"])
+
+
+def test_a_module_that_blocks_is_a_hang_after_the_wall_clock_watchdog(tmp_path):
+    import time
+
+    from deft_gym.sim.simulation import Simulation
+
+    t0 = time.perf_counter()
+    r = Simulation(LANE_FOLLOW, faulty_ads("sleep", sleep_s=30.0), jitter_seed=7, out_dir=tmp_path,
+                   watchdog_s=0.5).run()
+    assert time.perf_counter() - t0 < 10  # not 30 s per planning cycle
+    assert r.outcome.outcome == "hang" and r.outcome.failure["module"] == "planning"
+    assert log_outcome(r.log_path)["outcome"] == "hang"
+
+
+def test_watchdog_setting_is_checked(monkeypatch):
+    from deft_gym.sim.simulation import DEFAULT_WATCHDOG_S, watchdog_seconds
+
+    assert watchdog_seconds() == DEFAULT_WATCHDOG_S
+    monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "2.5")
+    assert watchdog_seconds() == 2.5
+    monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "soon")
+    with pytest.raises(ValueError, match="DEFT_GYM_WATCHDOG_S"):
+        watchdog_seconds()
+    with pytest.raises(ValueError, match="watchdog_s"):
+        watchdog_seconds(float("nan"))
+
+
+def test_an_ego_that_never_received_a_plan_is_not_completed(tmp_path):
+    import yaml
+
+    from deft_gym.sim.simulation import Simulation
+
+    data = yaml.safe_load(LANE_FOLLOW.read_text())
+    data["ego"]["destination"] = {"lane": [*data["ego"]["lane"]], "s": data["ego"]["s"] + 1.0}
+    path = tmp_path / "at_goal.yaml"
+    path.write_text(yaml.safe_dump(data))
+    r = Simulation(path, faulty_ads("silent", after=10**6), jitter_seed=7).run()
+    assert r.outcome.outcome == "no_plan" and not r.outcome.task_completed
+
+
+def test_nan_outputs_are_reproduced_and_reported_as_findings(tmp_path):
+    from deft_gym.sim.simulation import Simulation
+    from extract import extract_episode
+
+    r = Simulation(LANE_FOLLOW, faulty_ads("nan"), jitter_seed=7, out_dir=tmp_path / "run").run()
+    s = extract_episode(r.log_path, tmp_path / "x", emit_tests=False).summary
+    assert s["findings"]["nan_outputs"] > 100
+    assert s["reproduced"]["0"] == s["frames"]  # NaN == NaN: the replay gives the recorded NaN
+    assert any("NaN or inf" in w for w in s["warnings"])
+
+
+def test_planner_exceptions_during_extraction_are_counted_and_shown(lane_follow_log, tmp_path):
+    from extract import extract_episode
+    from extract.logs import read_log
+    from extract.mapping import load_mapping
+
+    meta = read_log(Path(lane_follow_log.log_path), []).episode_meta()
+    mapping = load_mapping(ROOT / "configs" / "mappings" / "deft_gym.yaml").model_dump(by_alias=True)
+    mapping["planner"] = {"class": FAULTY, "params": {"fault": "raise", "after": 0}, "map": meta["map"]}
+    s = extract_episode(lane_follow_log.log_path, tmp_path, mapping=mapping, emit_tests=False,
+                        minimize_failure=False).summary
+    f = s["findings"]
+    assert f["planner_exceptions"] > 0 and f["outputs_without_replay"] == s["frames"]
+    assert s["reproduced"]["7"] == 0 and any("the planner raised in" in w for w in s["warnings"])
+
+
+def test_a_mapping_field_missing_from_the_log_is_one_line_up_front(lane_follow_log, tmp_path):
+    from extract import extract_episode
+    from extract.mapping import MappingError, load_mapping
+
+    mapping = load_mapping(ROOT / "configs" / "mappings" / "deft_gym.yaml").model_dump(by_alias=True)
+    mapping["frame_time_field"] = "header.stamp_typo"
+    with pytest.raises(MappingError, match=r"frame_time_field: 'header.stamp_typo' is in none") as err:
+        extract_episode(lane_follow_log.log_path, tmp_path, mapping=mapping)
+    assert "\n" not in str(err.value) and not (tmp_path / "summary.json").exists()
