@@ -250,3 +250,21 @@ def test_a_mapping_field_missing_from_the_log_is_one_line_up_front(lane_follow_l
     with pytest.raises(MappingError, match=r"frame_time_field: 'header.stamp_typo' is in none") as err:
         extract_episode(lane_follow_log.log_path, tmp_path, mapping=mapping)
     assert "\n" not in str(err.value) and not (tmp_path / "summary.json").exists()
+
+
+def test_the_robustness_watchdog_reports_a_blocking_module_by_wall_clock(tmp_path):
+    """A planner that sleeps burns no CPU: the CPU-time watchdog alone never fires (the campaign
+    hung); the wall-clock one reports it as a hang of planning."""
+    import time
+
+    from deft_gym.robustness.monitors import GuardedSupervisor
+    from deft_gym.sim.simulation import Simulation
+
+    sim = Simulation(LANE_FOLLOW, faulty_ads("sleep", sleep_s=60.0), jitter_seed=7)
+    sup = GuardedSupervisor(sim.bus, deadline_s=0.2, wall_s=1.0)
+    sim.bus.supervisor = sup
+    t0 = time.perf_counter()
+    with sup:
+        sim.advance(10.0)
+    assert time.perf_counter() - t0 < 20
+    assert [(f.kind, f.node, f.reason) for f in sup.failures] == [("hang", "planning", "wall_deadline")]
