@@ -268,3 +268,65 @@ def test_the_robustness_watchdog_reports_a_blocking_module_by_wall_clock(tmp_pat
         sim.advance(10.0)
     assert time.perf_counter() - t0 < 20
     assert [(f.kind, f.node, f.reason) for f in sup.failures] == [("hang", "planning", "wall_deadline")]
+
+
+# -- bad input: one line naming the file and the field, before any work ------------------------------
+NAN = float("nan")
+SCENARIO_FAULTS = {
+    "nan participant position": (lambda d: d["participants"][0].__setitem__("s", NAN), "participants.0.static.s"),
+    "inf participant position": (lambda d: d["participants"][0].__setitem__("s", float("inf")),
+                                 "participants.0.static.s"),
+    "absurd ego d": (lambda d: d["ego"].__setitem__("d", 1e6), "ego.d"),
+    "participant on the ego": (lambda d: d["participants"].append(
+        {"id": "x", "type": "static", "lane": list(d["ego"]["lane"]), "s": d["ego"]["s"]}), "participants.3"),
+    "seed 1e23": (lambda d: d.__setitem__("seed", 1e23), "seed"),
+    "nan heading": (lambda d: (d["ego"].pop("lane"), d["ego"].pop("s"),
+                               d["ego"].update({"x": 10.0, "y": 0.0, "heading": NAN})), "ego.heading"),
+    "nan waypoint": (lambda d: d["participants"].append(
+        {"id": "v", "type": "scripted", "waypoints": [{"lane": ["a", "b", 1], "s": 30.0, "t": 0.0},
+                                                      {"lane": ["a", "b", 1], "s": NAN, "t": 5.0}]}),
+                     "participants.3.scripted.waypoints.1.s"),
+    "duplicate ids": (lambda d: d["participants"].append(dict(d["participants"][0])), "participant ids must be unique"),
+}
+
+
+@pytest.mark.parametrize("fault", sorted(SCENARIO_FAULTS))
+def test_bad_scenarios_are_one_line_errors_naming_file_and_field(fault, tmp_path):
+    import yaml
+
+    from deft_gym.config import ConfigError
+    from deft_gym.scenarios.scenario import load_scenario
+
+    mutate, field = SCENARIO_FAULTS[fault]
+    data = yaml.safe_load(LANE_FOLLOW.read_text())
+    mutate(data)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError) as err:
+        load_scenario(path)
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith(f"{path}: ") and field in msg, msg
+
+
+ADS_FAULTS = {
+    "world_hz 1e9": ("world_hz: 1.0e9\n", "world_hz"),
+    "control rate 1e7": ("control:\n  rate_hz: 1.0e7\n", "control.rate_hz"),
+    "inf processing time": ("perception:\n  processing: {mean_ms: .inf}\n", "perception.processing.mean_ms"),
+    "unknown trigger role": ("planning:\n  trigger: nosuchrole\n", "planning.trigger"),
+    "unknown planner class": ("planning:\n  planner:\n    class: nosuch.module:Planner\n", "planning.planner"),
+    "unknown planner params": ("planning:\n  planner:\n    params: {bogus_param: 3}\n", "bogus_param"),
+}
+
+
+@pytest.mark.parametrize("fault", sorted(ADS_FAULTS))
+def test_bad_ads_configs_are_one_line_errors_and_exit_2_before_any_run(fault, tmp_path, capsys):
+    from deft_gym.cli import run
+
+    text, field = ADS_FAULTS[fault]
+    path = tmp_path / "ads.yaml"
+    path.write_text(text)
+    out = tmp_path / "out"
+    assert run.main([str(LANE_FOLLOW), "--ads-config", str(path), "--reruns", "1", "--out", str(out)]) == 2
+    msg = " ".join(capsys.readouterr().out.split())  # the console may wrap
+    assert msg.startswith(f"error: {path}: ") and field in msg and "Traceback" not in msg, msg
+    assert not out.exists()

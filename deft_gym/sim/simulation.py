@@ -33,6 +33,7 @@ from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.bus.bus import Bus, Node, header
 from deft_gym.bus.jitter import JitterModel
 from deft_gym.bus.messages import NS_PER_S, to_ns
+from deft_gym.config import ConfigError
 from deft_gym.files import write_atomic
 from deft_gym.modules.control import ControlNode
 from deft_gym.modules.planning import PlanningNode
@@ -123,6 +124,23 @@ class _Heartbeat:
             signal.signal(signal.SIGALRM, self.old if self.old is not None else signal.SIG_DFL)
             if self.old_timer[0] > 0:
                 signal.setitimer(signal.ITIMER_REAL, *self.old_timer)
+
+
+def build_planner(ads: AdsConfig, sc: Scenario) -> Any:
+    """The planner the ADS config names, built for the scenario's map; ConfigError (one line,
+    naming the ADS config file and ``planning.planner``) when the class cannot be imported or
+    rejects its parameters - checked by the CLIs before any run."""
+    spec = ads.planning.planner
+    try:
+        return load_planner(spec.cls, sc.map.model_dump(), dict(spec.params))
+    except (ImportError, AttributeError, TypeError, ValueError) as exc:  # unknown class, bad params
+        errors = getattr(exc, "errors", None)
+        if callable(errors):  # a pydantic ValidationError: its fields, one line
+            first = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors())
+        else:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ConfigError(f"{getattr(ads, '_source', 'ADS config')}: planning.planner: cannot build "
+                          f"{spec.cls!r} with params {dict(spec.params)}: {first}") from None
 
 
 def watchdog_seconds(value: float | None = None) -> float:
@@ -225,8 +243,7 @@ class Simulation:
         topics = ads.topics
         dest_xy, dest_s = destination_xy(self.roadmap, sc.ego.destination)
         self.oracle = EpisodeOracle(self.world, dest_xy, sc.duration, stuck_time=sc.stuck_time)
-        planner_params = dict(ads.planning.planner.params)
-        self.planner = load_planner(ads.planning.planner.cls, sc.map.model_dump(), planner_params)
+        self.planner = build_planner(ads, sc)
         start_lane = tuple(sc.ego.lane) if sc.ego.lane else self.roadmap.locate(
             self.world.ego.position, self.world.ego.heading)[0]
         self.simulator = SimulatorNode(self)
