@@ -23,6 +23,8 @@ from typing import Any
 
 from agents import evaluate, train
 
+MARKER = ".agents-demo"  # in --out: train/ and eval/ there are the demo's and may be replaced
+
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m agents.demo", description=__doc__.split("\n\n")[0])
@@ -53,9 +55,19 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     cfg = train.load_train_config(args.config)
     scenario = args.scenario or cfg.env.scenarios[0]
-    for part in ("train", "eval"):  # the demo's own outputs: a new demo replaces the last one
+    if out.exists() and not out.is_dir():
+        print(f"error: --out {out}: is a file; expected a folder for the demo's outputs", file=sys.stderr)
+        return 2
+    marker = out / MARKER
+    if not marker.exists() and any((out / part).exists() for part in ("train", "eval")):
+        print(f"error: --out {out}: holds train/ or eval/ that agents.demo did not write (no {MARKER}); "
+              "choose another --out", file=sys.stderr)
+        return 2
+    for part in ("train", "eval"):  # the demo's own outputs (the marker says so): a new demo replaces them
         if (out / part).exists():
             shutil.rmtree(out / part)
+    out.mkdir(parents=True, exist_ok=True)
+    marker.write_text("written by agents.demo; a new demo into this folder replaces train/ and eval/\n")
     print(f"[1/4] training the adversary on {scenario} ...", flush=True)
     targs = ["--config", str(args.config), "--out", str(out / "train")]
     if args.timesteps:

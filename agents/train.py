@@ -49,10 +49,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 # -- environments --------------------------------------------------------------------------------
-def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1) -> Any:
+def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1, step0: int = 0) -> Any:
     """A thunk building env ``rank`` (own worker id, own episode journal, Monitor-wrapped) in one
     of ``workers`` env processes (:func:`deft_gym.record.recorder.init_pool_worker`; 1 when the envs
-    share this process)."""
+    share this process). ``step0``: the env's steps before this session (a resumed run: its
+    episode numbers and journal continue, its Monitor file is appended to)."""
 
     def thunk() -> Any:
         from stable_baselines3.common.monitor import Monitor
@@ -66,27 +67,85 @@ def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1) ->
             "worker": rank,
             "log_dir": str(out) if (out is not None and cfg.log_episodes) else cfg.env.log_dir})
         env = AdversaryEnv(config=env_cfg)
+        if env.sink is not None:
+            env.sink.steps = step0
         env.reset(seed=cfg.seed * 1000 + rank)
-        monitor = None
+        monitor, fresh = None, True
         if out is not None:
             (out / "monitor").mkdir(parents=True, exist_ok=True)
             monitor = str(out / "monitor" / f"env{rank}")
-        return Monitor(env, monitor, info_keywords=("failure", "scenario", "valid", "iou"))
+            fresh = not (Path(monitor + ".monitor.csv").exists() and step0 > 0)  # resumed: append
+        return Monitor(env, monitor, info_keywords=("failure", "scenario", "valid", "iou"), override_existing=fresh)
 
     return thunk
 
 
-def make_vec_env(cfg: TrainConfig, out: Path | None, backend: Backend | None = None) -> Any:
+def make_vec_env(cfg: TrainConfig, out: Path | None, backend: Backend | None = None, step0: int = 0) -> Any:
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
     if backend is not None and backend.kind == "ray":
         from deft_gym.execution.vec_env import RayVecEnv
 
-        return RayVecEnv([make_env(cfg, i, out, cfg.n_envs) for i in range(cfg.n_envs)], run_dir=out)
+        return RayVecEnv([make_env(cfg, i, out, cfg.n_envs, step0) for i in range(cfg.n_envs)], run_dir=out)
     if cfg.vec_env == "subproc" and cfg.n_envs > 1:
-        return SubprocVecEnv([make_env(cfg, i, out, cfg.n_envs) for i in range(cfg.n_envs)],
+        return SubprocVecEnv([make_env(cfg, i, out, cfg.n_envs, step0) for i in range(cfg.n_envs)],
                              start_method="forkserver")
-    return DummyVecEnv([make_env(cfg, i, out) for i in range(cfg.n_envs)])
+    return DummyVecEnv([make_env(cfg, i, out, step0=step0) for i in range(cfg.n_envs)])
+
+
+def checkpoint_callback(save_freq: int, path: Path, prefix: str) -> Any:
+    """SB3's checkpoint callback, but every checkpoint is written to a temporary file and renamed,
+    so a kill never leaves a truncated ``<prefix>_<steps>_steps.zip``."""
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    class AtomicCheckpoint(CheckpointCallback):
+        def _on_step(self) -> bool:
+            if self.n_calls % self.save_freq == 0:
+                final = Path(self._checkpoint_path(extension="zip"))
+                final.parent.mkdir(parents=True, exist_ok=True)
+                tmp = final.with_name(final.stem + ".tmp.zip")
+                self.model.save(tmp)
+                os.replace(tmp, final)
+            return True
+
+    return AtomicCheckpoint(save_freq=save_freq, save_path=str(path), name_prefix=prefix)
+
+
+def checkpoint_steps(path: Path) -> int:
+    """The timesteps stored in a checkpoint; ConfigError (one line) if it is missing or unreadable."""
+    if not path.is_file():
+        raise ConfigError(f"--resume {path}: no such checkpoint file; expected a .zip written by agents.train "
+                          "(checkpoints/<algo>_<steps>_steps.zip or model.zip)")
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    try:
+        data, _, _ = load_from_zip_file(path, device="cpu", load_data=True)
+        return int(data["num_timesteps"])
+    except Exception as exc:  # a truncated or foreign file: name it, no traceback
+        raise ConfigError(f"--resume {path}: not a readable SB3 checkpoint ({type(exc).__name__}: "
+                          f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+
+
+def mark_resume(out: Path, n_envs: int, step0: int, checkpoint: Path) -> None:
+    """Append to every env's journal where this session starts: the episodes journalled after
+    ``step0`` env steps were rolled back with the checkpoint and are not counted again."""
+    for rank in range(n_envs):
+        append_jsonl(out / f"episodes-{rank}.jsonl", {"resume_at_env_steps": step0, "checkpoint": str(checkpoint)})
+
+
+def journal_records(path: Path) -> tuple[list[dict[str, Any]], int]:
+    """The episode records of one env's journal that count (those rolled back by a later resume
+    excluded) and how many were rolled back."""
+    recs: list[dict[str, Any]] = []
+    rolled = 0
+    for r in read_jsonl(path):
+        if "resume_at_env_steps" in r:
+            keep = [x for x in recs if x.get("env_steps") is None or x["env_steps"] <= r["resume_at_env_steps"]]
+            rolled += len(recs) - len(keep)
+            recs = keep
+        else:
+            recs.append(r)
+    return recs, rolled
 
 
 # -- callbacks ------------------------------------------------------------------------------------
@@ -138,7 +197,8 @@ def failure_callback(out: Path | None) -> Any:
 def summarize_run(out: Path) -> dict[str, Any]:
     """Aggregate the episode journals of a run folder (what ``summary.json`` holds, besides the
     training figures)."""
-    recs = [r for f in sorted(out.glob("episodes-*.jsonl")) for r in read_jsonl(f)]
+    parts = [journal_records(f) for f in sorted(out.glob("episodes-*.jsonl"))]
+    recs = [r for rs, _ in parts for r in rs]
     by_scn: dict[str, Counter[str]] = {}
     tests, extraction = [], Counter()
     for r in recs:
@@ -160,7 +220,8 @@ def summarize_run(out: Path) -> dict[str, Any]:
                "failure_rate": round((total["collision"] + total["nods"]) / max(total["episodes"], 1), 4),
                "per_scenario": {k: dict(v) for k, v in sorted(by_scn.items())},
                "extraction": dict(extraction), "extracted_tests": tests,
-               "kept_logs": sum(1 for r in recs if r.get("kept"))}
+               "kept_logs": sum(1 for r in recs if r.get("kept")),
+               "rolled_back_episodes": sum(n for _, n in parts)}
     return summary
 
 
@@ -187,6 +248,16 @@ def main(argv: list[str] | None = None) -> int:
                                      "generated": 0})
         print(f"training on {len(cfg.env.scenarios)} scenarios ({len(names)} generated)", flush=True)
     out = args.out or Path("runs/adversary") / cfg.name
+    step0 = 0
+    if args.resume is not None:
+        try:
+            step0 = checkpoint_steps(args.resume) // cfg.n_envs
+        except ConfigError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+    if out.exists() and not out.is_dir():
+        print(f"error: --out {out}: is a file; expected a folder for the run", file=sys.stderr)
+        return 2
     if args.resume is None and any(out.glob("episodes-*.jsonl")):
         print(f"error: {out} already holds a training run (episodes-*.jsonl); continue it with --resume "
               f"{out}/checkpoints/<checkpoint>.zip or train into another --out", file=sys.stderr)
@@ -196,11 +267,13 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
     from stable_baselines3 import A2C, PPO
-    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
+    from stable_baselines3.common.callbacks import CallbackList
 
     torch.set_num_threads(1)  # the cores belong to the simulation workers
     algo_cls = {"ppo": PPO, "a2c": A2C}[cfg.algo]
-    vec_env = make_vec_env(cfg, out, backend)
+    if args.resume is not None:
+        mark_resume(out, cfg.n_envs, step0, args.resume)
+    vec_env = make_vec_env(cfg, out, backend, step0)
     if args.resume is not None:
         model = algo_cls.load(args.resume, env=vec_env, tensorboard_log=str(out / "tb"), device="cpu")
         print(f"resumed from {args.resume} at {model.num_timesteps} steps")
@@ -210,8 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     remaining = max(cfg.timesteps - (model.num_timesteps if args.resume else 0), 0)
     stats = failure_callback(out)
     callbacks = CallbackList([
-        CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.n_envs, 1), save_path=str(out / "checkpoints"),
-                           name_prefix=cfg.algo),
+        checkpoint_callback(max(cfg.checkpoint_every // cfg.n_envs, 1), out / "checkpoints", cfg.algo),
         stats,
     ])
     signal.signal(signal.SIGTERM, _interrupt)  # `kill PID` stops training like Ctrl-C: model saved

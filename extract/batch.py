@@ -1,7 +1,8 @@
 """Batch extraction: every log under a folder of runs, resumable, optionally in parallel.
 
 Each log ``ROOT/<rel>/episode.mcap`` is extracted into ``OUT/<rel>/`` (other ``*.mcap`` names
-into ``OUT/<rel>/<stem>/``), with a test module named after the scenario and ``<rel>`` so that
+into ``OUT/<rel>/<stem>/``; two logs that would share a folder get distinct ones,
+:func:`episode_out_dirs`), with a test module named after the scenario and ``<rel>`` so that
 ``pytest OUT`` collects them all. An episode whose ``summary.json`` is newer than its log and was
 made with the same options is skipped (``force`` redoes it). ``OUT/summary.json`` totals them.
 """
@@ -39,6 +40,25 @@ def episode_out_dir(log: Path, root: Path, out_root: Path) -> Path:
     rel = log.parent.relative_to(root) if root.is_dir() else Path()
     base = out_root / rel
     return base if log.name == "episode.mcap" and rel != Path() else base / log.stem
+
+
+def episode_out_dirs(logs: list[Path], root: Path, out_root: Path) -> list[Path]:
+    """:func:`episode_out_dir` of each log, made distinct: a log whose folder another log already
+    has (``lfs/episode.mcap`` and ``lfs.mcap`` both give ``OUT/lfs``) goes to ``OUT/<rel>/<name>``
+    (``OUT/lfs.mcap``), then ``-2``, ``-3``... so no extraction overwrites another's."""
+    taken: set[Path] = set()
+    dirs = []
+    for log in logs:
+        out = episode_out_dir(log, root, out_root)
+        if out in taken:
+            rel = log.parent.relative_to(root) if root.is_dir() else Path()
+            cand, k = out_root / rel / log.name, 2
+            while cand in taken:
+                cand, k = out_root / rel / f"{log.name}-{k}", k + 1
+            out = cand
+        taken.add(out)
+        dirs.append(out)
+    return dirs
 
 
 def _options(kwargs: dict[str, Any]) -> dict[str, Any]:
@@ -96,8 +116,7 @@ def extract_directory(root: Path | str, out_root: Path | str, *, workers: int = 
     options = _options(kwargs)
     results: list[ExtractionResult | None] = [None] * len(logs)
     jobs: list[tuple[int, tuple[str, str, str, dict[str, Any]]]] = []
-    for i, log in enumerate(logs):
-        out = episode_out_dir(log, root, out_root)
+    for i, (log, out) in enumerate(zip(logs, episode_out_dirs(logs, root, out_root))):
         done = None if force else _up_to_date(log, out, options)
         if done is not None:
             results[i] = ExtractionResult(done, Path(done["frames_path"]) if done.get("frames_path") else None,

@@ -23,7 +23,7 @@ from deft_gym.planner.base import load_planner, planner_provenance, validate_out
 from extract.emit import slug, test_module, write_frames
 from extract.io_filter import PlanningIOFilter
 from extract.logs import EpisodeLog, LogError, read_log
-from extract.mapping import MappingError, TopicMapping, load_mapping
+from extract.mapping import MappingError, TopicMapping, get_field, load_mapping
 from extract.minimize import Minimised, Seed, frame_getter, seeded_start, shortest_replay
 from extract.oracle import Faulty, ego_size, find_faulty, participant_track
 from extract.runtime import FORMAT, finite_or_none
@@ -35,6 +35,7 @@ from extract.validator import (
     Tolerances,
     compare,
     field_summary,
+    non_finite,
     reproduced_counts,
     theta_key,
 )
@@ -94,6 +95,7 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     elog = read_log(log_path, sorted(set(mp.topics.values())), mp.seq_field)
     planner_spec = _planner_spec(elog, mp)
     pif = PlanningIOFilter(elog, mp, planner_spec["class"])
+    _check_fields(mp, pif)
     t_setup = time.perf_counter()
     try:
         planner = load_planner(planner_spec["class"], planner_spec["map"], planner_spec["params"])
@@ -125,6 +127,7 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     distances = [c.distance for c in choices]
     meta = elog.episode_meta()
     outcome = elog.metadata.get(mp.outcome_metadata or "", {})
+    findings = _findings(elog, engine, choices, pif, outcome if isinstance(outcome, dict) else {})
     scenario = str(meta.get("scenario_name") or log_path.parent.name or log_path.stem)
     ego, ego_note = ego_size((mp.ego.length, mp.ego.width), meta.get("ego"))
     if ego_note:
@@ -160,6 +163,7 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     agreement = truth_agreement(_truth_path(log_path, truth), choices, pif) if truth else None
     summary = _summary(elog, log_path, scenario, meta, outcome, cfg, tol, choices, comparisons, engine,
                        faulty, oracle_note, agreement, mp)
+    summary["findings"] = findings
     test_path = None
     if emit_tests:
         name = (f"test_{slug(scenario)}" + (f"_{slug(test_suffix)}" if test_suffix else "")
@@ -172,6 +176,41 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     summary["test_path"] = str(test_path) if test_path else None
     write_atomic(out / "summary.json", json.dumps(summary, indent=2))
     return ExtractionResult(summary, frames_path, test_path, summary["faulty_trajectory"], choices, comparisons)
+
+
+def _check_fields(mp: TopicMapping, pif: PlanningIOFilter) -> None:
+    """MappingError (one line, before any search) when a field the mapping names is in none of
+    the log's planning outputs - a typo would otherwise cost a blind search and give 0 %."""
+    fields = [("frame_time_field", mp.frame_time_field), ("frame_time_hint", mp.frame_time_hint)]
+    outputs = pif.outputs
+    for key, path in fields:
+        if path and outputs and all(get_field(o.payload, path) is None for o in outputs):
+            raise MappingError(f"{mp.source}: {key}: {path!r} is in none of the {len(outputs)} planning outputs "
+                               f"of the log (topic {mp.topic('planning')}); expected a dotted path present in "
+                               "them, or null")
+
+
+def _findings(elog: EpisodeLog, engine: InputSearch, choices: list[FrameChoice],
+              pif: PlanningIOFilter, outcome: dict[str, Any]) -> dict[str, Any]:
+    """Faults of the planner or the run that the extraction met, counted (``summary.findings``)
+    and each stated as a warning: a run that ended in a module crash or hang, recorded outputs
+    holding NaN/inf, plan() calls that raised during the replays and the outputs left without a
+    replayed plan because of it. None of them is ever a silent non-reproduction."""
+    failure = outcome.get("failure")
+    nan = [o.index for o in pif.outputs if non_finite(o.payload)]
+    no_output = [c.output.index for c in choices if c.actual is None]
+    if isinstance(failure, dict):
+        elog.warnings.append(f"the run ended in a {failure.get('kind')} of module {failure.get('module')} at "
+                             f"t={failure.get('time')}: {failure.get('exception')}")
+    if nan:
+        elog.warnings.append(f"{len(nan)} recorded planning output(s) hold NaN or inf (first: output {nan[0]}): "
+                             "a planner fault, reported as a finding")
+    if engine.exceptions:
+        elog.warnings.append(f"the planner raised in {engine.exceptions} of {engine.plan_calls} replays "
+                             f"({engine.errors[0] if engine.errors else '?'}); {len(no_output)} output(s) got no "
+                             "replayed plan")
+    return {"run_failure": failure, "nan_outputs": len(nan), "nan_output_indices": nan[:50],
+            "planner_exceptions": engine.exceptions, "outputs_without_replay": len(no_output)}
 
 
 def _contract_warnings(elog: EpisodeLog, engine: InputSearch, choices: list[FrameChoice]) -> None:

@@ -107,6 +107,7 @@ class InputSearch:
         self.planner_s = 0.0
         self.plan_calls = 0
         self.errors: list[str] = []
+        self.exceptions = 0  #: plan() calls that raised (all of them; ``errors`` keeps the first 20)
         self._seq_index: dict[str, dict[int, int]] | None = None
         self.restores = 0  #: snapshots restored (candidates tried after a miss)
         #: None: not checked (no snapshot restored, or no factory); True: the validation replay
@@ -198,7 +199,8 @@ class InputSearch:
         t0 = time.perf_counter()
         try:
             return planner.plan(Frame(t, inputs))
-        except Exception as exc:  # a candidate frame may be garbage to the planner
+        except Exception as exc:  # a candidate frame may be garbage to the planner: counted, reported
+            self.exceptions += 1
             if len(self.errors) < 20:
                 self.errors.append(f"planner raised {type(exc).__name__}: {exc} at t={t:.3f}")
             return None

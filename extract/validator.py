@@ -46,21 +46,46 @@ def _traj(payload: Mapping[str, Any]) -> Mapping[str, Any] | None:
     return tr if isinstance(tr, Mapping) else None
 
 
+def nan_equal(a: Any, b: Any) -> bool:
+    """``a == b`` for plain JSON-like values, except that NaN equals NaN (a planner that gives
+    the recorded NaN again reproduces it; a NaN output is a finding, not a miss)."""
+    if a == b:
+        return True
+    if isinstance(a, float) and isinstance(b, float):
+        return a != a and b != b
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(nan_equal(x, y) for x, y in zip(a, b))
+    if isinstance(a, Mapping) and isinstance(b, Mapping):
+        return a.keys() == b.keys() and all(nan_equal(a[k], b[k]) for k in a)
+    return False
+
+
+def non_finite(payload: Any) -> bool:
+    """Whether a planning output's trajectory holds a NaN or an infinity."""
+    tr = _traj(payload)
+    if tr is None:
+        return False
+    return any(isinstance(v, float) and not math.isfinite(v)
+               for vals in tr.values() if isinstance(vals, list) for v in vals)
+
+
 def identical(expected: Mapping[str, Any], actual: Mapping[str, Any] | None) -> bool:
-    """Same timestamps and positions, bit for bit (what the position measure short-cuts on)."""
+    """Same timestamps and positions, bit for bit (what the position measure short-cuts on;
+    NaN equals NaN)."""
     if actual is None:
         return False
     a, b = _traj(expected), _traj(actual)
-    return a is not None and b is not None and a["x"] == b["x"] and a["y"] == b["y"] and a["t"] == b["t"]
+    return (a is not None and b is not None and nan_equal(a["x"], b["x"]) and nan_equal(a["y"], b["y"])
+            and nan_equal(a["t"], b["t"]))
 
 
 def same_output(expected: Mapping[str, Any], actual: Mapping[str, Any] | None) -> bool:
     """The whole output equal: every trajectory field and the decision (numbers compared as
-    numbers; a NaN never equals anything here, :func:`compare` treats NaN == NaN)."""
+    numbers; NaN equals NaN, as in :func:`compare`)."""
     if actual is None:
         return False
     a, b = _traj(expected), _traj(actual)
-    return a is not None and a == b and expected.get("decision") == actual.get("decision")
+    return a is not None and nan_equal(a, b) and nan_equal(expected.get("decision"), actual.get("decision"))
 
 
 def distance(expected: Mapping[str, Any], actual: Mapping[str, Any] | None, measure: Measure | str = "lsed") -> float:

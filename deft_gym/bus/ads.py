@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from pydantic import ConfigDict, Field, field_validator
+from pydantic import ConfigDict, Field, PrivateAttr, field_validator
 
 from deft_gym.bus.messages import DEFAULT_TOPICS, ROLES
 from deft_gym.config import CONFIG_DIR, Strict, deep_merge, load_mapping, validate
@@ -26,12 +26,15 @@ def _known_roles(cls: type, v: list[str]) -> list[str]:
     return v
 
 
+MAX_HZ = 1000.0  #: highest rate of any timer [Hz] (a bound: 1e9 Hz would never finish)
+MAX_MS = 60_000.0  #: longest mean processing or delivery time [ms]
+
 class Duration(Strict):
     """A processing-time distribution [ms]: lognormal with the given mean and std, clipped to
     ``min_ms``, and with probability ``spike_prob`` multiplied by ``spike_factor`` (a scheduling
     hiccup). With jitter disabled the duration is exactly ``mean_ms``."""
 
-    mean_ms: float = Field(ge=0.0)
+    mean_ms: float = Field(ge=0.0, le=MAX_MS)
     std_ms: float = Field(default=0.0, ge=0.0)
     min_ms: float = Field(default=0.0, ge=0.0)
     spike_prob: float = Field(default=0.0, ge=0.0, le=1.0)
@@ -53,15 +56,23 @@ class JitterConfig(Strict):
     shuffle_simultaneous: bool = True
 
 
+def _known_trigger(cls: type, v: str | None) -> str | None:
+    if v is not None and v not in ROLES:
+        raise ValueError(f"unknown trigger role {v!r}; expected one of {list(ROLES)}")
+    return v
+
+
 class ModuleConfig(Strict):
     """A bus node: either periodic (``rate_hz``) or triggered by a topic role (``trigger``)."""
 
-    rate_hz: float | None = Field(default=None, gt=0.0)
+    rate_hz: float | None = Field(default=None, gt=0.0, le=MAX_HZ)
     trigger: str | None = None
     processing: Duration = Duration(mean_ms=1.0)
     params: dict[str, Any] = Field(default_factory=dict)
     node: str | None = Field(default=None, description="'module:Class' replacing the built-in node "
                              "class (same constructor arguments), e.g. a fault-injecting or hardened variant")
+
+    _trigger = field_validator("trigger")(_known_trigger)
 
 
 class PlannerSpec(Strict):
@@ -86,8 +97,8 @@ class PlanningConfig(ModuleConfig):
 class AdsConfig(Strict):
     """The whole ADS: world step, module timing, topic names, planner."""
 
-    world_hz: float = Field(default=20.0, gt=0.0)
-    chassis_hz: float = Field(default=20.0, gt=0.0)
+    world_hz: float = Field(default=20.0, gt=0.0, le=MAX_HZ)
+    chassis_hz: float = Field(default=20.0, gt=0.0, le=MAX_HZ)
     topics: dict[str, str] = Field(default_factory=lambda: dict(DEFAULT_TOPICS))
     jitter: JitterConfig = JitterConfig()
     routing: ModuleConfig = ModuleConfig(processing=Duration(mean_ms=5.0))
@@ -97,6 +108,7 @@ class AdsConfig(Strict):
     prediction: ModuleConfig = ModuleConfig(trigger="perception_obstacles")
     planning: PlanningConfig = PlanningConfig()
     control: ModuleConfig = ModuleConfig(rate_hz=20.0)
+    _source: str = PrivateAttr(default="ADS config")  #: the file it was loaded from
 
     @field_validator("topics")
     @classmethod
@@ -117,4 +129,6 @@ def load_ads_config(path: Path | str | None = None, overrides: dict[str, Any] | 
     data = load_mapping(path)
     if overrides:
         data = deep_merge(data, overrides)
-    return validate(AdsConfig, data, path)
+    ads = validate(AdsConfig, data, path)
+    ads._source = str(path)  # names the file in errors found later (the planner)
+    return ads

@@ -100,6 +100,10 @@ class Bus:
             node.start()
 
     # -- messaging --------------------------------------------------------------------------
+    def published_on(self, topic: str) -> int:
+        """How many messages were published on ``topic`` so far."""
+        return self._seq.get(topic, 0)
+
     def next_seq(self, topic: str) -> int:
         seq = self._seq.get(topic, 0)
         self._seq[topic] = seq + 1

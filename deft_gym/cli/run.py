@@ -31,7 +31,7 @@ from deft_gym.modules.planning import frame_roles
 from deft_gym.planner.base import planner_class
 from deft_gym.planner.trajectory import lockstep_divergence
 from deft_gym.scenarios.scenario import load_scenario
-from deft_gym.sim.simulation import Simulation
+from deft_gym.sim.simulation import Simulation, build_planner
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -70,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         scenario = load_scenario(args.scenario)
         overrides = {"planning": {"publish_input_headers": True}} if args.headers else None
         ads = load_ads_config(args.ads_config, overrides)
+        build_planner(ads, scenario)  # unknown class or parameters: one line, before any run
         frame_roles(planner_class(ads.planning.planner.cls), ads.planning, str(args.ads_config or DEFAULT_ADS_CONFIG))
     except (ConfigError, ValueError) as err:
         console.print(f"[red]error:[/red] {err}", highlight=False, soft_wrap=True)

@@ -243,6 +243,8 @@ class AdversaryEnv(gym.Env):
         sim, dt = self.sim, self.ctx.feasible.dt
         op_info = self._apply(np.asarray(action, dtype=np.int64))
         self.k += 1
+        if self.sink is not None:
+            self.sink.steps += 1  # the env's steps so far, in the journal (a resumed run's rollback)
         self._until = self.k * dt + 1e-6
         done = sim.advance(self._until)
         reward = self._shaping() + (self.cfg.reward.placement_cost if op_info.get("placed") else 0.0)

@@ -10,17 +10,24 @@ one file per worker process, so parallel workers never interleave) and then:
   ``<episode>/extracted``;
 - a passing episode is kept with probability ``keep_passing`` (seeded), otherwise deleted, so a
   long run does not fill the disk.
+
+A sink on a folder that already holds episodes (a resumed run) continues their numbering and
+never deletes a folder it did not create itself: :meth:`EpisodeSink.episode_dir` skips names
+that exist, and :meth:`EpisodeSink.finish` removes only folders this sink made.
+Each journal line carries ``env_steps`` (the env's steps so far, :attr:`EpisodeSink.steps`), so
+a resumed training run can tell which episodes came after its checkpoint.
 """
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from deft_gym.files import append_jsonl, write_json_atomic
+from deft_gym.files import append_jsonl, read_jsonl, write_json_atomic
 
 
 def extractor() -> Any | None:
@@ -43,17 +50,36 @@ class EpisodeSink:
         self.extract = extract
         self.extract_kwargs = dict(extract_kwargs or {})
         self.rng = np.random.default_rng([seed, worker])
-        self.count = 0
         self.journal = self.root / f"episodes-{worker}.jsonl"
+        self.count = self._last_number()
+        self.steps = 0  # the env's steps so far (set by the env; written to each journal line)
+        self._made: set[Path] = set()
+
+    def _last_number(self) -> int:
+        """The highest episode number this worker already used in ``root`` (its folders and its
+        journal lines), so a resumed run continues after it."""
+        n = len(read_jsonl(self.journal)) if self.journal.exists() else 0
+        pat = re.compile(rf"w{self.worker}-(\d+)-")
+        folder = self.root / "episodes"
+        if folder.is_dir():
+            for d in folder.iterdir():
+                m = pat.match(d.name)
+                if m:
+                    n = max(n, int(m.group(1)))
+        return n
 
     def episode_dir(self, tag: str) -> Path:
-        """A fresh directory for the next episode's log."""
-        self.count += 1
-        d = self.root / "episodes" / f"w{self.worker}-{self.count:06d}-{tag}"
-        if d.exists():
-            shutil.rmtree(d)
-        d.mkdir(parents=True)
-        return d
+        """A fresh directory for the next episode's log; a name that exists already (not made
+        by this sink) is skipped, never reused or deleted."""
+        while True:
+            self.count += 1
+            d = self.root / "episodes" / f"w{self.worker}-{self.count:06d}-{tag}"
+            try:
+                d.mkdir(parents=True)
+            except FileExistsError:
+                continue
+            self._made.add(d)
+            return d
 
     def keeps(self, record: dict[str, Any]) -> bool:
         """Whether the episode's log is kept: always for a failure, with probability
@@ -74,10 +100,12 @@ class EpisodeSink:
             write_json_atomic(episode_dir / "episode.json", {**record, **details})
             if failing and self.extract:
                 done["extraction"] = self._extract(episode_dir)
-        elif episode_dir is not None:
+        elif episode_dir is not None and Path(episode_dir) in self._made:  # only what this sink made
             shutil.rmtree(episode_dir, ignore_errors=True)
+        if episode_dir is not None:
+            self._made.discard(Path(episode_dir))
         done["dir"] = str(episode_dir) if done["kept"] else None
-        append_jsonl(self.journal, {**record, **done})
+        append_jsonl(self.journal, {**record, **done, "env_steps": self.steps})
         return done
 
     def _extract(self, episode_dir: Path) -> dict[str, Any]:

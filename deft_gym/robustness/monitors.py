@@ -3,7 +3,9 @@
 - :class:`GuardedSupervisor` replaces the bus supervisor: it runs every node computation, turns an
   exception into a *crash* finding and a computation that overruns its deadline (CPU seconds) into
   a *hang* finding (a SIGPROF watchdog interrupts it - runs are single-threaded and own the main
-  thread), checks the shape of what the node returns, and marks the failed node dead, as a
+  thread); a computation that blocks without burning CPU (sleeps, waits on a lock or a socket) is
+  a hang after ``wall_s`` seconds of wall clock (a SIGALRM watchdog, default
+  :func:`wall_budget` of the CPU deadline), checks the shape of what the node returns, and marks the failed node dead, as a
   process that died would be. Failures never propagate into the harness.
 - :class:`SilenceMonitor` (an ``on_step`` callback) reports a node that stopped publishing for
   ``k`` of its periods - the paper's other kind of hang, a module that ceases communication -
@@ -43,24 +45,43 @@ class DeadlineExceeded(BaseException):
     ``except Exception`` cannot swallow it)."""
 
 
+class WallDeadlineExceeded(DeadlineExceeded):
+    """Raised by the wall-clock watchdog: the computation blocked (it did not burn CPU)."""
+
+
 def _raise_deadline(signum: int, frame: Any) -> None:
     raise DeadlineExceeded()
 
 
+def _raise_wall_deadline(signum: int, frame: Any) -> None:
+    raise WallDeadlineExceeded()
+
+
+def wall_budget(deadline_s: float) -> float:
+    """The default wall-clock budget of a computation with a CPU deadline of ``deadline_s``: three
+    times it, at least 2 s (a loaded machine slows computations, it does not triple them)."""
+    return max(3.0 * deadline_s, 2.0)
+
+
 @contextmanager
 def deadline(seconds: float) -> Iterator[None]:
-    """Raise :class:`DeadlineExceeded` in the block after ``seconds`` of CPU time (main thread
+    """Raise :class:`DeadlineExceeded` in the block after ``seconds`` of CPU time, or
+    :class:`WallDeadlineExceeded` after :func:`wall_budget` seconds of wall clock (main thread
     only; elsewhere the block runs unguarded)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     old = signal.signal(_SIGNAL, _raise_deadline)
+    old_wall = signal.signal(signal.SIGALRM, _raise_wall_deadline)
     signal.setitimer(_TIMER, seconds)
+    signal.setitimer(signal.ITIMER_REAL, wall_budget(seconds))
     try:
         yield
     finally:
         signal.setitimer(_TIMER, 0)
+        signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(_SIGNAL, old or signal.SIG_DFL)
+        signal.signal(signal.SIGALRM, old_wall or signal.SIG_DFL)
 
 
 @dataclass
@@ -111,25 +132,33 @@ class GuardedSupervisor:
     """Runs node computations; a crash or an overrun is a finding, never an error of the tool."""
 
     def __init__(self, bus: Any, deadline_s: float = 1.0,
-                 on_failure: Callable[[Failure], None] | None = None) -> None:
+                 on_failure: Callable[[Failure], None] | None = None, wall_s: float | None = None) -> None:
         self.bus = bus
         self.deadline_s = deadline_s
+        self.wall_s = wall_budget(deadline_s) if wall_s is None else wall_s
         self.on_failure = on_failure
         self.failures: list[Failure] = []
         self.max_wall: dict[str, float] = {}
         self._armed = threading.current_thread() is threading.main_thread()
         self._old_handler: Any = None
+        self._old_wall: Any = None
 
     # -- watchdog ---------------------------------------------------------------------------
     def __enter__(self) -> GuardedSupervisor:
         if self._armed:
             self._old_handler = signal.signal(_SIGNAL, _raise_deadline)
+            self._old_wall = signal.signal(signal.SIGALRM, _raise_wall_deadline)
         return self
 
     def __exit__(self, *exc: Any) -> None:
         if self._armed:
-            signal.setitimer(_TIMER, 0)
+            self._disarm()
             signal.signal(_SIGNAL, self._old_handler or signal.SIG_DFL)
+            signal.signal(signal.SIGALRM, self._old_wall or signal.SIG_DFL)
+
+    def _disarm(self) -> None:
+        signal.setitimer(_TIMER, 0)
+        signal.setitimer(signal.ITIMER_REAL, 0)
 
     # -- the supervisor ---------------------------------------------------------------------
     def run(self, node: Any, fn: Callable[..., Any], *args: Any) -> Any:
@@ -139,21 +168,31 @@ class GuardedSupervisor:
         try:
             if self._armed:
                 signal.setitimer(_TIMER, self.deadline_s)
+                signal.setitimer(signal.ITIMER_REAL, self.wall_s)
             out = fn(*args)
             if self._armed:
-                signal.setitimer(_TIMER, 0)
+                self._disarm()
+        except WallDeadlineExceeded as exc:
+            if self._armed:
+                self._disarm()
+            self._fail(node, Failure("hang", node.name, "wall_deadline", self.bus.now, "WallDeadlineExceeded",
+                                     f"computation blocked past {self.wall_s:g} s of wall clock",
+                                     location(exc.__traceback__), time.perf_counter() - t0))
+            return None
         except DeadlineExceeded as exc:
+            if self._armed:
+                self._disarm()
             self._fail(node, Failure("hang", node.name, "deadline", self.bus.now, "DeadlineExceeded",
                                      f"computation overran {self.deadline_s} s", location(exc.__traceback__),
                                      time.perf_counter() - t0))
             return None
         except KeyboardInterrupt:
             if self._armed:
-                signal.setitimer(_TIMER, 0)
+                self._disarm()
             raise
         except BaseException as exc:  # any failure of a module is a finding
             if self._armed:
-                signal.setitimer(_TIMER, 0)
+                self._disarm()
             self._fail(node, Failure("crash", node.name, "exception", self.bus.now, type(exc).__name__,
                                      str(exc)[:300], location(exc.__traceback__), time.perf_counter() - t0))
             return None

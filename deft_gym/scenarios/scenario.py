@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import itertools
 import math
+from collections import Counter
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -26,8 +27,11 @@ from deft_gym.world.world import World
 SCENARIO_DIR = CONFIG_DIR / "scenarios"
 
 
+MAX_OFFSET = 50.0  #: largest lateral offset d [m] of a lane position
+MIN_GAP = 2.0  #: a participant starting closer [m] to the ego's start lies on it
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # NaN/inf positions are no scenario
 
 
 class Pose(_Strict):
@@ -36,7 +40,7 @@ class Pose(_Strict):
 
     lane: tuple[str, str, int] | None = None
     s: float | None = None
-    d: float = 0.0
+    d: float = Field(default=0.0, ge=-MAX_OFFSET, le=MAX_OFFSET)
     x: float | None = None
     y: float | None = None
     heading: float | None = None
@@ -114,15 +118,14 @@ class Scenario(_Strict):
     ego: EgoSpec
     participants: list[ParticipantSpec] = Field(default_factory=list)
     duration: float = Field(default=40.0, gt=0.0, le=600.0)
-    seed: int = Field(default=0, ge=0, description="scenario randomness (sensor noise, NPC behaviour)")
+    seed: int = Field(default=0, ge=0, le=2**32 - 1, description="scenario randomness (sensor noise, NPC behaviour)")
     stuck_time: float = Field(default=30.0, gt=0.0, description="standstill [s] that counts as stuck")
 
     source: str | None = Field(default=None, exclude=True)
 
     @model_validator(mode="after")
     def _unique_ids(self) -> Scenario:
-        ids = [p.id for p in self.participants]
-        dup = sorted({i for i in ids if ids.count(i) > 1})
+        dup = sorted(i for i, n in Counter(p.id for p in self.participants).items() if n > 1)  # O(n)
         if dup:
             raise ValueError(f"participant ids must be unique, repeated: {dup}")
         return self
@@ -199,8 +202,29 @@ def check_against_map(sc: Scenario, roadmap: RoadMap) -> list[str]:
     if not errs and sc.ego.lane is not None and roadmap.lane_route(sc.ego.lane, sc.ego.destination.lane) is None:
         errs.append(f"ego.destination.lane: {list(sc.ego.destination.lane)} is not reachable from {list(sc.ego.lane)}")
     errs += _participant_errors(sc, roadmap)
+    if not errs:
+        errs += _overlap_errors(sc, roadmap)
     if sc.lights is not None and not roadmap.stop_lines:
         errs.append(f"lights: map '{roadmap.spec.type}' has no traffic lights")
+    return errs
+
+
+def _overlap_errors(sc: Scenario, roadmap: RoadMap) -> list[str]:
+    """A participant that starts on the ego (centres closer than :data:`MIN_GAP`) is no test."""
+    if not sc.participants:
+        return []
+    exy, _ = pose_xyh(roadmap, sc.ego)
+    errs = []
+    for i, p in enumerate(sc.participants):
+        pose = p.waypoints[0] if isinstance(p, ScriptedSpec) else p
+        if isinstance(pose, Waypoint) and pose.t > 0:
+            continue  # appears later, when the ego has left its start
+        xy, _ = pose_xyh(roadmap, pose)
+        gap = float(np.hypot(*(xy - exy)))
+        if gap < MIN_GAP:
+            errs.append(f"participants.{i}: {p.id!r} starts {gap:.2f} m from the ego's start (expected >= {MIN_GAP} m)")
+            if len(errs) >= 5:
+                break
     return errs
 
 

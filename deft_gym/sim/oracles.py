@@ -1,4 +1,6 @@
-"""System-level oracles: collision, task completion, timeout and stuck.
+"""System-level oracles: collision, task completion, timeout and stuck; and the outcomes of a
+run that did not get that far: ``crash`` (a module raised), ``hang`` (a module call ran past the
+wall-clock watchdog), ``no_plan`` (the ego reached its destination without ever receiving a plan).
 
 The collision check itself runs in the world at every step (ego polygon against every
 participant); :class:`EpisodeOracle` turns the world state into the episode outcome.
@@ -15,7 +17,7 @@ import numpy as np
 
 from deft_gym.world.world import Collision, World
 
-OUTCOMES = ("collision", "completed", "timeout", "stuck")
+OUTCOMES = ("collision", "completed", "timeout", "stuck", "crash", "hang", "no_plan")
 
 
 @dataclass
@@ -26,16 +28,20 @@ class Outcome:
     sim_time: float
     collision: Collision | None
     min_distance: float
+    failure: dict[str, Any] | None = None  #: crash / hang: {"kind", "module", "exception", "time"}
 
     @property
     def task_completed(self) -> bool:
         return self.outcome == "completed"
 
     def as_dict(self) -> dict[str, Any]:
-        return {"outcome": self.outcome, "sim_time": self.sim_time,
-                "collision": self.collision.as_dict() if self.collision else None,
-                "task_completed": self.task_completed,
-                "min_distance": self.min_distance if math.isfinite(self.min_distance) else None}
+        out = {"outcome": self.outcome, "sim_time": self.sim_time,
+               "collision": self.collision.as_dict() if self.collision else None,
+               "task_completed": self.task_completed,
+               "min_distance": self.min_distance if math.isfinite(self.min_distance) else None}
+        if self.failure is not None:
+            out["failure"] = dict(self.failure)
+        return out
 
 
 class EpisodeOracle:

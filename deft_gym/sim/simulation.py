@@ -8,10 +8,19 @@ applies the latest control command it received, publishes chassis), routing, loc
 perception, traffic-light perception, prediction, planning and control. Hooks let other tools
 attach without touching the core: ``bus.taps``/``bus.interceptors``/``bus.supervisor`` (see
 :mod:`deft_gym.bus.bus`) and ``on_step`` callbacks called after every world step.
+
+The default supervisor (:class:`WatchedSupervisor`) turns a module that raises into the outcome
+``crash`` and a module call that runs past ``watchdog_s`` seconds of wall clock (default
+:data:`DEFAULT_WATCHDOG_S`, or the ``DEFT_GYM_WATCHDOG_S`` environment variable; 0 switches it
+off) into ``hang``: module, exception and sim time go into the log's outcome record and the
+result's summary, and the episode ends there.
 """
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -24,6 +33,7 @@ from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.bus.bus import Bus, Node, header
 from deft_gym.bus.jitter import JitterModel
 from deft_gym.bus.messages import NS_PER_S, to_ns
+from deft_gym.config import ConfigError
 from deft_gym.files import write_atomic
 from deft_gym.modules.control import ControlNode
 from deft_gym.modules.planning import PlanningNode
@@ -44,6 +54,106 @@ from deft_gym.world.roadmap import shared_roadmap
 from deft_gym.world.world import World
 
 PACKAGE_VERSION = "0.1.0"
+DEFAULT_WATCHDOG_S = 10.0  #: wall-clock seconds one module call may take before the run is a hang
+
+
+class ModuleHang(BaseException):
+    """Raised in a module call by the wall-clock watchdog (a BaseException, so that a module's
+    own ``except Exception`` cannot swallow it)."""
+
+
+class WatchedSupervisor:
+    """The simulation's default bus supervisor: a module call that raises ends the episode as a
+    ``crash``, one that runs ``seconds`` of wall clock past its start as a ``hang`` (a SIGALRM
+    heartbeat every ``seconds / 4``, at most 1 s, checks the call in progress; main thread only).
+    Per call it only notes the start time, so valid runs cost nothing measurable and behave
+    exactly as before."""
+
+    def __init__(self, bus: Bus, seconds: float) -> None:
+        self.bus = bus
+        self.seconds = seconds
+        self.failure: dict[str, Any] | None = None
+        self._node: Node | None = None
+        self._t0 = 0.0
+
+    def run(self, node: Node, fn: Callable[..., Any], *args: Any) -> Any:
+        outer, t0 = self._node, self._t0
+        self._node, self._t0 = node, time.perf_counter()
+        try:
+            return fn(*args)
+        except ModuleHang:
+            self._fail("hang", node, f"ModuleHang: no return within the {self.seconds:g} s wall-clock watchdog")
+        except Exception as exc:
+            msg = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+            self._fail("crash", node, f"{type(exc).__name__}: {msg}"[:300])
+        finally:
+            self._node, self._t0 = outer, t0
+        return None
+
+    def _fail(self, kind: str, node: Node, what: str) -> None:
+        if self.failure is None:
+            self.failure = {"kind": kind, "module": node.name, "exception": what, "time": self.bus.now}
+        node.alive = False
+        self.bus.stop()
+
+    def _beat(self, signum: int, frame: Any) -> None:
+        if self._node is not None and time.perf_counter() - self._t0 >= self.seconds:
+            self._t0 = float("inf")  # one interruption per call
+            raise ModuleHang()
+
+    def armed(self) -> Any:
+        """A context manager running the heartbeat while the bus runs (no-op when off, or off
+        the main thread)."""
+        return _Heartbeat(self)
+
+
+class _Heartbeat:
+    def __init__(self, sup: WatchedSupervisor) -> None:
+        self.sup = sup
+        self.on = sup.seconds > 0 and threading.current_thread() is threading.main_thread()
+
+    def __enter__(self) -> None:
+        if self.on:
+            tick = min(self.sup.seconds / 4, 1.0)
+            self.old = signal.signal(signal.SIGALRM, self.sup._beat)
+            self.old_timer = signal.setitimer(signal.ITIMER_REAL, tick, tick)
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.on:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, self.old if self.old is not None else signal.SIG_DFL)
+            if self.old_timer[0] > 0:
+                signal.setitimer(signal.ITIMER_REAL, *self.old_timer)
+
+
+def build_planner(ads: AdsConfig, sc: Scenario) -> Any:
+    """The planner the ADS config names, built for the scenario's map; ConfigError (one line,
+    naming the ADS config file and ``planning.planner``) when the class cannot be imported or
+    rejects its parameters - checked by the CLIs before any run."""
+    spec = ads.planning.planner
+    try:
+        return load_planner(spec.cls, sc.map.model_dump(), dict(spec.params))
+    except (ImportError, AttributeError, TypeError, ValueError) as exc:  # unknown class, bad params
+        errors = getattr(exc, "errors", None)
+        if callable(errors):  # a pydantic ValidationError: its fields, one line
+            first = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors())
+        else:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ConfigError(f"{getattr(ads, '_source', 'ADS config')}: planning.planner: cannot build "
+                          f"{spec.cls!r} with params {dict(spec.params)}: {first}") from None
+
+
+def watchdog_seconds(value: float | None = None) -> float:
+    """The watchdog of a simulation: ``value``, else ``DEFT_GYM_WATCHDOG_S``, else the default."""
+    if value is None:
+        env = os.environ.get("DEFT_GYM_WATCHDOG_S", "")
+        try:
+            value = float(env) if env.strip() else DEFAULT_WATCHDOG_S
+        except ValueError:
+            raise ValueError(f"DEFT_GYM_WATCHDOG_S: expected seconds >= 0, got {env!r}") from None
+    if not (value >= 0 and value < float("inf")):
+        raise ValueError(f"watchdog_s: expected finite seconds >= 0 (0 = off), got {value}")
+    return float(value)
 
 
 class SimulatorNode(Node):
@@ -108,7 +218,8 @@ class EpisodeResult:
                 "wall_time": round(self.wall_time, 6), "jitter_seed": self.jitter_seed,
                 "min_distance": None if o.min_distance == float("inf") else round(o.min_distance, 4),
                 "planning_outputs": len(self.planning), "messages": self.messages,
-                "dropped_deliveries": self.drops, "log": self.log_path, "truth": self.truth_path}
+                "dropped_deliveries": self.drops, "log": self.log_path, "truth": self.truth_path,
+                **({"failure": o.failure} if o.failure is not None else {})}
 
 
 class Simulation:
@@ -117,7 +228,7 @@ class Simulation:
     def __init__(self, scenario: Scenario | str | Path, ads: AdsConfig | None = None,
                  jitter_seed: int | None = None, out_dir: Path | str | None = None,
                  keep_planning: bool = True, compress: bool = False,
-                 recorder_process: bool | None = None) -> None:
+                 recorder_process: bool | None = None, watchdog_s: float | None = None) -> None:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.ads = ads or load_ads_config()
         sc, ads = self.scenario, self.ads
@@ -125,13 +236,14 @@ class Simulation:
         self.world: World = build_world(sc, self.roadmap)
         self.jitter = JitterModel(ads.jitter, jitter_seed)
         self.bus = Bus(self.jitter)
+        self.watch = WatchedSupervisor(self.bus, watchdog_seconds(watchdog_s))
+        self.bus.supervisor = self.watch
         self.bus.reliable = {ads.topic(role) for role in ads.jitter.reliable}
         self.on_step: list[Callable[[Simulation], None]] = []
         topics = ads.topics
         dest_xy, dest_s = destination_xy(self.roadmap, sc.ego.destination)
         self.oracle = EpisodeOracle(self.world, dest_xy, sc.duration, stuck_time=sc.stuck_time)
-        planner_params = dict(ads.planning.planner.params)
-        self.planner = load_planner(ads.planning.planner.cls, sc.map.model_dump(), planner_params)
+        self.planner = build_planner(ads, sc)
         start_lane = tuple(sc.ego.lane) if sc.ego.lane else self.roadmap.locate(
             self.world.ego.position, self.world.ego.heading)[0]
         self.simulator = SimulatorNode(self)
@@ -207,7 +319,11 @@ class Simulation:
         self.start()
         wall0 = time.perf_counter()
         try:
-            self.bus.run(min(to_ns(until), to_ns(self.scenario.duration) + 1))
+            if self.bus.supervisor is self.watch:
+                with self.watch.armed():
+                    self.bus.run(min(to_ns(until), to_ns(self.scenario.duration) + 1))
+            else:
+                self.bus.run(min(to_ns(until), to_ns(self.scenario.duration) + 1))
         finally:
             self._wall += time.perf_counter() - wall0
         return self.done
@@ -229,6 +345,14 @@ class Simulation:
         if self._result is not None:
             return self._result
         outcome = self.oracle.outcome()
+        failure = self.watch.failure if self.bus.supervisor is self.watch else None
+        if failure is not None:
+            outcome = Outcome(failure["kind"], outcome.sim_time, outcome.collision, outcome.min_distance, failure)
+        elif outcome.outcome == "completed" and self.bus.published_on(self.ads.topic("planning")) == 0:
+            outcome = Outcome("no_plan", outcome.sim_time, outcome.collision, outcome.min_distance,
+                              {"kind": "no_plan", "module": "planning",
+                               "exception": "the ego reached its destination without ever receiving a plan",
+                               "time": outcome.sim_time})
         bus = self.bus
         result = EpisodeResult(self.scenario.name, outcome, self._wall, self.jitter.seed,
                                self.planning_outputs, messages=bus.published, drops=self.jitter.drops)
@@ -262,7 +386,7 @@ def run_episode(scenario: Scenario | str | Path, ads: AdsConfig | None = None, j
     return Simulation(scenario, ads, jitter_seed, out_dir, keep_planning, compress).run()
 
 
-__all__ = ["EpisodeResult", "Simulation", "run_episode", "write_atomic"]
+__all__ = ["DEFAULT_WATCHDOG_S", "EpisodeResult", "Simulation", "WatchedSupervisor", "run_episode", "write_atomic"]
 
 
 def reference_path(sc: Scenario, jitter_seed: int = 0) -> np.ndarray:

@@ -1,0 +1,332 @@
+"""Fault injection: resume without loss, outputs that never collide, crashing and hanging modules,
+bad inputs that must be one-line errors. Every test drives the real code (real logs, real
+simulations, real SB3 checkpoints); the long ones are marked slow."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from deft_gym.envs.sink import EpisodeSink
+from deft_gym.files import append_jsonl, read_jsonl
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+# -- data loss ---------------------------------------------------------------------------------
+def test_sink_on_an_existing_run_continues_numbering_and_deletes_nothing_it_did_not_make(tmp_path):
+    old = tmp_path / "episodes" / "w0-000001-take_exit"
+    old.mkdir(parents=True)
+    (old / "episode.mcap").write_bytes(b"kept failure")
+    user = tmp_path / "episodes" / "w0-000002-mine"
+    user.mkdir()
+    (user / "notes.txt").write_text("a user's file")
+    append_jsonl(tmp_path / "episodes-0.jsonl", {"scenario": "take_exit", "failure": "collision", "kept": True})
+
+    sink = EpisodeSink(tmp_path, worker=0, keep_passing=0.0, extract=False)
+    d = sink.episode_dir("take_exit")
+    assert d.name == "w0-000003-take_exit"  # after the highest number on disk, never a reused one
+    assert (old / "episode.mcap").read_bytes() == b"kept failure" and (user / "notes.txt").exists()
+    sink.finish(d, {"scenario": "take_exit", "failure": None}, {})  # passing, not kept: its own folder goes
+    assert not d.exists()
+    sink.finish(user, {"scenario": "take_exit", "failure": None}, {}, keep=False)  # not its folder: stays
+    assert (user / "notes.txt").read_text() == "a user's file"
+    lines = read_jsonl(tmp_path / "episodes-0.jsonl")
+    assert len(lines) == 3 and lines[0]["kept"] and all("env_steps" in x for x in lines[1:])
+
+
+def test_resume_rolls_back_the_episodes_after_its_checkpoint_once(tmp_path):
+    """A resumed run's journals keep every line (append-only); the summary counts the episodes
+    journalled after the checkpoint's step once - the ones redone after the resume - not twice."""
+    from agents.train import mark_resume, summarize_run
+
+    for steps, fail in [(10, "collision"), (20, None), (30, "nods"), (40, None)]:
+        append_jsonl(tmp_path / "episodes-0.jsonl", {"scenario": "s", "valid": True, "failure": fail,
+                                                     "env_steps": steps})
+    mark_resume(tmp_path, 1, 25, tmp_path / "checkpoints" / "ppo_25_steps.zip")  # 30 and 40 rolled back
+    for steps, fail in [(30, None), (40, "collision")]:
+        append_jsonl(tmp_path / "episodes-0.jsonl", {"scenario": "s", "valid": True, "failure": fail,
+                                                     "env_steps": steps})
+    s = summarize_run(tmp_path)
+    assert (s["episodes"], s["collisions"], s["nods"], s["rolled_back_episodes"]) == (4, 2, 0, 2)
+    assert len(read_jsonl(tmp_path / "episodes-0.jsonl")) == 7  # nothing deleted
+
+
+def test_train_resume_from_a_missing_or_truncated_checkpoint_is_one_line(tmp_path, capsys):
+    from agents import train
+
+    missing = tmp_path / "ckpt" / "ppo_64_steps.zip"
+    assert train.main(["--config", "configs/train/demo.yaml", "--out", str(tmp_path / "run"),
+                       "--resume", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "ppo_64_steps.zip:" in err and ".zip.zip" not in err
+    missing.parent.mkdir()
+    missing.write_bytes(b"PK\x03\x04 truncated")
+    assert train.main(["--config", "configs/train/demo.yaml", "--out", str(tmp_path / "run"),
+                       "--resume", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not a readable SB3 checkpoint" in err
+    assert not (tmp_path / "run").exists()  # refused before any work
+
+
+@pytest.mark.slow
+def test_train_resume_appends_monitor_and_journal_and_keeps_kept_logs(tmp_path):
+    """Train, then resume from the last checkpoint: the Monitor CSV and the journal only grow,
+    every kept episode folder of the first session is still there, numbering continues."""
+    from agents import train
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text("name: tiny\nalgo: ppo\ntimesteps: 48\nseed: 0\nn_envs: 1\nvec_env: dummy\n"
+                   "checkpoint_every: 24\nalgo_kwargs: {n_steps: 24, batch_size: 24, n_epochs: 1}\n"
+                   "log_episodes: true\nenv: {scenarios: [lane_follow_static], record: failures, "
+                   "keep_passing: 1.0, extract: false}\n")
+    out = tmp_path / "run"
+    assert train.main(["--config", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    monitor = out / "monitor" / "env0.monitor.csv"
+    rows0 = monitor.read_text().splitlines()
+    kept0 = {p.name: p.stat().st_mtime_ns for p in (out / "episodes").iterdir()}
+    journal0 = read_jsonl(out / "episodes-0.jsonl")
+    assert kept0 and journal0
+    ckpt = sorted((out / "checkpoints").glob("ppo_*_steps.zip"))[0]
+    assert not list((out / "checkpoints").glob("*.tmp*"))
+    assert train.main(["--config", str(cfg), "--out", str(out), "--resume", str(ckpt), "--timesteps", "72",
+                       "--no-progress"]) == 0
+    rows1 = monitor.read_text().splitlines()
+    assert rows1[:len(rows0)] == rows0 and len(rows1) > len(rows0)  # appended, one header
+    assert sum(1 for r in rows1 if r.startswith("r,l,t")) == 1
+    kept1 = {p.name: p.stat().st_mtime_ns for p in (out / "episodes").iterdir()}
+    assert all(kept1.get(k) == v for k, v in kept0.items())  # nothing of the first session touched
+    journal1 = read_jsonl(out / "episodes-0.jsonl")
+    assert journal1[:len(journal0)] == journal0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["episodes"] + summary["rolled_back_episodes"] == len(journal1) - 1  # one resume marker
+
+
+def test_extract_folder_gives_colliding_logs_distinct_outputs(tmp_path, lane_follow_log):
+    from extract.batch import extract_directory
+
+    root = tmp_path / "logs"
+    (root / "lfs").mkdir(parents=True)
+    shutil.copy(lane_follow_log.log_path, root / "lfs" / "episode.mcap")
+    shutil.copy(lane_follow_log.log_path, root / "lfs.mcap")
+    results = extract_directory(root, tmp_path / "out", emit_tests=False)
+    dirs = {Path(r.summary["frames_path"]).parent for r in results}
+    assert len(results) == 2 and len(dirs) == 2, dirs
+    assert {d.name for d in dirs} == {"lfs", "lfs.mcap"}
+    for d in dirs:
+        assert json.loads((d / "summary.json").read_text())["frames"] == results[0].summary["frames"]
+
+
+def test_demo_never_deletes_folders_it_did_not_write(tmp_path, capsys):
+    from agents import demo
+
+    (tmp_path / "train").mkdir()
+    (tmp_path / "train" / "precious.txt").write_text("not the demo's")
+    assert demo.main(["--out", str(tmp_path), "--timesteps", "8"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "did not write" in err
+    assert (tmp_path / "train" / "precious.txt").exists()
+
+
+# -- failures never hidden: crashing, hanging, NaN-emitting and silent modules ----------------------
+FAULTY = "fault_planners:FaultyPlanner"
+LANE_FOLLOW = ROOT / "configs" / "scenarios" / "lane_follow_static.yaml"
+
+
+def faulty_ads(fault: str, after: int = 20, **params):
+    from agents.record import ads_overrides
+    from deft_gym.bus.ads import load_ads_config
+
+    return load_ads_config(None, ads_overrides(planner_class=FAULTY,
+                                               planner_params={"fault": fault, "after": after, **params}))
+
+
+def log_outcome(log: str | Path) -> dict:
+    from extract.logs import read_log
+
+    return read_log(Path(log), []).metadata["deft_gym.outcome"]
+
+
+@pytest.fixture(scope="module")
+def crash_run(tmp_path_factory):
+    from deft_gym.sim.simulation import Simulation
+
+    out = tmp_path_factory.mktemp("crash")
+    return Simulation(LANE_FOLLOW, faulty_ads("raise"), jitter_seed=7, out_dir=out).run()
+
+
+def test_a_module_that_raises_ends_the_episode_as_a_crash_in_result_and_log(crash_run):
+    s = crash_run.summary()
+    assert s["outcome"] == "crash" and not s["task_completed"]
+    f = s["failure"]
+    assert (f["kind"], f["module"], f["exception"]) == ("crash", "planning", "ZeroDivisionError: planted fault")
+    assert 0 < f["time"] < 5 and crash_run.sim_time < 5  # it ended there, not at the timeout
+    rec = log_outcome(crash_run.log_path)
+    assert rec["outcome"] == "crash" and rec["failure"]["module"] == "planning"
+
+
+def test_the_extractor_reports_the_crash_of_the_run_it_extracts(crash_run, tmp_path):
+    from extract import extract_episode
+
+    s = extract_episode(crash_run.log_path, tmp_path, emit_tests=False).summary
+    assert s["outcome"] == "crash" and s["findings"]["run_failure"]["module"] == "planning"
+    assert any("crash of module planning" in w for w in s["warnings"])
+
+
+def test_a_module_that_blocks_is_a_hang_after_the_wall_clock_watchdog(tmp_path):
+    import time
+
+    from deft_gym.sim.simulation import Simulation
+
+    t0 = time.perf_counter()
+    r = Simulation(LANE_FOLLOW, faulty_ads("sleep", sleep_s=30.0), jitter_seed=7, out_dir=tmp_path,
+                   watchdog_s=0.5).run()
+    assert time.perf_counter() - t0 < 10  # not 30 s per planning cycle
+    assert r.outcome.outcome == "hang" and r.outcome.failure["module"] == "planning"
+    assert log_outcome(r.log_path)["outcome"] == "hang"
+
+
+def test_watchdog_setting_is_checked(monkeypatch):
+    from deft_gym.sim.simulation import DEFAULT_WATCHDOG_S, watchdog_seconds
+
+    assert watchdog_seconds() == DEFAULT_WATCHDOG_S
+    monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "2.5")
+    assert watchdog_seconds() == 2.5
+    monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "soon")
+    with pytest.raises(ValueError, match="DEFT_GYM_WATCHDOG_S"):
+        watchdog_seconds()
+    with pytest.raises(ValueError, match="watchdog_s"):
+        watchdog_seconds(float("nan"))
+
+
+def test_an_ego_that_never_received_a_plan_is_not_completed(tmp_path):
+    import yaml
+
+    from deft_gym.sim.simulation import Simulation
+
+    data = yaml.safe_load(LANE_FOLLOW.read_text())
+    data["ego"]["destination"] = {"lane": [*data["ego"]["lane"]], "s": data["ego"]["s"] + 1.0}
+    path = tmp_path / "at_goal.yaml"
+    path.write_text(yaml.safe_dump(data))
+    r = Simulation(path, faulty_ads("silent", after=10**6), jitter_seed=7).run()
+    assert r.outcome.outcome == "no_plan" and not r.outcome.task_completed
+
+
+def test_nan_outputs_are_reproduced_and_reported_as_findings(tmp_path):
+    from deft_gym.sim.simulation import Simulation
+    from extract import extract_episode
+
+    r = Simulation(LANE_FOLLOW, faulty_ads("nan"), jitter_seed=7, out_dir=tmp_path / "run").run()
+    s = extract_episode(r.log_path, tmp_path / "x", emit_tests=False).summary
+    assert s["findings"]["nan_outputs"] > 100
+    assert s["reproduced"]["0"] == s["frames"]  # NaN == NaN: the replay gives the recorded NaN
+    assert any("NaN or inf" in w for w in s["warnings"])
+
+
+def test_planner_exceptions_during_extraction_are_counted_and_shown(lane_follow_log, tmp_path):
+    from extract import extract_episode
+    from extract.logs import read_log
+    from extract.mapping import load_mapping
+
+    meta = read_log(Path(lane_follow_log.log_path), []).episode_meta()
+    mapping = load_mapping(ROOT / "configs" / "mappings" / "deft_gym.yaml").model_dump(by_alias=True)
+    mapping["planner"] = {"class": FAULTY, "params": {"fault": "raise", "after": 0}, "map": meta["map"]}
+    s = extract_episode(lane_follow_log.log_path, tmp_path, mapping=mapping, emit_tests=False,
+                        minimize_failure=False).summary
+    f = s["findings"]
+    assert f["planner_exceptions"] > 0 and f["outputs_without_replay"] == s["frames"]
+    assert s["reproduced"]["7"] == 0 and any("the planner raised in" in w for w in s["warnings"])
+
+
+def test_a_mapping_field_missing_from_the_log_is_one_line_up_front(lane_follow_log, tmp_path):
+    from extract import extract_episode
+    from extract.mapping import MappingError, load_mapping
+
+    mapping = load_mapping(ROOT / "configs" / "mappings" / "deft_gym.yaml").model_dump(by_alias=True)
+    mapping["frame_time_field"] = "header.stamp_typo"
+    with pytest.raises(MappingError, match=r"frame_time_field: 'header.stamp_typo' is in none") as err:
+        extract_episode(lane_follow_log.log_path, tmp_path, mapping=mapping)
+    assert "\n" not in str(err.value) and not (tmp_path / "summary.json").exists()
+
+
+def test_the_robustness_watchdog_reports_a_blocking_module_by_wall_clock(tmp_path):
+    """A planner that sleeps burns no CPU: the CPU-time watchdog alone never fires (the campaign
+    hung); the wall-clock one reports it as a hang of planning."""
+    import time
+
+    from deft_gym.robustness.monitors import GuardedSupervisor
+    from deft_gym.sim.simulation import Simulation
+
+    sim = Simulation(LANE_FOLLOW, faulty_ads("sleep", sleep_s=60.0), jitter_seed=7)
+    sup = GuardedSupervisor(sim.bus, deadline_s=0.2, wall_s=1.0)
+    sim.bus.supervisor = sup
+    t0 = time.perf_counter()
+    with sup:
+        sim.advance(10.0)
+    assert time.perf_counter() - t0 < 20
+    assert [(f.kind, f.node, f.reason) for f in sup.failures] == [("hang", "planning", "wall_deadline")]
+
+
+# -- bad input: one line naming the file and the field, before any work ------------------------------
+NAN = float("nan")
+SCENARIO_FAULTS = {
+    "nan participant position": (lambda d: d["participants"][0].__setitem__("s", NAN), "participants.0.static.s"),
+    "inf participant position": (lambda d: d["participants"][0].__setitem__("s", float("inf")),
+                                 "participants.0.static.s"),
+    "absurd ego d": (lambda d: d["ego"].__setitem__("d", 1e6), "ego.d"),
+    "participant on the ego": (lambda d: d["participants"].append(
+        {"id": "x", "type": "static", "lane": list(d["ego"]["lane"]), "s": d["ego"]["s"]}), "participants.3"),
+    "seed 1e23": (lambda d: d.__setitem__("seed", 1e23), "seed"),
+    "nan heading": (lambda d: (d["ego"].pop("lane"), d["ego"].pop("s"),
+                               d["ego"].update({"x": 10.0, "y": 0.0, "heading": NAN})), "ego.heading"),
+    "nan waypoint": (lambda d: d["participants"].append(
+        {"id": "v", "type": "scripted", "waypoints": [{"lane": ["a", "b", 1], "s": 30.0, "t": 0.0},
+                                                      {"lane": ["a", "b", 1], "s": NAN, "t": 5.0}]}),
+                     "participants.3.scripted.waypoints.1.s"),
+    "duplicate ids": (lambda d: d["participants"].append(dict(d["participants"][0])), "participant ids must be unique"),
+}
+
+
+@pytest.mark.parametrize("fault", sorted(SCENARIO_FAULTS))
+def test_bad_scenarios_are_one_line_errors_naming_file_and_field(fault, tmp_path):
+    import yaml
+
+    from deft_gym.config import ConfigError
+    from deft_gym.scenarios.scenario import load_scenario
+
+    mutate, field = SCENARIO_FAULTS[fault]
+    data = yaml.safe_load(LANE_FOLLOW.read_text())
+    mutate(data)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError) as err:
+        load_scenario(path)
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith(f"{path}: ") and field in msg, msg
+
+
+ADS_FAULTS = {
+    "world_hz 1e9": ("world_hz: 1.0e9\n", "world_hz"),
+    "control rate 1e7": ("control:\n  rate_hz: 1.0e7\n", "control.rate_hz"),
+    "inf processing time": ("perception:\n  processing: {mean_ms: .inf}\n", "perception.processing.mean_ms"),
+    "unknown trigger role": ("planning:\n  trigger: nosuchrole\n", "planning.trigger"),
+    "unknown planner class": ("planning:\n  planner:\n    class: nosuch.module:Planner\n", "planning.planner"),
+    "unknown planner params": ("planning:\n  planner:\n    params: {bogus_param: 3}\n", "bogus_param"),
+}
+
+
+@pytest.mark.parametrize("fault", sorted(ADS_FAULTS))
+def test_bad_ads_configs_are_one_line_errors_and_exit_2_before_any_run(fault, tmp_path, capsys):
+    from deft_gym.cli import run
+
+    text, field = ADS_FAULTS[fault]
+    path = tmp_path / "ads.yaml"
+    path.write_text(text)
+    out = tmp_path / "out"
+    assert run.main([str(LANE_FOLLOW), "--ads-config", str(path), "--reruns", "1", "--out", str(out)]) == 2
+    msg = " ".join(capsys.readouterr().out.split())  # the console may wrap
+    assert msg.startswith(f"error: {path}: ") and field in msg and "Traceback" not in msg, msg
+    assert not out.exists()
