@@ -41,7 +41,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Statistics
 
 from deft_gym.bus.codec import decode
-from deft_gym.bus.messages import NS_PER_S
+from deft_gym.bus.messages import NS_PER_S, log_start_ns
 from extract.mapping import get_field
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -616,9 +616,13 @@ def read_log(path: Path | str, topics: list[str], seq_field: str | None = None) 
         why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
         scan._note(-1, "unknown-record", f"reading stopped: {why}")
     _check_totals(scan, buf, summary)
+    start = log_start_ns(scan.metadata.get("deft_gym.episode"))  # log_time = epoch start + sim time
+    for d in integ.damage:
+        d.start_ns = None if d.start_ns is None else d.start_ns - start
+        d.end_ns = None if d.end_ns is None else d.end_ns - start
     out: dict[str, TopicMessages] = {}
     for topic, (pub, seq, raw) in scan.rows.items():
-        pub_a = np.asarray(pub, dtype=np.int64)
+        pub_a = np.asarray(pub, dtype=np.int64) - start
         seq_a = np.asarray(seq, dtype=np.int64)
         if len(pub_a) > 1 and np.any(np.diff(pub_a) < 0):  # stable: keep file order among ties
             order = np.argsort(pub_a, kind="stable")

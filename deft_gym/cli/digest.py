@@ -24,7 +24,9 @@ from mcap.reader import make_reader
 from rich.console import Console
 from rich.progress import track
 
+from deft_gym.bus.messages import VIEWER_TOPICS, log_start_ns
 from deft_gym.config import ConfigError
+from deft_gym.record.recorder import EPISODE_METADATA
 from deft_gym.files import write_atomic
 from deft_gym.scenarios.scenario import Scenario, list_scenarios, load_scenario
 from deft_gym.sim.simulation import run_episode
@@ -38,10 +40,16 @@ def run_digest(scenario: Scenario | str | Path, jitter_seed: int) -> dict[str, s
         r = run_episode(scenario, jitter_seed=jitter_seed, out_dir=tmp, keep_planning=False)
         hashes: dict[str, Any] = {}
         with open(Path(tmp) / "episode.mcap", "rb") as f:
+            reader = make_reader(f)
+            episode = next((m.metadata for m in reader.iter_metadata() if m.name == EPISODE_METADATA), {})
+        start = log_start_ns(episode)  # log_time = epoch start + sim time: the sim time is hashed
+        with open(Path(tmp) / "episode.mcap", "rb") as f:
             for _, channel, msg in make_reader(f).iter_messages():
+                if channel.topic in VIEWER_TOPICS:  # pictures of the world state, not bus messages
+                    continue
                 h = hashes.setdefault(channel.topic, hashlib.sha256())
                 h.update(msg.data)
-                h.update(msg.log_time.to_bytes(8, "little"))
+                h.update((msg.log_time - start).to_bytes(8, "little"))
     out = {topic: h.hexdigest()[:16] for topic, h in sorted(hashes.items())}
     out["outcome"] = f"{r.outcome.outcome} at {r.sim_time:.2f} s"
     return out
