@@ -27,6 +27,7 @@ round-trip bit-exactly.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import struct
@@ -585,6 +586,16 @@ def _decompress(chunk: Chunk) -> bytes:
 
         return lz4.frame.decompress(chunk.data)
     raise ValueError(f"unsupported chunk compression {chunk.compression!r}")
+
+
+def log_id(path: Path | str) -> str:
+    """A short id of a log file: the first 8 hex digits of its SHA-256 (two logs differ in
+    their bytes - every log records its own start time - so their ids differ)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:8]
 
 
 def read_log(path: Path | str, topics: list[str], seq_field: str | None = None) -> EpisodeLog:

@@ -44,7 +44,8 @@ INVOKED_AS: str | None = None
 def version() -> str:
     """The installed package version (the source tree's when not installed)."""
     try:
-        from importlib.metadata import PackageNotFoundError, version as _version
+        from importlib.metadata import PackageNotFoundError
+        from importlib.metadata import version as _version
 
         return _version("deft-gym")
     except PackageNotFoundError:  # pragma: no cover - a source tree never installed

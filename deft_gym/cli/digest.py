@@ -26,8 +26,8 @@ from rich.progress import track
 
 from deft_gym.bus.messages import VIEWER_TOPICS, log_start_ns
 from deft_gym.config import ConfigError
-from deft_gym.record.recorder import EPISODE_METADATA
 from deft_gym.files import write_atomic
+from deft_gym.record.recorder import EPISODE_METADATA
 from deft_gym.scenarios.scenario import Scenario, list_scenarios, load_scenario
 from deft_gym.sim.simulation import run_episode
 

@@ -13,6 +13,7 @@ them (what ``deft-gym render`` does).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -147,11 +148,9 @@ def load_episode(log: Path | str) -> Episode:
                     tr.rows.append((t, _f(o.get("x")), _f(o.get("y")), _f(o.get("heading")), _f(o.get("v"))))
             elif topic == t_plan:
                 tr = (p or {}).get("trajectory") or {}
-                try:
+                with contextlib.suppress(KeyError, TypeError, ValueError):
                     plans.append((_f((p.get("header") or {}).get("stamp", t)), np.asarray(tr["x"], float),
                                   np.asarray(tr["y"], float)))
-                except (KeyError, TypeError, ValueError):
-                    pass
             elif topic == t_map and not lanes:
                 lanes, stops = _map(p)
     source = "scene" if scene_parts or scene_ego else "perception"
@@ -477,10 +476,8 @@ def render_log(log: Path, out: Path | None = None, root: Path | None = None, vid
     ep = load_episode(log)
     verdict = log.with_name("episode.json")
     if verdict.exists():
-        try:
+        with contextlib.suppress(ValueError):
             ep.verdict = json.loads(verdict.read_text())
-        except ValueError:
-            pass
     if only_failures and not ep.failure:
         return None
     plot, vid = picture_paths(log, out, root)
