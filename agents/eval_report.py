@@ -9,10 +9,8 @@ Re-render the report of a finished (or interrupted) evaluation from its records:
 
 from __future__ import annotations
 
-import argparse
 import io
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +18,7 @@ import numpy as np
 
 from agents import stats
 from agents.stats import GROUP_LABELS, GROUPS, METHOD_LABELS, METHOD_ORDER, RecordError
+from deft_gym.cli import common
 from deft_gym.files import read_jsonl, write_atomic, write_json_atomic
 
 GROUP_TITLES = {"seeds": "Seed scenarios", "held_out": "Held-out scenarios", "all": "All scenarios"}
@@ -362,7 +361,7 @@ def write_report(records: list[dict[str, Any]], summary: dict[str, Any], out: Pa
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m agents.eval_report", description=__doc__.split("\n\n")[0])
+    p = common.parser("eval-report", "agents.eval_report", __doc__)
     p.add_argument("out", type=Path, help="evaluation folder (records.jsonl, eval_config.json)")
     p.add_argument("--model", default=None, help="trained model.zip (its training summary; default: the config's)")
     args = p.parse_args(argv)
@@ -382,8 +381,7 @@ def main(argv: list[str] | None = None) -> int:
         summary = build_summary(records, cfg, list(cfg.get("scenarios") or []), list(cfg.get("held_out") or []),
                                 str(rec_path))
     except RecordError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return common.cli_error(str(err))
     print(write_report(records, summary, args.out))
     return 0
 

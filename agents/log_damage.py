@@ -25,7 +25,6 @@ Damage kinds: ``record_type`` (the chunk's type byte flipped to an unknown type)
 
 from __future__ import annotations
 
-import argparse
 import json
 import struct
 import sys
@@ -35,9 +34,9 @@ from pathlib import Path
 from typing import Any
 
 from rich import box
-from rich.console import Console
 from rich.table import Table
 
+from deft_gym.cli import common
 from deft_gym.files import write_atomic
 from extract.logs import chunk_head, read_summary, walk_records
 from extract.verify import verify
@@ -155,18 +154,17 @@ def _record(n: int, out: Path) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m agents.log_damage", description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = common.parser("log-damage", "agents.log_damage", __doc__)
     ap.add_argument("logs", nargs="*", metavar="LOG", help="intact MCAP logs to damage (copies; never changed)")
     ap.add_argument("--record", type=int, default=0, metavar="N", help="first record N seed-scenario logs into OUT")
-    ap.add_argument("--out", default="runs/log_damage", help="output folder (default runs/log_damage)")
+    common.add_out(ap, common.RUNS / "log_damage")
+    common.add_output_flags(ap)
     args = ap.parse_args(argv)
     out = Path(args.out)
-    console = Console(highlight=False, width=max(Console().width, 110))
+    console = common.console(args, width=110)
     logs = [Path(p) for p in args.logs] + (_record(args.record, out) if args.record else [])
     if not logs:
-        print("error: no logs: name some or pass --record N", file=sys.stderr)
-        return 2
+        return common.cli_error("LOG: no logs: name some or pass --record N")
     rows = []
     try:
         for p in logs:

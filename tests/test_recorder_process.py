@@ -181,10 +181,11 @@ def test_pool_initializer_runs_in_the_workers(monkeypatch) -> None:
 
 def test_training_envs_filling_the_cpus_log_inline(monkeypatch) -> None:
     from agents import train
-    from agents.config import TrainConfig
+    from agents.config import TrainConfig, complete
 
     _no_recorder_env(monkeypatch)
     monkeypatch.setattr(recorder, "available_cpus", lambda: 2)
+    complete()
     cfg = TrainConfig()
     train.make_env(cfg, 0, None)().close()  # envs in this process: its own choice
     assert recorder.RECORDER_ENV not in os.environ

@@ -1,6 +1,6 @@
 """How flaky are collisions? Rerun scenario variants and count the non-deterministic ones.
 
-    python -m deft_gym.cli.calibrate --variants 10 --reruns 10 --out runs/calibration
+    deft-gym calibrate --variants 10 --reruns 10 --jitter-seed 1000     # -> runs/calibration
 
 For every seed scenario, ``--variants`` perturbations of it, ``--cut-ins`` variants with a
 vehicle cutting in ahead of the ego and ``--brakes`` variants with a leader braking hard
@@ -20,7 +20,6 @@ Every finished run is appended to ``OUT/runs.jsonl``; an interrupted calibration
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import sys
@@ -28,22 +27,15 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-from deft_gym.bus.ads import load_ads_config
+from deft_gym.cli import common
 from deft_gym.files import append_jsonl, read_jsonl, write_atomic
-from deft_gym.scenarios.scenario import (
-    list_scenarios,
-    load_scenario,
-    scenario_from_dict,
-    scenario_to_dict,
-)
-from deft_gym.scenarios.variants import inject_cut_in, inject_hard_brake, perturb
-from deft_gym.sim.simulation import reference_path, run_episode
 
 
 def _job(args: tuple[dict[str, Any], int, str | None, str]) -> dict[str, Any]:
+    from deft_gym.bus.ads import load_ads_config
+    from deft_gym.scenarios.scenario import scenario_from_dict
+    from deft_gym.sim.simulation import run_episode
+
     data, seed, ads_path, key = args
     sc = scenario_from_dict(data, source=data["name"])
     r = run_episode(sc, load_ads_config(ads_path), jitter_seed=seed, keep_planning=False)
@@ -53,20 +45,35 @@ def _job(args: tuple[dict[str, Any], int, str | None, str]) -> dict[str, Any]:
             "sim_time": s["sim_time"], "wall_time": s["wall_time"]}
 
 
+def build_parser() -> common.Parser:
+    ap = common.parser("calibrate", "deft_gym.cli.calibrate", __doc__)
+    common.add_scenarios(ap, help="seed scenarios (default: all in configs/scenarios except bench_*)")
+    ap.add_argument("--variants", type=int, default=10, help="perturbed variants per seed")
+    ap.add_argument("--reruns", type=common.positive_int, default=10, help="reruns per variant")
+    ap.add_argument("--strength", type=float, default=1.0, help="perturbation strength")
+    ap.add_argument("--cut-ins", type=int, default=6, help="cut-in variants per seed")
+    ap.add_argument("--brakes", type=int, default=6, help="hard-braking-leader variants per seed")
+    common.add_jitter_seed(ap, "jitter seed of each scenario's initial execution S0; rerun i uses S+i "
+                               "(a resumed calibration keeps its seeds)")
+    common.add_workers(ap)
+    ap.add_argument("--ads-config", default=None, metavar="YAML", help="ADS config (default: configs/ads/default.yaml)")
+    common.add_out(ap, common.RUNS / "calibration")
+    common.add_output_flags(ap)
+    return ap
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deft_gym.cli.calibrate", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenarios", nargs="*", default=None, help="seed scenarios (default: all in configs/scenarios except bench_*)")
-    ap.add_argument("--variants", type=int, default=10, help="perturbed variants per seed (default 10)")
-    ap.add_argument("--reruns", type=int, default=10, help="reruns per variant (default 10)")
-    ap.add_argument("--strength", type=float, default=1.0, help="perturbation strength (default 1.0)")
-    ap.add_argument("--cut-ins", type=int, default=6, help="cut-in variants per seed (default 6)")
-    ap.add_argument("--brakes", type=int, default=6, help="hard-braking-leader variants per seed (default 6)")
-    ap.add_argument("--jitter-seed", type=int, default=1000, help="rerun i uses jitter seed S+i (default 1000)")
-    ap.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
-    ap.add_argument("--ads-config", default=None, help="ADS config YAML (default configs/ads/default.yaml)")
-    ap.add_argument("--out", default="runs/calibration", help="output folder")
-    args = ap.parse_args(argv)
-    console = Console(width=None if sys.stdout.isatty() else 120)
+    args = build_parser().parse_args(argv)
+    console = common.console(args)
+    if args.jitter_seed is None:  # resuming: the seeds of the runs already there; else fresh ones
+        prior = read_jsonl(Path(args.out) / "runs.jsonl")
+        args.jitter_seed = min((r["seed"] for r in prior), default=None)
+        args.jitter_seed = common.fresh_seed() if args.jitter_seed is None else args.jitter_seed
+        console.print(f"jitter seeds {args.jitter_seed}..{args.jitter_seed + args.reruns - 1}")
+    from deft_gym.scenarios.scenario import list_scenarios, load_scenario, scenario_to_dict
+    from deft_gym.scenarios.variants import inject_cut_in, inject_hard_brake, perturb
+    from deft_gym.sim.simulation import reference_path
+
     paths = args.scenarios or [str(p) for p in list_scenarios() if not p.name.startswith("bench")]
     jobs = []
     for path in paths:
@@ -90,14 +97,12 @@ def main(argv: list[str] | None = None) -> int:
     todo = [j for j in jobs if (j[3], j[1]) not in done]
     if done:
         console.print(f"resuming: {len(jobs) - len(todo)} of {len(jobs)} runs already in {log_path}")
-    cols = [TextColumn("[bold]calibration"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
-    with Progress(*cols, console=console, transient=True) as progress, \
+    with common.bar(args, len(todo), "calibration runs") as progress, \
             get_context("spawn").Pool(args.workers) as pool:
-        task = progress.add_task("runs", total=len(todo))
         for res in pool.imap_unordered(_job, todo, chunksize=2):
             append_jsonl(log_path, res)
             results.append(res)
-            progress.advance(task)
+            progress.update()
     wanted = {(j[3], j[1]) for j in jobs}
     doc = summarise([r for r in results if (r.get("key"), r["seed"]) in wanted])
     doc.update({"reruns": args.reruns, "variants": args.variants, "cut_ins": args.cut_ins,

@@ -101,7 +101,7 @@ def cli_error(message: str) -> int:
 
 
 # -- the shared options ----------------------------------------------------------------------------
-class _ListAction(argparse.Action):
+class ListAction(argparse.Action):
     """Space- and comma-separated values, flattened."""
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
@@ -121,7 +121,7 @@ def split_list(value: str | Sequence[str] | None) -> list[str] | None:
 def add_scenarios(p: argparse.ArgumentParser, default: Sequence[str] | None = None, help: str | None = None,
                   flags: Sequence[str] = ("--scenarios",)) -> None:
     """``--scenarios A B`` (or ``A,B``): scenario names, YAML paths or specs."""
-    p.add_argument(*flags, dest="scenarios", nargs="+", action=_ListAction, metavar="SCENARIO",
+    p.add_argument(*flags, dest="scenarios", nargs="+", action=ListAction, metavar="SCENARIO",
                    default=list(default) if default is not None else None,
                    help=help or "scenario names (configs/scenarios), YAML paths or gen:<seed> specs; "
                                 "space- or comma-separated")
@@ -194,6 +194,24 @@ def show_progress(args: argparse.Namespace | None) -> bool:
     return not (getattr(args, "no_progress", False) or getattr(args, "quiet", False))
 
 
+def rich_progress(con: Any = None, info: bool = False) -> Any:
+    """A rich ``Progress`` in the one style (for programs that run several tasks at once)."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+            TextColumn("eta"), TimeRemainingColumn()]
+    if info:
+        cols.append(TextColumn("{task.fields[info]}"))
+    return Progress(*cols, console=con or console(stderr=True), transient=True)
+
+
 class Bar:
     """The one progress-bar style (rich): description, bar, done/total, elapsed, remaining.
 
@@ -205,20 +223,7 @@ class Bar:
         self._progress = None
         if not enabled:
             return
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
-
-        cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                TextColumn("eta"), TimeRemainingColumn()]
-        if info:
-            cols.append(TextColumn("{task.fields[info]}"))
-        self._progress = Progress(*cols, console=con or console(stderr=True), transient=True)
+        self._progress = rich_progress(con, info)
         self._progress.start()
         self._task = self._progress.add_task(description, total=total, info="")
 
