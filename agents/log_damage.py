@@ -36,6 +36,7 @@ from typing import Any
 from rich import box
 from rich.table import Table
 
+from deft_gym.bus.messages import log_start_ns
 from deft_gym.cli import common
 from deft_gym.files import write_atomic
 from extract.logs import chunk_head, read_summary, walk_records
@@ -106,6 +107,7 @@ def evaluate(path: Path, chunks_at: tuple[str, ...] = ("first", "middle", "last"
     if not base.integrity.intact:
         raise ValueError(f"{path}: not intact to begin with ({base.status})")
     everything = _messages(base)
+    t0 = log_start_ns(base.episode_meta())  # the reader gives sim times; the file holds epoch times
     topic_of = {cid: t for cid, t in read_summary(buf)[0].channels.items()}
     picks = {"first": 0, "middle": len(table) // 2, "last": len(table) - 1}
     rows = []
@@ -113,8 +115,9 @@ def evaluate(path: Path, chunks_at: tuple[str, ...] = ("first", "middle", "last"
         for where in chunks_at:
             k = picks[where]
             ch = table[k]
-            in_chunk = {(topic_of[c], s, lt) for c, s, lt, _, _ in ch["messages"]}
-            after = {(topic_of[c], s, lt) for later in table[k + 1:] for c, s, lt, _, _ in later["messages"]}
+            in_chunk = {(topic_of[c], s, lt - t0) for c, s, lt, _, _ in ch["messages"]}
+            after = {(topic_of[c], s, lt - t0) for later in table[k + 1:] for c, s, lt, _, _ in later["messages"]}
+            ch_start, ch_end = ch["start"] - t0, ch["end"] - t0
             for kind in KINDS:
                 bad = Path(tmp) / f"{kind}_{where}.mcap"
                 bad.write_bytes(damage(buf, kind, ch))
@@ -128,11 +131,11 @@ def evaluate(path: Path, chunks_at: tuple[str, ...] = ("first", "middle", "last"
                     intact = everything  # the chunk's content is unhurt
                 dmg = log.integrity.damage
                 here = [d for d in dmg if d.offset == ch["offset"]]
-                timed = any(d.start_ns == ch["start"] and (d.end_ns in (ch["end"], None)) for d in here)
+                timed = any(d.start_ns == ch_start and (d.end_ns in (ch_end, None)) for d in here)
                 lost_true = Counter(t for t, _, _ in everything - got)
                 reported = {t: n for t, n in log.integrity.lost().items() if n}
                 if kind == "truncation":
-                    stated = any(d.kind == "truncated" and d.start_ns == ch["start"] for d in dmg)
+                    stated = any(d.kind == "truncated" and d.start_ns == ch_start for d in dmg)
                 else:
                     stated = reported == dict(lost_true)
                 rows.append({"log": str(path), "chunk": where, "chunk_offset": ch["offset"], "kind": kind,

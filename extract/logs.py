@@ -42,7 +42,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Statistics
 
 from deft_gym.bus.codec import decode
-from deft_gym.bus.messages import NS_PER_S, log_start_ns
+from deft_gym.bus.messages import NS_PER_S, VIEWER_TOPICS, log_start_ns
 from extract.mapping import get_field
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -428,7 +428,10 @@ class _Scan:
     def _salvage_channels(self, data: bytes) -> str:
         """Channel records of a damaged chunk whose topic the episode record lists (a log without
         its summary knows its channels only from them): later, intact chunks stay readable."""
-        listed = set((self.metadata.get("deft_gym.episode", {}).get("topics") or {}).values())
+        episode = self.metadata.get("deft_gym.episode", {})
+        listed = set((episode.get("topics") or {}).values())
+        if episode:  # a deft_gym log also has the viewer topics (Foxglove scene)
+            listed |= set(VIEWER_TOPICS)
         taken = []
         for op, body, stop in walk_records(data):
             if op == _CHANNEL:
