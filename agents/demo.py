@@ -98,7 +98,7 @@ def flaky_story(out: Path, reruns: int, con: Any) -> dict[str, Any]:
     ext = tests_root / str(first["rerun"])
     con.print(f"[bold][2/5][/bold] DeFT extracts planning-module tests from the log of rerun {first['rerun']} "
               f"(collided with {first['collision_detail']['participant']} at {first['collision_detail']['time']:.2f} s)")
-    from extract.__main__ import main as extract_main
+    from deft_gym.cli.extract import main as extract_main
 
     _quietly(extract_main, [first["log"], "--out", str(ext), "--render", "failures", "--quiet"])
     es = json.loads((ext / "summary.json").read_text())

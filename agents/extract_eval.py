@@ -61,7 +61,6 @@ from deft_gym.scenarios.variants import inject_cut_in, perturb
 from deft_gym.sim.simulation import Simulation, reference_path
 from extract.batch import extract_directory
 from extract.runtime import load_frames, make_planner, replay
-from extract.search import MODES
 from extract.validator import distance
 
 RQ1_THETAS = (0.0, 0.1, 0.23, 1.62, 6.99, 17.15)
@@ -370,33 +369,9 @@ def _git_state() -> dict[str, Any]:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = common.parser("extract-eval", "agents.extract_eval", __doc__,
-                       epilog="\n\n".join(__doc__.split("\n\n")[1:3]))
-    common.add_scenarios(ap, help="seed scenarios (default: all in configs/scenarios except bench_*)")
-    ap.add_argument("--variants", type=int, default=1, help="perturbed variants per seed")
-    ap.add_argument("--cut-ins", type=int, default=8, help="cut-in variants per seed")
-    ap.add_argument("--extra-cut-ins", type=int, default=0,
-                    help="further cut-ins per seed that join only when their S0 collides (default 0)")
-    ap.add_argument("--reruns", type=int, default=10, help="system runs per scenario incl. S0")
-    ap.add_argument("--test-runs", type=int, default=10, help="executions of the generated tests")
-    ap.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES), help="input-search modes")
-    common.add_jitter_seed(ap, "S_k uses jitter seed S+k (a resumed evaluation keeps its seeds)")
-    common.add_workers(ap, "parallel processes for S0, extraction, reruns")
-    common.add_out(ap, common.RUNS / "extract" / "eval")
-    ap.add_argument("--report-only", action="store_true", help="re-render report.md, results.json and plots "
-                    "from the records of OUT")
-    ap.add_argument("--no-pin-planner", dest="pin_planner", action="store_false",
-                    help="use the planner module in place instead of a copy pinned at the start")
-    common.add_output_flags(ap)
-    args = ap.parse_args(argv)
-    if args.reruns < 2:
-        ap.error("--reruns must be at least 2 (S0 and one rerun)")
-    if args.jitter_seed is None:  # resuming: the seed recorded there; else a fresh one
-        try:
-            args.jitter_seed = int(json.loads((Path(args.out) / "options.json").read_text())["jitter_seed"])
-        except (OSError, ValueError, KeyError, TypeError):
-            args.jitter_seed = common.fresh_seed()
-    return args
+    from agents.extract_eval_args import parse_args as parse
+
+    return parse(argv)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -4,8 +4,8 @@
     python -m extract runs/run/left_turn --out runs/left_turn_tests --workers 2
     pytest runs/left_turn_tests
 
-For one log, OUT gets ``frames.jsonl``, ``test_<scenario>_<log id>.py``, ``summary.json`` and,
-for a collision, ``plot.png`` and ``video.mp4`` (``--render``); for a folder
+For one log, OUT gets ``frames.jsonl``, ``test_<scenario>_<log id>.py`` and ``summary.json``
+(``deft-gym extract`` adds ``plot.png`` and ``video.mp4`` of a collision, ``--render``); for a folder
 of runs, every log gets its own sub-folder and OUT/summary.json totals them. Exit status: 0 on
 success, 1 when some log of a folder could not be extracted, 2 on bad input.
 """
@@ -54,13 +54,12 @@ def build_parser() -> common.Parser:
     ap.add_argument("--xfail-failures", action="store_true",
                     help="emit each failure oracle as a strict xfail (CI stays green while the failure reproduces "
                          "and fails once the planner is fixed)")
-    common.add_render(ap)
     common.add_output_flags(ap)
     return ap
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = build_parser()
+def parse_args(argv: list[str] | None = None, ap: argparse.ArgumentParser | None = None) -> argparse.Namespace:
+    ap = ap or build_parser()
     args = ap.parse_args(argv)
     if args.theta < 0:
         ap.error("--theta must be >= 0")
@@ -76,7 +75,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+    return run(parse_args(argv))[0]
+
+
+def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
+    """Extract as ``args`` say, print the table; the exit status and the results."""
     console = common.console(args, width=130)
     kwargs: dict[str, Any] = {"mode": args.mode, "theta": args.theta, "measure": args.measure,
                               "mapping": args.mapping, "emit_tests": not args.no_tests,
@@ -96,46 +99,19 @@ def main(argv: list[str] | None = None) -> int:
                 results = extract_directory(root, args.out, workers=args.workers, force=args.force,
                                             on_episode=lambda _: bar.update(), **kwargs)
     except (LogError, MappingError) as err:
-        return common.cli_error(str(err))
+        return common.cli_error(str(err)), []
     console.print(_table(results, args, root))
-    pictures = _render(results, args)
     for r in results:
         for w in r.summary.get("warnings", []):
             console.print(f"[yellow]warning:[/yellow] {w}", soft_wrap=True)
         if not r.ok:
             console.print(f"[red]error:[/red] {r.summary['error']}", soft_wrap=True)
     out = Path(args.out)
-    for p in pictures:
-        console.print(f"picture of the failure: {p}", soft_wrap=True)
     line = f"wrote {out / 'summary.json'}" + (f"; run the tests with: pytest {out}" if not args.no_tests else "")
     if args.quiet:
         print(line)
     console.print(line, soft_wrap=True)
-    return 0 if all(r.ok for r in results) else 1
-
-
-def _render(results: list[ExtractionResult], args: argparse.Namespace) -> list[str]:
-    """Plots (and videos) of the extracted episodes (``--render``: failures = those with a
-    collision), into each episode's extraction folder."""
-    if args.render == "none":
-        return []
-    from deft_gym.viz.episode import load_episode, save_plot, save_video
-
-    done = []
-    for r in results:
-        s = r.summary
-        if not r.ok or r.frames_path is None or (args.render == "failures" and not s.get("collision")):
-            continue
-        folder = Path(r.frames_path).parent
-        if (folder / "plot.png").exists() and s.get("skipped"):
-            continue
-        try:
-            ep = load_episode(s["log"])
-            done.append(str(save_plot(ep, folder / "plot.png")))
-            save_video(ep, folder / "video.mp4")
-        except ValueError:
-            continue
-    return done
+    return (0 if all(r.ok for r in results) else 1), results
 
 
 def _table(results: list[ExtractionResult], args: argparse.Namespace, root: Path) -> Table:

@@ -49,7 +49,7 @@ def test_recorder_process_writes_the_in_process_bytes(tmp_path: Path, monkeypatc
 def test_full_run_same_log_in_both_modes(tmp_path: Path) -> None:
     for name, background in (("p", True), ("i", False)):
         Simulation(SCENARIO, jitter_seed=4, out_dir=tmp_path / name, keep_planning=False,
-                   recorder_process=background).run()
+                   recorder_process=background, log_start_ns=1_700_000_000 * 10**9).run()
     p, i = (_records(tmp_path / name / "episode.mcap") for name in ("p", "i"))
     assert len(p[0]) > 1000 and p[0] == i[0]  # every message, byte for byte
     for meta in (p[1], i[1]):

@@ -25,7 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("deft_gym.cli.render", "plot and video of episodes (LOG, episode.json or a folder)"),
     "report": ("deft_gym.cli.report", "one HTML page for a run folder: numbers, plots, failures"),
     # DeFT: logs -> planning-module tests
-    "extract": ("extract.__main__", "deterministic planning-module tests (pytest) from episode logs"),
+    "extract": ("deft_gym.cli.extract", "deterministic planning-module tests (pytest) from episode logs"),
     "check-planner": ("extract.contract", "check a planner's contract on a log's frames"),
     "verify": ("extract.verify", "a log's integrity (chunk CRCs, counts)"),
     # the adversary
@@ -38,7 +38,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     # experiments and tools
     "demo": ("agents.demo", "the end-to-end demo (make demo): flaky -> deterministic, adversary, report"),
     "record": ("agents.record", "record one episode (optionally renamed topics, headers)"),
-    "extract-eval": ("agents.extract_eval", "DeFT's research questions on a scenario pool"),
+    "extract-eval": ("agents.extract_eval_args", "DeFT's research questions on a scenario pool"),
     "planner-edits": ("agents.planner_edits", "do generated tests catch small planner edits?"),
     "log-damage": ("agents.log_damage", "damage logs on purpose and check what the reader recovers"),
 }
