@@ -21,7 +21,7 @@ from deft_gym.cli.main import COMMANDS
 from deft_gym.cli.main import main as deft_gym
 
 ROOT = Path(__file__).resolve().parent.parent
-HEAVY = ("torch", "stable_baselines3", "highway_env", "matplotlib", "deft_gym.sim.simulation", "shapely", "scipy")
+HEAVY = ("torch", "stable_baselines3", "highway_env", "matplotlib", "deft_gym.sim.simulation", "shapely")
 
 
 def _help(name: str) -> str:
