@@ -327,7 +327,7 @@ def save_plot(ep: Episode, path: Path | str, title: str | None = None, n_plans: 
         poly = _box(end[0], end[1], end[2], ep.ego.length, ep.ego.width)
         ax.fill(poly[:, 0], poly[:, 1], color=EGO_COLOR, zorder=5, label=f"ego (at {t_end:.1f} s)")
         ax.annotate("ego", (end[0], end[1]), xytext=(0, 9), textcoords="offset points", ha="center", fontsize=8,
-                    color=EGO_COLOR, weight="bold", zorder=7)
+                    color=EGO_COLOR, weight="bold", zorder=9)
     col = colors(ep)
     for pid, tr in sorted(ep.participants.items()):
         a = tr.array()
@@ -342,11 +342,11 @@ def save_plot(ep: Episode, path: Path | str, title: str | None = None, n_plans: 
         hit = ep.collision and str(ep.collision.get("participant")) == pid
         ax.fill(poly[:, 0], poly[:, 1], color=c, zorder=5, ec=CRASH_COLOR if hit else "none", lw=2 if hit else 0,
                 label=f"{pid} ({tr.kind})")
-        ax.annotate(pid, (pose[0], pose[1]), xytext=(0, 9), textcoords="offset points", ha="center", fontsize=8,
-                    color=c, weight="bold", zorder=7)
+        ax.annotate(pid, (pose[0], pose[1]), xytext=(0, -14), textcoords="offset points", ha="center", fontsize=8,
+                    color=c, weight="bold", zorder=9)  # below its box; the ego's label is above
     if ep.collision:
         cx, cy = float(ep.collision["x"]), float(ep.collision["y"])
-        ax.scatter([cx], [cy], marker="X", s=220, color=CRASH_COLOR, edgecolor="white", zorder=8,
+        ax.scatter([cx], [cy], marker="X", s=150, color=CRASH_COLOR, edgecolor="white", alpha=0.85, zorder=8,
                    label=f"collision with {ep.collision.get('participant')} at {float(ep.collision['time']):.2f} s")
     ax.set_xlim(x0, x1)
     ax.set_ylim(y1, y0)  # highway-env: y points down on screen
