@@ -275,11 +275,14 @@ def plot_cumulative(records: list[dict[str, Any]], summary: dict[str, Any], path
     plt = _pyplot()
     curves = stats.cumulative_curves(records, summary)
     placements = summary["placements"] or ["closest"]
-    fig, axes = plt.subplots(len(placements), len(GROUPS), figsize=(4.2 * len(GROUPS), 3.2 * len(placements)),
+    # a group without scenarios (no held-out ones) gets no panel; "all" then equals "seeds"
+    groups = [g for g in GROUPS if summary["held_out"] or g != "held_out"]
+    groups = [g for g in groups if summary["held_out"] or g != "all"] or list(GROUPS[:1])
+    fig, axes = plt.subplots(len(placements), len(groups), figsize=(4.2 * len(groups) + 1.5, 3.2 * len(placements)),
                              squeeze=False)
     handles: dict[str, Any] = {}
     for i, p in enumerate(placements):
-        for j, g in enumerate(GROUPS):
+        for j, g in enumerate(groups):
             ax = axes[i][j]
             n_scn = len(summary["seeds"] if g == "seeds" else summary["held_out"] if g == "held_out"
                         else summary["seeds"] + summary["held_out"])

@@ -124,9 +124,10 @@ def run_campaign_cli(argv: list[str]) -> int:
             if not picture_paths(log)[0].exists():
                 with contextlib.suppress(ValueError):
                     render_log(log)
-    print_summary(summary, out)
     if args.quiet:
         print(f"campaign: {out / 'summary.json'}")
+    else:
+        print_summary(summary, out)
     return 0
 
 

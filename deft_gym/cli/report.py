@@ -30,6 +30,7 @@ from typing import Any
 from deft_gym.cli import common
 
 MAX_CARDS = 24  # failure cards per section (the rest are counted)
+ORDER = ["flaky", "reruns", "reruns_tests", "train", "eval"]  # the demo's folders in the order of its story
 STYLE = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0;background:#f6f7f9;color:#1d2733}
 header{background:#15324d;color:#fff;padding:18px 28px}header h1{margin:0 0 4px;font-size:22px}
@@ -119,6 +120,10 @@ def markdown(text: str) -> str:
             rows.clear()
 
     for line in text.splitlines():
+        if line.strip() in ("<details>", "</details>") or line.strip().startswith("<details><summary>"):
+            flush()
+            out.append(line.strip())  # the collapsible blocks of the project's own reports
+            continue
         if line.lstrip().startswith("|"):
             rows.append(line)
             continue
@@ -141,7 +146,7 @@ def read_json(path: Path) -> Any:
 
 # -- failure cards ---------------------------------------------------------------------------------
 def card(page: Page, title: str, log: Path | None, replay: list[str] | None, test: Path | None,
-         note: str = "", pictures: Path | None = None) -> str:
+         note: str = "", pictures: Path | None = None, collision: bool = True) -> str:
     """One failure: its picture and video (drawn when missing), replay and pytest commands."""
     parts = [f"<h3>{esc(title)}</h3>"]
     if note:
@@ -175,8 +180,9 @@ def card(page: Page, title: str, log: Path | None, replay: list[str] | None, tes
     if replay:
         parts.append('<p class="note">replay the system-level run:</p>' + cmd(replay))
     if test is not None:
-        parts.append('<p class="note">run its planning-module test (fails while the planner still plans the '
-                     "collision):</p>" + cmd(["pytest", "-q", str(test)]))
+        what = ("run its planning-module test (fails while the planner still plans the collision):" if collision
+                else "run its planning-module tests (they replay every frame of this episode):")
+        parts.append(f'<p class="note">{what}</p>' + cmd(["pytest", "-q", str(test)]))
     return '<div class="card">' + "".join(parts) + "</div>"
 
 
@@ -296,7 +302,8 @@ def _episode_cards(page: Page, episodes: list[Path]) -> list[str]:
         what = v.get("failure") or "failure"
         title = f"{v.get('scenario', d.name)}: {what}" + (f" (IoU {v['iou']:.2f})" if isinstance(v.get("iou"), float)
                                                          and what == "nods" else "")
-        items.append(card(page, title, d / "episode.mcap", replay, _tests_in(d / "extracted"), note=d.name))
+        items.append(card(page, title, d / "episode.mcap", replay, _tests_in(d / "extracted"), note=d.name,
+                          collision=what == "collision"))
     return items
 
 
@@ -386,8 +393,8 @@ def build(root: Path, out: Path, draw: bool = True) -> Page:
             if kind in ("evaluation", "training", "stress", "extraction"):
                 return
         if depth < 3:
-            for sub in sorted(p for p in folder.iterdir() if p.is_dir() and p.name not in ("tb", "checkpoints",
-                                                                                              "episodes", "logs")):
+            subs = [p for p in folder.iterdir() if p.is_dir() and p.name not in ("tb", "checkpoints", "episodes", "logs")]
+            for sub in sorted(subs, key=lambda p: (ORDER.index(p.name) if p.name in ORDER else len(ORDER), p.name)):
                 walk(sub, depth + 1)
 
     walk(root, 0)
