@@ -355,11 +355,11 @@ def section_stress(page: Page, folder: Path, s: dict[str, Any]) -> str:
     items = []
     mins = s.get("minimised") or []
     for m in mins[:MAX_CARDS]:
-        case = Path(m.get("case") or m.get("path") or "")
-        log = next(iter(sorted((folder / "minimised").glob(f"{case.stem}*/episode.mcap"))), None) if case.stem else None
+        case = folder / m["case"] if m.get("case") else None
+        log = folder / m["log"] if m.get("log") else None
         items.append(card(page, f"finding {m.get('signature')}", log,
-                          ["deft-gym", "stress", "replay", str(case)] if case.name else None, None,
-                          note=f"minimised: {', '.join((m.get('dimensionality') or {}).get('fields', []))}"))
+                          ["deft-gym", "stress", "replay", str(case)] if case else None, None,
+                          note=f"minimised: {', '.join((m.get('dimensionality') or {}).get('fields', [])) or '-'}"))
     return (f"<h2>Robustness campaign (ASTAA): {esc(folder.name)}</h2>{head}{viol}"
             + (f"<h3>Minimised findings ({len(mins)})</h3>" + cards(items, len(mins)) if items else ""))
 
