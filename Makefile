@@ -28,9 +28,9 @@ check-python:
 
 $(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules/_control_c.c deft_gym/record/_snapshot_c.c | check-python
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e ".[dev]" 2>&1 | grep -v -i "warning\|deprecat\|^ *$$\|^\*\*\*\|^!!\|^ *\*" || true
+	$(PY) -m pip install -qq --upgrade pip
+	$(PY) -m pip install -qq torch==2.13.0
+	$(PY) -m pip install -qq -e ".[dev]"
 	$(PY) -c "import deft_gym, extract, agents" && touch $(STAMP)
 
 demo: $(STAMP)
@@ -49,7 +49,7 @@ $(BROWSER_STAMP): $(STAMP)
 	command -v chromium >/dev/null && command -v chromedriver >/dev/null || \
 	  { (apt-get update -qq && apt-get install -y -qq chromium chromium-driver) || \
 	    { echo "error: could not install chromium and chromium-driver (apt-get, as root)" >&2; exit 2; }; }
-	$(PY) -m pip install --quiet "selenium>=4.20"
+	$(PY) -m pip install -qq "selenium>=4.20"
 	touch $(BROWSER_STAMP)
 
 test-browser: $(BROWSER_STAMP)

@@ -55,7 +55,7 @@ def _quietly(fn: Any, *args: Any) -> Any:
 def _pytest(paths: list[Path], select: str | None = None) -> dict[str, Any]:
     """One pytest run of ``paths``: counts of passed / failed / xfailed and the wall time [s]."""
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=", "-W", "ignore",
-           *(["-k", select] if select else []), *map(str, paths)]
+           "--durations=0", "--durations-min=0", *(["-k", select] if select else []), *map(str, paths)]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     seconds = time.perf_counter() - t0
@@ -63,6 +63,9 @@ def _pytest(paths: list[Path], select: str | None = None) -> dict[str, Any]:
     counts: dict[str, Any] = {k: 0 for k in ("passed", "failed", "xfailed", "error", "deselected")}
     took = last.rsplit(" in ", 1)[-1].split("s")[0] if " in " in last else ""
     counts["session_seconds"] = float(took) if took.replace(".", "", 1).isdigit() else seconds
+    # the tests' own time: the "call" phases of pytest's --durations report
+    calls = [ln.split()[0] for ln in proc.stdout.splitlines() if " call " in ln and ln.split()[0].endswith("s")]
+    counts["call_seconds"] = sum(float(c[:-1]) for c in calls if c[:-1].replace(".", "", 1).isdigit())
     for part in last.strip("= ").split(","):
         words = part.split()
         if len(words) >= 2 and words[0].isdigit():
@@ -112,13 +115,17 @@ def flaky_story(out: Path, reruns: int, con: Any) -> dict[str, Any]:
     con.print(f"[bold][3/5][/bold] the extracted failure test, run {reruns} times ({test.name})")
     results = [_pytest([test], "does_not_plan_into_collision") for _ in range(reruns)]
     failed = sum(1 for r in results if r["failed"])
-    test_s = sum(r["session_seconds"] for r in results) / len(results)
+    test_s = sum(r["call_seconds"] for r in results) / len(results)
+    session_s = sum(r["session_seconds"] for r in results) / len(results)
     repro = _pytest([test], "reproduces")
-    con.print(f"      {'F' * failed}{'.' * (reruns - failed)}   fails {failed} of {reruns} runs: deterministic "
-              f"({test_s:.2f} s per pytest session; a system rerun simulates for {rerun_s:.2f} s)", soft_wrap=True)
+    con.print(f"      {'F' * failed}{'.' * (reruns - failed)}   fails {failed} of {reruns} runs: deterministic. The test "
+              f"takes {test_s:.3f} s (its pytest session {session_s:.1f} s, mostly imports and loading "
+              f"{repro['passed']} frames); a system rerun simulates for {rerun_s:.2f} s and collides in "
+              f"{len(hit)} of {reruns}", soft_wrap=True)
     con.print(f"      its {repro['passed']} reproduction tests pass: the replayed frames give the recorded plans",
               soft_wrap=True)
     story.update(test=str(test), test_runs=reruns, test_failed=failed, test_seconds=test_s,
+                 test_session_seconds=session_s,
                  reproduction=repro["summary"], extraction=str(ext),
                  story=f"{len(hit)} of {reruns} system-level reruns of {scenario.stem} collided ({marks}); the "
                        f"planning-module test DeFT extracted from rerun {first['rerun']} failed {failed} of {reruns} "

@@ -372,8 +372,8 @@ def section_demo(page: Page, folder: Path, d: dict[str, Any]) -> str:
     fails, runs = flaky.get("test_failed", 0), flaky.get("test_runs", 0)
     parts.append(kpis([("system reruns that collided", f"{k} of {n}"),
                        ("extracted test failed", f"{fails} of {runs} runs"),
-                       ("system rerun time", f"{flaky.get('rerun_seconds', 0):.1f} s each"),
-                       ("module test time", f"{flaky.get('test_seconds', 0):.2f} s each")]))
+                       ("a system rerun simulates", f"{flaky.get('rerun_seconds', 0):.2f} s"),
+                       ("the failure test runs", f"{flaky.get('test_seconds', 0):.3f} s")]))
     parts.append(f'<p class="note">{esc(flaky.get("story", ""))}</p>')
     adv = d.get("adversary") or {}
     if adv:
