@@ -29,7 +29,10 @@ def _default(obj: Any) -> Any:
 
 
 def encode(payload: Any) -> bytes:
-    """Encode a payload of plain values (dict, list, str, int, float, bool) to JSON bytes."""
+    """Encode a payload of plain values (dict, list, str, int, float, bool) to JSON bytes; a
+    ``bytes`` payload is JSON already (the recorder's viewer topics) and is returned as is."""
+    if type(payload) is bytes:
+        return payload
     data = orjson.dumps(payload, default=_default, option=_FAST_OPTS)
     if b"null" in data:
         data = orjson.dumps(_plain(payload), option=_FAST_OPTS)
