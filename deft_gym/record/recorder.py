@@ -37,8 +37,9 @@ from typing import Any
 import orjson
 
 from deft_gym.bus.codec import encode
-from deft_gym.bus.messages import SCHEMAS, Message, log_start_ns
+from deft_gym.bus.messages import SCENE_TOPIC, SCHEMAS, Message, log_start_ns
 from deft_gym.files import write_atomic
+from deft_gym.record.scene import expand
 from deft_gym.record.worker import Batch, Entry, EpisodeLog, read_frame, write_frame
 
 EPISODE_METADATA = "deft_gym.episode"
@@ -221,7 +222,10 @@ class McapRecorder:
 
     def _encode(self, msg: Message) -> None:
         # the tap of a log written here: the payload encoded as it is now
-        self._pending.append((msg.topic, msg.publish_ns, encode(msg.payload), msg.seq))
+        if msg.topic == SCENE_TOPIC and (scene := expand(msg.publish_ns, msg.seq, msg.payload, self.start_ns)):
+            self._pending += scene
+        else:
+            self._pending.append((msg.topic, msg.publish_ns, encode(msg.payload), msg.seq))
         self._count += 1
         if len(self._pending) >= self.BATCH:
             self.flush()

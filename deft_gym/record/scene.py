@@ -269,6 +269,34 @@ def _map_lines(roadmap: Any) -> list[dict[str, Any]]:
     return lines
 
 
+# -- the compact state and its expansion (in the log's writer) -------------------------------------------
+COMPACT = "$scene"  # the key of a compact scene state (a SceneWriter's message before expand)
+
+
+def expand(ns: int, seq: int, payload: Any, start_ns: int) -> list[tuple[str, int, bytes, int]] | None:
+    """The log entries ``(topic, publish ns, JSON, seq)`` of a compact scene state published at
+    sim time ``ns``: the SceneUpdate and the ego's FrameTransform; None when ``payload`` is not
+    one (then it is written as it is)."""
+    if not (isinstance(payload, dict) and COMPACT in payload):
+        return None
+    rows, xs, ys, stamp, collision = payload[COMPACT]
+    t = start_ns + ns
+    ents = [vehicle_entity(t, eid if eid == "ego" else f"participant/{eid}", eid, kind, x, y, h, v, length, width)
+            for eid, kind, x, y, h, v, length, width in rows]
+    plan = plan_entity(t, {"trajectory": {"x": xs, "y": ys}, "header": {"stamp": stamp}})
+    if plan is not None:
+        ents.append(plan)
+    if collision:
+        ents.append(json.dumps(collision_entity(t, collision)))
+    # participants that left the world are deleted: every message replaces the whole scene
+    when = f'{{"sec":{t // NS_PER_S},"nsec":{t % NS_PER_S}}}'
+    scene = f'{{"deletions":[{{"timestamp":{when},"type":1,"id":""}}],"entities":[' + ",".join(ents) + "]}"
+    _, _, x, y, h = rows[0][:5]
+    tf = (f'{{"timestamp":{when},"parent_frame_id":"{FRAME}","child_frame_id":"ego",'
+          f'"translation":{_position_text(x, y, 0.0)},"rotation":{_orientation_text(h)}}}')
+    return [(SCENE_TOPIC, ns, scene.encode(), seq), (TF_TOPIC, ns, tf.encode(), seq)]
+
+
 # -- the writer ---------------------------------------------------------------------------------------
 class SceneWriter:
     """Hooks a :class:`~deft_gym.sim.simulation.Simulation` and writes the viewer topics through
@@ -291,13 +319,10 @@ class SceneWriter:
         sim.bus.taps.append(keep)
         self._map(0)
 
-    def _emit(self, topic: str, ns: int, payload: dict[str, Any] | bytes) -> None:
-        """One viewer message (a dict, or its JSON text as bytes) to the log."""
-        self.write(Message(topic, self._seq[topic], ns, payload))  # type: ignore[arg-type]
-        self._seq[topic] += 1
-
     def _map(self, ns: int) -> None:
-        self._emit(SCENE_MAP_TOPIC, ns, {"deletions": [], "entities": map_entities(self.start_ns + ns, self.sim.roadmap)})
+        ents = map_entities(self.start_ns + ns, self.sim.roadmap)
+        self.write(Message(SCENE_MAP_TOPIC, self._seq[SCENE_MAP_TOPIC], ns, {"deletions": [], "entities": ents}))
+        self._seq[SCENE_MAP_TOPIC] += 1
 
     def _on_step(self, sim: Any) -> None:
         n = self._n
@@ -310,28 +335,32 @@ class SceneWriter:
         self.scene(ns)
 
     def scene(self, ns: int, collision: dict[str, Any] | None = None) -> None:
-        """Publish the world as it is now (sim time ``ns``), with ``collision`` if given."""
-        world, t = self.sim.world, self.start_ns + ns
+        """Hand the world as it is now (sim time ``ns``), with ``collision`` if given, to the
+        log: a compact state of plain values (:data:`COMPACT`), which the log's writer - the
+        recorder process, where there is one - turns into the scene and frame-transform
+        messages (:func:`expand`), so the simulation pays for a few lists only."""
+        world = self.sim.world
         e = world.ego
-        ents = [vehicle_entity(t, "ego", "ego", "ego", float(e.position[0]), float(e.position[1]), float(e.heading),
-                               float(e.speed), float(e.LENGTH), float(e.WIDTH))]
+        rows = [("ego", "ego", float(e.position[0]), float(e.position[1]), float(e.heading), float(e.speed),
+                 float(e.LENGTH), float(e.WIDTH))]
         for p in world.present_participants():
             o = p.obj
-            ents.append(vehicle_entity(t, f"participant/{p.id}", str(p.id), p.kind, float(o.position[0]),
-                                       float(o.position[1]), float(o.heading), float(getattr(o, "speed", 0.0)),
-                                       float(o.LENGTH), float(o.WIDTH)))
-        plan = plan_entity(t, self.plan) if self.plan is not None else None
-        if plan is not None:
-            ents.append(plan)
-        if collision:
-            ents.append(json.dumps(collision_entity(t, collision)))
-        # participants that left the world are deleted: every message replaces the whole scene
-        stamp = f'{{"sec":{t // NS_PER_S},"nsec":{t % NS_PER_S}}}'
-        self._emit(SCENE_TOPIC, ns, (f'{{"deletions":[{{"timestamp":{stamp},"type":1,"id":""}}],"entities":['
-                                     + ",".join(ents) + "]}").encode())
-        self._emit(TF_TOPIC, ns, (f'{{"timestamp":{stamp},"parent_frame_id":"{FRAME}","child_frame_id":"ego",'
-                                  f'"translation":{_position_text(float(e.position[0]), float(e.position[1]), 0.0)},'
-                                  f'"rotation":{_orientation_text(float(e.heading))}}}').encode())
+            rows.append((str(p.id), p.kind, float(o.position[0]), float(o.position[1]), float(o.heading),
+                         float(getattr(o, "speed", 0.0)), float(o.LENGTH), float(o.WIDTH)))
+        plan = self.plan if isinstance(self.plan, dict) else {}
+        tr = plan.get("trajectory") if isinstance(plan.get("trajectory"), dict) else {}
+        xs, ys = tr.get("x"), tr.get("y")  # (a robustness test may have put anything there)
+        if not (isinstance(xs, list) and isinstance(ys, list) and len(xs) == len(ys)):
+            xs = ys = []
+        if len(xs) > PLAN_POINTS:  # every k-th point and the last, as plan_entity draws them
+            step = math.ceil((len(xs) - 1) / (PLAN_POINTS - 1))
+            last = slice(-1, None) if (len(xs) - 1) % step else slice(0, 0)
+            xs, ys = xs[::step] + xs[last], ys[::step] + ys[last]
+        header = plan.get("header")
+        stamp = header.get("stamp", "") if isinstance(header, dict) else ""
+        self.write(Message(SCENE_TOPIC, self._seq[SCENE_TOPIC], ns,
+                           {COMPACT: [rows, list(xs), list(ys), stamp, collision]}))
+        self._seq[SCENE_TOPIC] += 1
 
     def finish(self, collision: dict[str, Any] | None) -> None:
         """The last scene, at the end of the episode, with the collision if there was one."""

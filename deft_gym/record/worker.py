@@ -3,7 +3,9 @@
 The recorder process (``python -m deft_gym.record.worker``) is fed batches of messages,
 each with a snapshot of its payload taken at its publish time (:class:`Batch`, which costs the
 simulation less than JSON encoding), and does the rest: JSON encoding (:func:`deft_gym.bus.codec.encode`, the same bytes as encoding in
-the simulation's process) and the MCAP writer's per-message Python. Apollo records the same
+the simulation's process), the Foxglove scene messages made from the compact scene states the
+simulation hands over (:func:`deft_gym.record.scene.expand`) and the MCAP writer's per-message
+Python. Apollo records the same
 way: ``cyber_recorder`` is a process of its own, fed serialised messages.
 
 It reads commands from its stdin and answers some on its stdout. A frame is a 4-byte
@@ -33,6 +35,8 @@ from typing import Any, BinaryIO
 from mcap.writer import CompressionType, IndexType, Writer
 
 from deft_gym.bus.codec import encode
+from deft_gym.bus.messages import SCENE_TOPIC
+from deft_gym.record.scene import expand
 
 try:  # the payload snapshot compiled (setup.py), 3x faster than pickle for plain payloads
     from deft_gym.record import _snapshot_c
@@ -151,6 +155,9 @@ class EpisodeLog:
         """:meth:`write` of a batch of entries (:meth:`Batch.take`), payloads JSON-encoded here."""
         out = []
         for topic, ns, payload, seq in read_batch(data):
+            if topic == SCENE_TOPIC and (scene := expand(ns, seq, payload, self.start_ns)) is not None:
+                out += scene  # the Foxglove scene, made here rather than in the simulation
+                continue
             try:
                 out.append((topic, ns, encode(payload), seq))
             except TypeError as exc:
