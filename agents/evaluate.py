@@ -134,7 +134,8 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
         raise ConfigError(f"{name}: methods: unknown {bad}; expected some of {list(METHODS)}")
     if "rl" in cfg.methods and not cfg.model:
         raise ConfigError(f"{name}: model: method 'rl' needs --model (a trained model.zip)")
-    if cfg.model and not Path(cfg.model).exists():
+    # the baselines may run while the model trains: its run folder's config.yaml is enough
+    if cfg.model and not Path(cfg.model).exists() and ("rl" in cfg.methods or not model_env_config(cfg.model)):
         raise ConfigError(f"{name}: model: {cfg.model} does not exist")
     return cfg
 

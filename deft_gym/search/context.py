@@ -27,6 +27,8 @@ from deft_gym.world.roadmap import RoadMap, shared_roadmap
 SEED_SCENARIOS = ("left_turn", "right_turn", "lane_follow_static", "u_turn", "cross_intersection",
                   "take_exit", "blocked_red_light")
 VARIANT_STRENGTH = 1.0
+TIME_FACTOR, TIME_SLACK = 1.5, 10.0  # [-], [s]: mutated runs last at most this long (see seed_context)
+STUCK_TIME = 25.0  # [s] a mutated run whose ego stands this long is stuck (longer than any red phase)
 
 
 def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRENGTH) -> Scenario:
@@ -80,7 +82,10 @@ _CTX: dict[Any, SeedContext] = {}
 def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = None, ads: AdsConfig | None = None,
                  reference_seed: int = 0, grid: str = "lane", threshold: float = 0.6) -> SeedContext:
     """Build (or reuse) the :class:`SeedContext` of a scenario. Raises ``ValueError`` when the
-    scenario's reference run does not complete (then it is no optimal-decision seed)."""
+    scenario's reference run does not complete (then it is no optimal-decision seed). The
+    context's scenario lasts at most ``TIME_FACTOR`` x the reference run's time + ``TIME_SLACK``
+    and calls an ego standing for ``STUCK_TIME`` stuck: every mutated run (search baselines, the
+    env, confirmations, robustness) ends there."""
     sc = resolve_scenario(spec)
     ads = ads or load_ads_config()
     feasible = feasible or FeasibleConfig()
@@ -92,6 +97,12 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
             raise ConfigError(f"feasible.margin: {feasible.margin} m is below the planner's own hard clearance "
                               f"{hard} m (planning.planner.params); objects that close invade the optimal path")
         ref = reference_run(sc, ads, reference_seed)
+        # mutated runs end when the ego has clearly failed to finish: an ego that needs more than
+        # TIME_FACTOR x the reference run's time + TIME_SLACK has timed out (task failure)
+        limit = round(min(sc.duration, ref.sim_time * TIME_FACTOR + TIME_SLACK), 3)
+        stuck = min(sc.stuck_time, STUCK_TIME)
+        if limit < sc.duration or stuck < sc.stuck_time:
+            sc = sc.model_copy(update={"duration": limit, "stuck_time": stuck})
         rm = shared_roadmap(sc.map)
         areas = motion_areas(ref, rm, feasible, sc.duration)
         oracle = DecisionOracle(ref, rm, threshold=threshold, grid_kind=grid,  # type: ignore[arg-type]

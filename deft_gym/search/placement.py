@@ -87,17 +87,21 @@ class Placer:
         ``extra_ok(x, y, h) -> bool array``: a further test of the caller's. None: no room."""
         length, width = SIZES[obstacle]
         sig, lat = self.candidates(sigma, lateral)
-        xy, h = self.ctx.path.offset(sig, lat)
-        ok = layout.static_ok(xy[:, 0], xy[:, 1], h, length, width)
-        if ego_xy is not None:
-            ok &= np.hypot(xy[:, 0] - ego_xy[0], xy[:, 1] - ego_xy[1]) >= self.ctx.feasible.spawn_distance
-        if extra_ok is not None and ok.any():
-            ok &= extra_ok(xy[:, 0], xy[:, 1], h)
-        idx = np.flatnonzero(ok)
-        if not len(idx):
-            return None
-        i = int(idx[0]) if self.rule == "closest" else int(idx[int(self.rng.integers(len(idx)))])
-        return StaticPose(float(xy[i, 0]), float(xy[i, 1]), float(h[i]), float(sig[i]), float(lat[i]))
+        # the closest rule takes the first feasible candidate: test them a block at a time
+        block = len(sig) // len(ALONG_TRIES) if self.rule == "closest" else len(sig)
+        for a in range(0, len(sig), block):
+            sg, lt = sig[a:a + block], lat[a:a + block]
+            xy, h = self.ctx.path.offset(sg, lt)
+            ok = layout.static_ok(xy[:, 0], xy[:, 1], h, length, width)
+            if ego_xy is not None:
+                ok &= np.hypot(xy[:, 0] - ego_xy[0], xy[:, 1] - ego_xy[1]) >= self.ctx.feasible.spawn_distance
+            if extra_ok is not None and ok.any():
+                ok &= extra_ok(xy[:, 0], xy[:, 1], h)
+            idx = np.flatnonzero(ok)
+            if len(idx):
+                i = int(idx[0]) if self.rule == "closest" else int(idx[int(self.rng.integers(len(idx)))])
+                return StaticPose(float(xy[i, 0]), float(xy[i, 1]), float(h[i]), float(sg[i]), float(lt[i]))
+        return None
 
     def add_static(self, layout: Layout, pid: str, obstacle: str, pose: StaticPose) -> dict[str, Any]:
         """Add a granted static object to ``layout``; returns its participant spec."""
@@ -124,7 +128,7 @@ class Placer:
 
     def vehicle(self, layout: Layout, t0: float, sigma: float, lateral: float, speed_factor: float,
                 manoeuvre: str, ego_xy: np.ndarray | None = None, skip: str | None = None,
-                trajectory_ok: Any = None, max_completions: int = 6,
+                trajectory_ok: Any = None, max_completions: int = 3,
                 rng: np.random.Generator | None = None) -> Trajectory | None:
         """A feasible trajectory for a vehicle appearing at ``t0`` [s] near ``(sigma, lateral)``
         with ``speed_factor`` x its lane's speed limit and a first-window ``manoeuvre`` (keep |

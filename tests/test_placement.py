@@ -1,0 +1,78 @@
+"""The placement rules every adversary shares, and the search baselines' bookkeeping (near-
+duplicates, re-checks, records)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agents.mutation import Mutant, NonInvasiveMutator
+from agents.search import POPULATION, search
+from deft_gym.search.context import seed_context
+from deft_gym.search.feasible import Layout
+from deft_gym.search.placement import STEP, Placer
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    return seed_context("lane_follow_static")
+
+
+def test_closest_is_on_the_feasibility_boundary(ctx) -> None:
+    lay = Layout(ctx.areas)
+    placer = Placer(ctx, "closest", np.random.default_rng(0))
+    pose = placer.static(lay, "CONE", 80.0, 0.5)  # requested on the path, right side
+    assert pose is not None and pose.lateral > 0.5
+    # one grid step closer to the path is infeasible: "as close as allowed"
+    xy, h = ctx.path.offset(np.array([pose.sigma]), np.array([pose.lateral - STEP]))
+    assert not lay.static_ok(xy[:, 0], xy[:, 1], h, 0.6, 0.6)[0]
+    again = Placer(ctx, "closest", np.random.default_rng(99)).static(lay, "CONE", 80.0, 0.5)
+    assert (again.x, again.y) == (pose.x, pose.y)  # deterministic, whatever the RNG
+
+
+def test_uniform_draws_feasible_points_near_the_request(ctx) -> None:
+    lay = Layout(ctx.areas)
+    poses = [Placer(ctx, "uniform", np.random.default_rng(s)).static(lay, "CONE", 80.0, 3.0) for s in range(8)]
+    poses = [p for p in poses if p is not None]
+    assert len(poses) >= 6 and len({(p.x, p.y) for p in poses}) == len(poses)
+    for p in poses:
+        assert abs(p.sigma - 80.0) <= 3.0 and abs(p.lateral - 3.0) <= 3.0
+        assert lay.static_ok(np.array([p.x]), np.array([p.y]), np.array([p.heading]), 0.6, 0.6)[0]
+
+
+def test_no_room_gives_none_and_rules_are_checked(ctx) -> None:
+    lay = Layout(ctx.areas)
+    far = Placer(ctx, "closest", np.random.default_rng(0)).static(lay, "CONE", 80.0, 60.0)  # off the road
+    assert far is None
+    with pytest.raises(ValueError, match="placement rule"):
+        Placer(ctx, "nearest", np.random.default_rng(0))
+
+
+def test_vehicle_placements_stay_feasible(ctx) -> None:
+    lay = Layout(ctx.areas)
+    placer = Placer(ctx, "closest", np.random.default_rng(0))
+    traj = placer.vehicle(lay, 2.0, 60.0, 3.5, 0.6, "keep")
+    assert traj is not None and traj.t[0] == pytest.approx(2.0) and traj.t[-1] >= ctx.scenario.duration - 1e-6
+    from deft_gym.search.vehicles import LENGTH, WIDTH
+
+    assert lay.first_conflict(traj.t, traj.x, traj.y, traj.h, LENGTH, WIDTH) < 0
+
+
+def test_mutants_key_near_duplicates(ctx) -> None:
+    rng = np.random.default_rng(1)
+    mut = NonInvasiveMutator(ctx, rng, "closest")
+    m = Mutant(Layout(ctx.areas))
+    child = mut.mutate(m)
+    assert child is not None and child.key() != m.key()
+    assert child.copy().key() == child.key()
+
+
+def test_search_records_carry_the_schema_and_recheck_failures(ctx) -> None:
+    recs = list(search("random_delta", ctx, 2 * POPULATION, seed=3, rule="uniform"))
+    assert [r["index"] for r in recs] == list(range(2 * POPULATION))
+    for r in recs:
+        assert {"outcome", "valid", "iou", "f_p", "f_b", "failure", "nods_local", "task_failure", "confirmed",
+                "signature", "seconds", "cpu_seconds", "sims"} <= set(r)
+        checked = r["failure"] is not None or r["task_failure"] is not None
+        assert (r["confirmed"] is not None) == checked and r["sims"] == 1 + checked
+        assert r["cpu_seconds"] > 0.0
