@@ -76,9 +76,9 @@ def campaign_parser() -> argparse.ArgumentParser:
 
 
 def run_campaign_cli(argv: list[str]) -> int:
+    args = campaign_parser().parse_args(argv)  # before the simulation is imported: a fast --help
     from deft_gym.robustness.campaign import Campaign, load_campaign_config, run_campaign
 
-    args = campaign_parser().parse_args(argv)
     overrides: dict[str, Any] = {}
     if args.scenarios:
         overrides["scenarios"] = [_scenario_path(s) for s in args.scenarios]
@@ -171,13 +171,13 @@ def print_summary(s: dict[str, Any], out: Path) -> None:
 
 
 def replay_cli(argv: list[str]) -> int:
-    from deft_gym.robustness.campaign import replay
-
     ap = common.parser("stress replay", "agents.stress replay",
                        "Replay test case files and check they reproduce their finding.")
     ap.add_argument("cases", nargs="+", help="case JSON files, or campaign folders (all cases/ and minimised/)")
     ap.add_argument("--log", default=None, help="write the test log (MCAP) of a single case to this folder")
     args = ap.parse_args(argv)
+    from deft_gym.robustness.campaign import replay
+
     files: list[Path] = []
     for c in args.cases:
         p = Path(c)
@@ -206,14 +206,14 @@ def replay_cli(argv: list[str]) -> int:
 
 
 def check_cli(argv: list[str]) -> int:
-    from deft_gym.robustness.offline import check_log
-
     ap = common.parser("stress check", "agents.stress check",
                        "Evaluate the safety invariants offline on an episode log (MCAP).")
     ap.add_argument("log", help="episode.mcap")
     ap.add_argument("--invariants", default=None, help="invariants YAML (default configs/invariants/default.yaml)")
     ap.add_argument("--json", action="store_true", help="print the violations as JSON")
     args = ap.parse_args(argv)
+    from deft_gym.robustness.offline import check_log
+
     violations = check_log(args.log, args.invariants)
     if args.json:
         print(json.dumps([v.as_dict() for v in violations], indent=1, allow_nan=True))
@@ -228,13 +228,13 @@ def check_cli(argv: list[str]) -> int:
 
 
 def spec_cli(argv: list[str]) -> int:
-    from deft_gym.robustness.dictionary import candidates
-    from deft_gym.robustness.spec import TestSpecification
-
     ap = common.parser("stress spec", "agents.stress spec",
                        "Print the test specification derived from the message schemas.")
     ap.add_argument("--json", action="store_true", help="as JSON")
     args = ap.parse_args(argv)
+    from deft_gym.robustness.dictionary import candidates
+    from deft_gym.robustness.spec import TestSpecification
+
     spec = TestSpecification.from_schemas()
     if args.json:
         print(json.dumps({"topics": spec.topics, "message_types": spec.message_types,
@@ -270,9 +270,29 @@ def compare_cli(argv: list[str]) -> int:
 
 
 def subsystem_cli(argv: list[str]) -> int:
-    from deft_gym.robustness import subsystem
+    ap = common.parser("stress subsystem", "agents.stress subsystem",
+                       "Subsystem replay testing: the dictionary applied to DeFT-extracted planning frames, the "
+                       "planner alone; findings become pytest tests.")
+    ap.add_argument("frames", help="frames.jsonl written by the extractor (deft-gym extract)")
+    common.add_out(ap, common.RUNS / "stress" / "subsystem",
+                   help="output folder (frames copy, cases.json, test module, summary)")
+    ap.add_argument("--budget", type=int, default=300, help="number of tests")
+    common.add_seed(ap)
+    ap.add_argument("--turnover", type=int, default=5, help="unmodified frames planned after the mutated one")
+    ap.add_argument("--invariants", default=None, help="invariants YAML (its `on: planning` ones are used)")
+    ap.add_argument("--hardening", choices=("off", "on"), default="off",
+                    help="sanitise the planner's inputs as the hardened planning node does")
+    common.add_output_flags(ap)
+    args = ap.parse_args(argv)  # before the planner is imported: a fast --help
+    from deft_gym.robustness.subsystem import run_subsystem
 
-    return subsystem.main(argv)
+    s = run_subsystem(args.frames, args.out, args.budget, args.seed, args.invariants, args.turnover,
+                      args.hardening == "on")
+    if not args.quiet:
+        print(", ".join(f"{k.replace('_', ' ')} {sum(s[k].values()) if isinstance(s[k], dict) else s[k]}"
+                        for k in ("tests", "crashes", "hangs", "violations", "harness_errors")))
+    print(f"{len(s['minimised'])} distinct findings -> {args.out}/test_robustness_*.py (pytest {args.out})")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

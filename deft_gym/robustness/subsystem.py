@@ -286,31 +286,4 @@ def pytest_module_source(name: str, frames_name: str, n: int, hardening: bool = 
         ''')
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m agents.stress subsystem``."""
-    from deft_gym.cli import common
-
-    ap = common.parser("stress subsystem", "agents.stress subsystem",
-                       "Subsystem replay testing: the dictionary applied to DeFT-extracted planning frames, the "
-                       "planner alone; findings become pytest tests.")
-    ap.add_argument("frames", help="frames.jsonl written by the extractor (deft-gym extract)")
-    common.add_out(ap, common.RUNS / "stress" / "subsystem",
-                   help="output folder (frames copy, cases.json, test module, summary)")
-    ap.add_argument("--budget", type=int, default=300, help="number of tests")
-    common.add_seed(ap)
-    ap.add_argument("--turnover", type=int, default=5, help="unmodified frames planned after the mutated one")
-    ap.add_argument("--invariants", default=None, help="invariants YAML (its `on: planning` ones are used)")
-    ap.add_argument("--hardening", choices=("off", "on"), default="off",
-                    help="sanitise the planner's inputs as the hardened planning node does")
-    common.add_output_flags(ap)
-    args = ap.parse_args(argv)
-    s = run_subsystem(args.frames, args.out, args.budget, args.seed, args.invariants, args.turnover,
-                      args.hardening == "on")
-    if not args.quiet:
-        print(", ".join(f"{k.replace('_', ' ')} {sum(s[k].values()) if isinstance(s[k], dict) else s[k]}"
-                        for k in ("tests", "crashes", "hangs", "violations", "harness_errors")))
-    print(f"{len(s['minimised'])} distinct findings -> {args.out}/test_robustness_*.py (pytest {args.out})")
-    return 0
-
-
 __all__ = ["FrameCase", "FrameReplay", "generate", "minimise_frame_case", "run_subsystem"]
