@@ -9,10 +9,8 @@ Re-render the report of a finished (or interrupted) evaluation from its records:
 
 from __future__ import annotations
 
-import argparse
 import io
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +18,7 @@ import numpy as np
 
 from agents import stats
 from agents.stats import GROUP_LABELS, GROUPS, METHOD_LABELS, METHOD_ORDER, RecordError
+from deft_gym.cli import common
 from deft_gym.files import read_jsonl, write_atomic, write_json_atomic
 
 GROUP_TITLES = {"seeds": "Seed scenarios", "held_out": "Held-out scenarios", "all": "All scenarios"}
@@ -276,11 +275,14 @@ def plot_cumulative(records: list[dict[str, Any]], summary: dict[str, Any], path
     plt = _pyplot()
     curves = stats.cumulative_curves(records, summary)
     placements = summary["placements"] or ["closest"]
-    fig, axes = plt.subplots(len(placements), len(GROUPS), figsize=(4.2 * len(GROUPS), 3.2 * len(placements)),
+    # a group without scenarios (no held-out ones) gets no panel; "all" then equals "seeds"
+    groups = [g for g in GROUPS if summary["held_out"] or g != "held_out"]
+    groups = [g for g in groups if summary["held_out"] or g != "all"] or list(GROUPS[:1])
+    fig, axes = plt.subplots(len(placements), len(groups), figsize=(4.2 * len(groups) + 1.5, 3.2 * len(placements)),
                              squeeze=False)
     handles: dict[str, Any] = {}
     for i, p in enumerate(placements):
-        for j, g in enumerate(GROUPS):
+        for j, g in enumerate(groups):
             ax = axes[i][j]
             n_scn = len(summary["seeds"] if g == "seeds" else summary["held_out"] if g == "held_out"
                         else summary["seeds"] + summary["held_out"])
@@ -362,7 +364,7 @@ def write_report(records: list[dict[str, Any]], summary: dict[str, Any], out: Pa
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m agents.eval_report", description=__doc__.split("\n\n")[0])
+    p = common.parser("eval-report", "agents.eval_report", __doc__)
     p.add_argument("out", type=Path, help="evaluation folder (records.jsonl, eval_config.json)")
     p.add_argument("--model", default=None, help="trained model.zip (its training summary; default: the config's)")
     args = p.parse_args(argv)
@@ -382,8 +384,7 @@ def main(argv: list[str] | None = None) -> int:
         summary = build_summary(records, cfg, list(cfg.get("scenarios") or []), list(cfg.get("held_out") or []),
                                 str(rec_path))
     except RecordError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return common.cli_error(str(err))
     print(write_report(records, summary, args.out))
     return 0
 

@@ -1,7 +1,7 @@
 """Compare adversaries at an equal budget of simulated scenarios (Decictor Table I / Figure 7).
 
-    python -m agents.evaluate --methods rl,decictor,random_delta,random --budget 100 --repeats 2 \\
-        --scenarios left_turn,right_turn --variants 1 --model runs/adversary/x/model.zip --out runs/eval/x
+    deft-gym evaluate --methods rl decictor random_delta random --budget 100 --repeats 2 \\
+        --scenarios left_turn right_turn --variants 1 --model runs/adversary/x/model.zip --out runs/eval/x
 
 Methods: ``rl`` (the trained adversary, stochastic actions), ``decictor`` (Decictor-GA),
 ``random_delta``, ``random`` (see :mod:`agents.search`) and ``random_online`` (uniform random
@@ -41,15 +41,21 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from deft_gym.cli import common
 from deft_gym.config import ConfigError, load_mapping, validate
 from deft_gym.execution import Executor, add_backend_arguments, backend_from_args
 from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
 from deft_gym.record.recorder import init_pool_worker
-from deft_gym.search.context import SEED_SCENARIOS
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
 DEFAULT_METHODS = ("rl", "decictor", "random_delta", "random")
 HELD_OUT_BASE = 1_000_000
+
+
+def _seed_scenarios() -> list[str]:
+    from deft_gym.search.context import SEED_SCENARIOS  # imported here: --help stays fast
+
+    return list(SEED_SCENARIOS)
 
 
 class EvalConfig(BaseModel):
@@ -60,7 +66,7 @@ class EvalConfig(BaseModel):
     methods: list[str] = Field(default_factory=lambda: list(DEFAULT_METHODS))
     budget: int = Field(50, ge=1)
     repeats: int = Field(1, ge=1)
-    scenarios: list[str] = Field(default_factory=lambda: list(SEED_SCENARIOS))
+    scenarios: list[str] = Field(default_factory=lambda: _seed_scenarios())
     held_out: int = Field(10, ge=0, description="held-out generated scenarios gen:<seed> (seeds from "
                           "1000000 on, never trained on; the first robust ones)")
     variants: int = Field(0, ge=0, description="held-out perturbed variants per seed scenario")
@@ -75,28 +81,40 @@ class EvalConfig(BaseModel):
         description="placement rules every method runs under (one table row per method and placement)")
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m agents.evaluate", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--config", type=Path, default=None, help="evaluation YAML (configs/eval/*.yaml)")
-    p.add_argument("--methods", default=None, help=f"comma-separated, of {','.join(METHODS)}")
-    p.add_argument("--budget", type=int, default=None, help="simulated scenarios per method, scenario and repeat")
-    p.add_argument("--repeats", type=int, default=None)
-    p.add_argument("--scenarios", default=None, help="comma-separated seed scenarios (names or YAML paths)")
+def build_parser() -> common.Parser:
+    p = common.parser("evaluate", "agents.evaluate", __doc__)
+    p.add_argument("--config", type=Path, default=None, help="evaluation YAML (configs/eval/*.yaml; options "
+                   "given here override it; default: the built-in defaults)")
+    p.add_argument("--methods", nargs="+", action=common.ListAction, default=None, metavar="METHOD",
+                   help=f"of {', '.join(METHODS)} (default: {' '.join(DEFAULT_METHODS)})")
+    p.add_argument("--budget", type=int, default=None, help="simulated scenarios per method, scenario and repeat "
+                   "(default: 50)")
+    p.add_argument("--repeats", type=int, default=None, help="repeats with other seeds (default: 1)")
+    common.add_scenarios(p, help="seed scenarios: names or YAML paths (default: the seven seeds)")
     p.add_argument("--held-out", type=int, default=None, dest="held_out",
-                   help="held-out generated scenarios (default 10)")
-    p.add_argument("--variants", type=int, default=None, help="held-out perturbed variants per seed scenario")
-    p.add_argument("--placements", default=None, help="comma-separated placement rules, of closest,uniform")
-    p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl'")
-    p.add_argument("--deterministic", action="store_true", default=None, help="greedy RL actions")
-    p.add_argument("--workers", type=int, default=None, help="parallel worker processes (default 2)")
-    p.add_argument("--seed", type=int, default=None)
+                   help="held-out generated scenarios (default: 10)")
+    p.add_argument("--variants", type=int, default=None, help="held-out perturbed variants per seed scenario "
+                   "(default: 0)")
+    p.add_argument("--placements", nargs="+", action=common.ListAction, default=None, metavar="RULE",
+                   help="placement rules, of closest, uniform (default: both)")
+    p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl' (default: none)")
+    p.add_argument("--deterministic", action="store_true", default=None, help="greedy RL actions (default: off)")
+    p.add_argument("--workers", type=common.positive_int, default=None, metavar="N",
+                   help=f"parallel worker processes (default: the config's, else the CPUs, {common.cpus()} here)")
+    common.add_seed(p, None, "seed of the methods' randomness (default: the config's, else 0)")
     p.add_argument("--log-failures", action="store_true", default=None,
-                   help="keep MCAP logs of failing scenarios and extract tests from them")
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--no-progress", action="store_true")
+                   help="keep MCAP logs of failing scenarios and extract tests from them (default: off)")
+    common.add_out(p, common.RUNS / "evaluate")
+    common.add_render(p)
+    common.add_output_flags(p)
     add_backend_arguments(p)
-    return p.parse_args(argv)
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    args = build_parser().parse_args(argv)
+    args.out = Path(args.out)
+    return args
 
 
 def load_eval_config(args: argparse.Namespace) -> EvalConfig:
@@ -110,7 +128,8 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
             data[key] = getattr(args, key)
     for key in ("methods", "scenarios", "placements"):
         if getattr(args, key) is not None:
-            data[key] = [s.strip() for s in getattr(args, key).split(",") if s.strip()]
+            data[key] = common.split_list(getattr(args, key))
+    data.setdefault("workers", common.cpus())
     cfg = validate(EvalConfig, data, name)
     bad = [m for m in cfg.methods if m not in METHODS]
     if bad:
@@ -271,12 +290,12 @@ def worker_preload(methods: list[str]) -> tuple[str, ...]:
 # -- main -----------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    con = common.console(args)
     try:
         cfg = load_eval_config(args)
         backend = backend_from_args(args, cfg.workers)
     except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return common.cli_error(str(err))
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     seeds = list(cfg.scenarios)
@@ -287,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
         from deft_gym.scenarios.generate import disjoint, parse_spec
         from deft_gym.search.context import robust_generated
 
-        print(f"choosing {cfg.held_out} robust held-out generated scenario(s) ...", flush=True)
+        con.print(f"choosing {cfg.held_out} robust held-out generated scenario(s) ...")
         held_out += robust_generated(cfg.held_out, GEN_BASE)
         trained = [parse_spec(s) for s in env.get("scenarios", []) if isinstance(s, str)]
         try:
@@ -298,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
     if cfg.variants:
         from deft_gym.search.context import held_out_variants
 
-        print(f"choosing {cfg.variants} robust held-out variant(s) per seed ...", flush=True)
+        con.print(f"choosing {cfg.variants} robust held-out variant(s) per seed ...")
         for s in seeds:
             held_out += held_out_variants(s, cfg.variants, HELD_OUT_BASE) if "~v" not in s else []
     env["max_added"] = env.get("max_added", cfg.max_added)
@@ -313,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
         stale = sum(1 for r in records if r.get("code") != code)
         records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code and r["scenario"] in names]
         if stale:
-            print(f"{stale} earlier record(s) ran other simulation code: simulating them again")
+            con.print(f"{stale} earlier record(s) ran other simulation code: simulating them again")
         for r in records:
             done[(r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"])] += 1
     jobs = []
@@ -335,12 +354,10 @@ def main(argv: list[str] | None = None) -> int:
     # rewrite the journal without partial jobs, then append as jobs finish
     write_atomic(rec_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
     total = sum(j["budget"] for j in jobs)
-    print(f"{len(jobs)} jobs, {total} simulated scenarios, {backend.describe()} -> {out}")
+    con.print(f"{len(jobs)} jobs, {total} simulated scenarios, {backend.describe()} -> {out}")
     t0 = time.time()
     if jobs:
-        from tqdm import tqdm
-
-        bar = tqdm(total=total, unit="scn", disable=args.no_progress, smoothing=0.05)
+        bar = common.Bar(total, "simulated scenarios", common.show_progress(args))
         with Executor(backend, initializer=init_pool_worker, initargs=(cfg.workers,),
                       preload=worker_preload(cfg.methods), run_dir=out) as ex:
             # in job order, whatever order they finish in: the same records on every backend
@@ -359,10 +376,17 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     summary["wall_seconds"] = round(time.time() - t0, 1)
     write_report(records, summary, out)
-    print(headline_markdown(summary))
-    print(targets_markdown(summary["targets"]))
-    print(f"report: {out / 'table.md'}, {out / 'summary.json'}, {out / 'cumulative_failures.png'}, "
-          f"{out / 'per_scenario.png'}")
+    if args.render != "none":  # pictures of the failing scenarios whose logs were kept
+        from deft_gym.viz.episode import render_failures
+
+        with common.bar(args, None, "pictures of failures") as b:
+            render_failures(out / "logs", progress=lambda done, n: b.set(done, n))
+    con.print(headline_markdown(summary), markup=False)
+    con.print(targets_markdown(summary["targets"]), markup=False)
+    con.print(f"tables and plots: {out / 'table.md'}, {out / 'cumulative_failures.png'}; "
+              f"report: deft-gym report {out}", soft_wrap=True)
+    if args.quiet:
+        print(f"evaluation: {out / 'summary.json'}")
     return 0
 
 

@@ -42,14 +42,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from agents.extract_report import write_report
 from agents.record import ads_overrides
 from deft_gym.bus.ads import load_ads_config
+from deft_gym.cli import common
 from deft_gym.config import ConfigError
-from deft_gym.execution import Backend, Executor, Record, add_backend_arguments, backend_from_args
+from deft_gym.execution import Backend, Executor, Record, backend_from_args
 from deft_gym.files import write_atomic
 from deft_gym.planner.trajectory import lsed
 from deft_gym.record.recorder import init_pool_worker
@@ -63,7 +62,6 @@ from deft_gym.scenarios.variants import inject_cut_in, perturb
 from deft_gym.sim.simulation import Simulation, reference_path
 from extract.batch import extract_directory
 from extract.runtime import load_frames, make_planner, replay
-from extract.search import MODES
 from extract.validator import distance
 
 RQ1_THETAS = (0.0, 0.1, 0.23, 1.62, 6.99, 17.15)
@@ -166,10 +164,29 @@ def _rerun_job(args: tuple[str, dict[str, Any], int, int, str, str | None]) -> d
 
 
 # -- the evaluation ------------------------------------------------------------------------------
+class _NoProgress:
+    """What ``--no-progress`` gets in place of a rich Progress."""
+
+    def __enter__(self) -> _NoProgress:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        return None
+
+    def add_task(self, *a: Any, **k: Any) -> int:
+        return 0
+
+    def advance(self, *a: Any, **k: Any) -> None:
+        return None
+
+    def update(self, *a: Any, **k: Any) -> None:
+        return None
+
+
 class Evaluation:
     """All phases; each skips what its records already hold."""
 
-    def __init__(self, args: argparse.Namespace, console: Console, executor: Executor | None = None) -> None:
+    def __init__(self, args: argparse.Namespace, console: Any, executor: Executor | None = None) -> None:
         self.args, self.console = args, console
         self.out = Path(args.out).resolve()
         self.out.mkdir(parents=True, exist_ok=True)
@@ -181,9 +198,8 @@ class Evaluation:
         self.ex = executor or Executor(Backend("local", args.workers), initializer=init_pool_worker,
                                        initargs=(args.workers,), run_dir=self.out)
 
-    def progress(self) -> Progress:
-        cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
-        return Progress(*cols, console=self.console, transient=True)
+    def progress(self) -> Any:
+        return common.rich_progress(self.console) if common.show_progress(self.args) else _NoProgress()
 
     def _pool_map(self, fn: Callable[[Any], dict[str, Any]], jobs: list[Any], desc: str,
                   sink: Callable[[dict[str, Any]], None], **files: Any) -> None:
@@ -224,7 +240,7 @@ class Evaluation:
             with self.progress() as prog:
                 task = prog.add_task(f"extract ({mode})", total=len(self.s0.rows))
 
-                def tick(_: Any, prog: Progress = prog, task: Any = task) -> None:
+                def tick(_: Any, prog: Any = prog, task: Any = task) -> None:
                     prog.advance(task)
 
                 extract_directory(self.out / "runs", self.out / "deft" / mode, mode=mode, workers=self.args.workers,
@@ -334,35 +350,16 @@ def _git_state() -> dict[str, Any]:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m agents.extract_eval", description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog="\n\n".join(__doc__.split("\n\n")[1:3]))
-    ap.add_argument("--scenarios", nargs="*", default=None,
-                    help="seed scenarios (default: all in configs/scenarios except bench_*)")
-    ap.add_argument("--variants", type=int, default=1, help="perturbed variants per seed (default 1)")
-    ap.add_argument("--cut-ins", type=int, default=8, help="cut-in variants per seed (default 8)")
-    ap.add_argument("--extra-cut-ins", type=int, default=0,
-                    help="further cut-ins per seed that join only when their S0 collides (default 0)")
-    ap.add_argument("--reruns", type=int, default=10, help="system runs per scenario incl. S0 (default 10)")
-    ap.add_argument("--test-runs", type=int, default=10, help="executions of the generated tests (default 10)")
-    ap.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES), help="input-search modes")
-    ap.add_argument("--jitter-seed", type=int, default=1000, help="S_k uses jitter seed S+k (default 1000)")
-    ap.add_argument("--workers", type=int, default=2, help="parallel processes for S0, extraction, reruns (default 2)")
-    ap.add_argument("--out", default="runs/extract/eval", help="output folder (default runs/extract/eval)")
-    add_backend_arguments(ap)
-    ap.add_argument("--report-only", action="store_true", help="re-render report.md, results.json and plots "
-                    "from the records of OUT")
-    ap.add_argument("--no-pin-planner", dest="pin_planner", action="store_false",
-                    help="use the planner module in place instead of a copy pinned at the start")
-    args = ap.parse_args(argv)
-    if args.reruns < 2:
-        ap.error("--reruns must be at least 2 (S0 and one rerun)")
-    return args
+    from agents.extract_eval_args import parse_args as parse
+
+    return parse(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    console = Console(width=None if sys.stdout.isatty() else 120, highlight=False)
+    console = common.console(args)
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    write_atomic(Path(args.out) / "options.json", json.dumps({"jitter_seed": args.jitter_seed}))
     seeds = args.scenarios or [str(p) for p in list_scenarios() if not p.name.startswith("bench")]
     t0 = time.perf_counter()
     ev = Evaluation(args, console)  # pins the planner first: Ray's workers import it from there
@@ -375,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args, console, ev, seeds, t0)
 
 
-def _run(args: argparse.Namespace, console: Console, ev: Evaluation, seeds: list[str], t0: float) -> int:
+def _run(args: argparse.Namespace, console: Any, ev: Evaluation, seeds: list[str], t0: float) -> int:
     if args.report_only:
         previous = ev.out / "results.json"
         old = json.loads(previous.read_text()) if previous.exists() else {}

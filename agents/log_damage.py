@@ -25,7 +25,6 @@ Damage kinds: ``record_type`` (the chunk's type byte flipped to an unknown type)
 
 from __future__ import annotations
 
-import argparse
 import json
 import struct
 import sys
@@ -35,9 +34,10 @@ from pathlib import Path
 from typing import Any
 
 from rich import box
-from rich.console import Console
 from rich.table import Table
 
+from deft_gym.bus.messages import log_start_ns
+from deft_gym.cli import common
 from deft_gym.files import write_atomic
 from extract.logs import chunk_head, read_summary, walk_records
 from extract.verify import verify
@@ -107,6 +107,7 @@ def evaluate(path: Path, chunks_at: tuple[str, ...] = ("first", "middle", "last"
     if not base.integrity.intact:
         raise ValueError(f"{path}: not intact to begin with ({base.status})")
     everything = _messages(base)
+    t0 = log_start_ns(base.episode_meta())  # the reader gives sim times; the file holds epoch times
     topic_of = {cid: t for cid, t in read_summary(buf)[0].channels.items()}
     picks = {"first": 0, "middle": len(table) // 2, "last": len(table) - 1}
     rows = []
@@ -114,8 +115,9 @@ def evaluate(path: Path, chunks_at: tuple[str, ...] = ("first", "middle", "last"
         for where in chunks_at:
             k = picks[where]
             ch = table[k]
-            in_chunk = {(topic_of[c], s, lt) for c, s, lt, _, _ in ch["messages"]}
-            after = {(topic_of[c], s, lt) for later in table[k + 1:] for c, s, lt, _, _ in later["messages"]}
+            in_chunk = {(topic_of[c], s, lt - t0) for c, s, lt, _, _ in ch["messages"]}
+            after = {(topic_of[c], s, lt - t0) for later in table[k + 1:] for c, s, lt, _, _ in later["messages"]}
+            ch_start, ch_end = ch["start"] - t0, ch["end"] - t0
             for kind in KINDS:
                 bad = Path(tmp) / f"{kind}_{where}.mcap"
                 bad.write_bytes(damage(buf, kind, ch))
@@ -129,11 +131,11 @@ def evaluate(path: Path, chunks_at: tuple[str, ...] = ("first", "middle", "last"
                     intact = everything  # the chunk's content is unhurt
                 dmg = log.integrity.damage
                 here = [d for d in dmg if d.offset == ch["offset"]]
-                timed = any(d.start_ns == ch["start"] and (d.end_ns in (ch["end"], None)) for d in here)
+                timed = any(d.start_ns == ch_start and (d.end_ns in (ch_end, None)) for d in here)
                 lost_true = Counter(t for t, _, _ in everything - got)
                 reported = {t: n for t, n in log.integrity.lost().items() if n}
                 if kind == "truncation":
-                    stated = any(d.kind == "truncated" and d.start_ns == ch["start"] for d in dmg)
+                    stated = any(d.kind == "truncated" and d.start_ns == ch_start for d in dmg)
                 else:
                     stated = reported == dict(lost_true)
                 rows.append({"log": str(path), "chunk": where, "chunk_offset": ch["offset"], "kind": kind,
@@ -155,18 +157,17 @@ def _record(n: int, out: Path) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m agents.log_damage", description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = common.parser("log-damage", "agents.log_damage", __doc__)
     ap.add_argument("logs", nargs="*", metavar="LOG", help="intact MCAP logs to damage (copies; never changed)")
     ap.add_argument("--record", type=int, default=0, metavar="N", help="first record N seed-scenario logs into OUT")
-    ap.add_argument("--out", default="runs/log_damage", help="output folder (default runs/log_damage)")
+    common.add_out(ap, common.RUNS / "log_damage")
+    common.add_output_flags(ap)
     args = ap.parse_args(argv)
     out = Path(args.out)
-    console = Console(highlight=False, width=max(Console().width, 110))
+    console = common.console(args, width=110)
     logs = [Path(p) for p in args.logs] + (_record(args.record, out) if args.record else [])
     if not logs:
-        print("error: no logs: name some or pass --record N", file=sys.stderr)
-        return 2
+        return common.cli_error("LOG: no logs: name some or pass --record N")
     rows = []
     try:
         for p in logs:

@@ -23,7 +23,6 @@ An edit whose text no longer occurs in the planner is reported as not applicable
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import json
 import math
@@ -36,9 +35,9 @@ from pathlib import Path
 from typing import Any
 
 from rich import box
-from rich.console import Console
 from rich.table import Table
 
+from deft_gym.cli import common
 from deft_gym.files import write_atomic
 
 SCENARIOS = ("left_turn", "take_exit", "blocked_red_light", "lane_follow_static", "u_turn")
@@ -200,15 +199,17 @@ def caught(cls_path: str, pinned: Path, dirs: list[Path]) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m agents.planner_edits", description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="runs/planner_edits", help="output folder (default runs/planner_edits)")
-    ap.add_argument("--scenarios", nargs="*", default=list(SCENARIOS), help="seed scenarios of the episodes")
-    ap.add_argument("--duration", type=float, default=12.0, help="episode length [s] (default 12)")
-    ap.add_argument("--jitter-seed", type=int, default=3, help="jitter seed of the episodes (default 3)")
+    ap = common.parser("planner-edits", "agents.planner_edits", __doc__)
+    common.add_out(ap, common.RUNS / "planner_edits")
+    common.add_scenarios(ap, default=SCENARIOS, help="seed scenarios of the episodes")
+    ap.add_argument("--duration", type=float, default=12.0, help="episode length [s]")
+    common.add_jitter_seed(ap, "jitter seed of every episode")
     ap.add_argument("--edits", nargs="*", default=None, help="names of the edits to run (default: all)")
+    common.add_output_flags(ap)
     args = ap.parse_args(argv)
-    console = Console(highlight=False, width=max(Console().width, 140))
+    if args.jitter_seed is None:
+        args.jitter_seed = common.fresh_seed()
+    console = common.console(args, width=140)
     out = Path(args.out).resolve()
     edits = tuple(e for e in EDITS if args.edits is None or e.name in args.edits)
     if args.edits and len(edits) != len(set(args.edits)):

@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats as sps
 
 METHOD_ORDER = ("rl", "decictor", "random_delta", "random", "random_online")
 METHOD_LABELS = {"rl": "RL", "decictor": "Decictor-GA", "random_delta": "Random-delta", "random": "Random",
@@ -184,6 +183,8 @@ def mann_whitney(x: Sequence[float], y: Sequence[float]) -> dict[str, float | No
     hold at least two values."""
     if len(x) < 2 or len(y) < 2:
         return {"u": None, "p": None, "a12": None}
+    from scipy import stats as sps  # here: importing scipy.stats takes 0.5 s (eval-report --help)
+
     res = sps.mannwhitneyu(x, y, alternative="two-sided")
     u = float(res.statistic)
     p = float(res.pvalue)
@@ -409,6 +410,8 @@ def cumulative_curves(records: Iterable[dict[str, Any]], summary: dict[str, Any]
                 mean = arr.mean(axis=0)
                 lo = hi = None
                 if len(curves) >= 2:
+                    from scipy import stats as sps
+
                     half = sps.t.ppf(0.5 + confidence / 2, len(curves) - 1) * arr.std(axis=0, ddof=1) / math.sqrt(len(curves))
                     lo, hi = np.maximum(mean - half, 0.0).tolist(), (mean + half).tolist()
                 out.setdefault(p, {}).setdefault(g, {})[m] = {"x": x.tolist(), "mean": mean.tolist(), "lo": lo,

@@ -1,6 +1,6 @@
 """ASTAA-style robustness testing of the ADS on DeFT-Gym's bus.
 
-    python -m agents.stress --scenario left_turn --budget 200 --out runs/stress/left_turn
+    deft-gym stress --scenarios left_turn --budget 200 --out runs/stress/left_turn
     python -m agents.stress replay runs/stress/left_turn/minimised/<finding>.json
     python -m agents.stress check runs/stress/left_turn/minimised/<finding>/episode.mcap
     python -m agents.stress spec
@@ -17,21 +17,21 @@ deft_gym/robustness/__init__.py for the parts.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
 from typing import Any
 
 from rich import box
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from deft_gym.cli import common
 from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, load_mapping
 from deft_gym.execution import add_backend_arguments, backend_from_args
 
 SUBCOMMANDS = ("replay", "check", "spec", "compare", "subsystem")
-console = Console(stderr=True, width=None if sys.stderr.isatty() else 160)
+console = common.console(stderr=True, width=160)
 
 
 def _scenario_path(name: str) -> str:
@@ -45,26 +45,26 @@ def _scenario_path(name: str) -> str:
 
 
 def campaign_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="python -m agents.stress",
-        description="ASTAA robustness campaign: intercept live bus messages with exceptional values, "
-                    "monitor crashes, hangs and safety invariants, minimise findings.",
+    ap = common.parser(
+        "stress", "agents.stress",
+        "ASTAA robustness campaign: intercept live bus messages with exceptional values, "
+        "monitor crashes, hangs and safety invariants, minimise findings.",
         epilog="other commands: replay CASE.json|DIR, check LOG.mcap, spec, compare DIR DIR, "
                "subsystem FRAMES.jsonl (each with --help)")
-    ap.add_argument("--scenario", nargs="+", default=None,
-                    help="scenario YAML(s) or names in configs/scenarios (default: the campaign config's list)")
-    ap.add_argument("--budget", type=int, default=100, help="number of tests (default 100)")
-    ap.add_argument("--out", required=True, help="campaign folder (resumed if it exists)")
-    ap.add_argument("--config", default=None, help="campaign config YAML (default configs/stress/default.yaml)")
-    ap.add_argument("--seed", type=int, default=0, help="campaign seed: tests and jitter seeds (default 0)")
-    ap.add_argument("--ads-config", default=None, help="ADS config YAML (default configs/ads/default.yaml)")
+    common.add_scenarios(ap, flags=("--scenarios", "--scenario"),
+                         help="scenario YAMLs or names in configs/scenarios (default: the campaign config's list)")
+    ap.add_argument("--budget", type=common.positive_int, default=100, help="number of tests")
+    common.add_out(ap, common.RUNS / "stress" / "campaign", help="campaign folder (resumed if it exists)")
+    ap.add_argument("--config", default=None, help="campaign config YAML (default: configs/stress/default.yaml)")
+    common.add_seed(ap, 0, "campaign seed: the tests and their jitter seeds")
+    ap.add_argument("--ads-config", default=None, help="ADS config YAML (default: configs/ads/default.yaml)")
     ap.add_argument("--ads-overlay", action="append", default=[],
                     help="YAML merged over the ADS config, e.g. configs/ads/faults/nan_speed.yaml (repeatable)")
     ap.add_argument("--hardening", choices=("off", "on"), default="off",
                     help="wrap prediction/planning/control in sanitisation + consistency checks")
     ap.add_argument("--brittle", action="store_true", help="also inject into brittle fields (stamps, seq numbers)")
     ap.add_argument("--invariants", default=None, help="invariants YAML (default configs/invariants/default.yaml)")
-    ap.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
+    common.add_workers(ap)
     add_backend_arguments(ap)
     ap.add_argument("--minimise", choices=("all", "planted", "none"), default="all",
                     help="minimise every distinct finding (default), only planted-fault findings, or none")
@@ -72,19 +72,18 @@ def campaign_parser() -> argparse.ArgumentParser:
                     help="with planted faults: stop the tests once every planted fault was found")
     ap.add_argument("--max-replays", type=int, default=None, help="replays per minimisation")
     ap.add_argument("--max-signatures", type=int, default=None, help="distinct findings to minimise")
+    common.add_render(ap)
+    common.add_output_flags(ap)
     return ap
 
 
 def run_campaign_cli(argv: list[str]) -> int:
+    args = campaign_parser().parse_args(argv)  # before the simulation is imported: a fast --help
     from deft_gym.robustness.campaign import Campaign, load_campaign_config, run_campaign
 
-    args = campaign_parser().parse_args(argv)
-    if args.budget < 1:
-        console.print("[red]--budget must be at least 1")
-        return 2
     overrides: dict[str, Any] = {}
-    if args.scenario:
-        overrides["scenarios"] = [_scenario_path(s) for s in args.scenario]
+    if args.scenarios:
+        overrides["scenarios"] = [_scenario_path(s) for s in args.scenarios]
     if args.brittle:
         overrides["generation"] = {"brittle": True}
     if args.invariants:
@@ -103,22 +102,36 @@ def run_campaign_cli(argv: list[str]) -> int:
     build_ads(campaign.base_case(cfg.scenarios[0], 0, "check"))
     backend = backend_from_args(args, args.workers)
     out = Path(args.out)
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TextColumn("{task.fields[info]}"), console=console) as prog:
-        tasks: dict[str, Any] = {}
+    bars: dict[str, common.Bar] = {}
 
-        def report(stage: str, done: int, total: int, counts: dict[str, Any]) -> None:
-            if stage not in tasks:
-                tasks[stage] = prog.add_task(stage, total=total or None, info="")
-            info = ""
-            if counts:
-                info = (f"crashes {counts['crashes']}  hangs {counts['hangs']}  "
-                        f"violations {counts['violations']}  harness errors {counts['harness_errors']}")
-            prog.update(tasks[stage], completed=done, total=total or None, info=info)
+    def report(stage: str, done: int, total: int, counts: dict[str, Any]) -> None:
+        if stage not in bars:
+            for b in bars.values():  # one stage at a time
+                b.close()
+            bars[stage] = common.Bar(total or None, stage, common.show_progress(args), console, info=True)
+        info = ""
+        if counts:
+            info = (f"crashes {counts['crashes']}  hangs {counts['hangs']}  "
+                    f"violations {counts['violations']}  harness errors {counts['harness_errors']}")
+        bars[stage].set(done, total or None, info)
 
+    try:
         summary = run_campaign(campaign, out, args.budget, args.workers, args.minimise, report, args.until_found,
                                backend)
-    print_summary(summary, out)
+    finally:
+        for b in bars.values():
+            b.close()
+    if args.render != "none":  # pictures of the minimised findings' test logs
+        from deft_gym.viz.episode import picture_paths, render_log
+
+        for log in sorted((out / "minimised").rglob("*.mcap")):
+            if not picture_paths(log)[0].exists():
+                with contextlib.suppress(ValueError):
+                    render_log(log)
+    if args.quiet:
+        print(f"campaign: {out / 'summary.json'}")
+    else:
+        print_summary(summary, out)
     return 0
 
 
@@ -162,13 +175,13 @@ def print_summary(s: dict[str, Any], out: Path) -> None:
 
 
 def replay_cli(argv: list[str]) -> int:
-    from deft_gym.robustness.campaign import replay
-
-    ap = argparse.ArgumentParser(prog="python -m agents.stress replay",
-                                 description="Replay test case files and check they reproduce their finding.")
+    ap = common.parser("stress replay", "agents.stress replay",
+                       "Replay test case files and check they reproduce their finding.")
     ap.add_argument("cases", nargs="+", help="case JSON files, or campaign folders (all cases/ and minimised/)")
     ap.add_argument("--log", default=None, help="write the test log (MCAP) of a single case to this folder")
     args = ap.parse_args(argv)
+    from deft_gym.robustness.campaign import replay
+
     files: list[Path] = []
     for c in args.cases:
         p = Path(c)
@@ -197,14 +210,14 @@ def replay_cli(argv: list[str]) -> int:
 
 
 def check_cli(argv: list[str]) -> int:
-    from deft_gym.robustness.offline import check_log
-
-    ap = argparse.ArgumentParser(prog="python -m agents.stress check",
-                                 description="Evaluate the safety invariants offline on an episode log (MCAP).")
+    ap = common.parser("stress check", "agents.stress check",
+                       "Evaluate the safety invariants offline on an episode log (MCAP).")
     ap.add_argument("log", help="episode.mcap")
     ap.add_argument("--invariants", default=None, help="invariants YAML (default configs/invariants/default.yaml)")
     ap.add_argument("--json", action="store_true", help="print the violations as JSON")
     args = ap.parse_args(argv)
+    from deft_gym.robustness.offline import check_log
+
     violations = check_log(args.log, args.invariants)
     if args.json:
         print(json.dumps([v.as_dict() for v in violations], indent=1, allow_nan=True))
@@ -219,13 +232,13 @@ def check_cli(argv: list[str]) -> int:
 
 
 def spec_cli(argv: list[str]) -> int:
+    ap = common.parser("stress spec", "agents.stress spec",
+                       "Print the test specification derived from the message schemas.")
+    ap.add_argument("--json", action="store_true", help="as JSON")
+    args = ap.parse_args(argv)
     from deft_gym.robustness.dictionary import candidates
     from deft_gym.robustness.spec import TestSpecification
 
-    ap = argparse.ArgumentParser(prog="python -m agents.stress spec",
-                                 description="Print the test specification derived from the message schemas.")
-    ap.add_argument("--json", action="store_true", help="as JSON")
-    args = ap.parse_args(argv)
     spec = TestSpecification.from_schemas()
     if args.json:
         print(json.dumps({"topics": spec.topics, "message_types": spec.message_types,
@@ -242,8 +255,8 @@ def spec_cli(argv: list[str]) -> int:
 
 
 def compare_cli(argv: list[str]) -> int:
-    ap = argparse.ArgumentParser(prog="python -m agents.stress compare",
-                                 description="Compare campaign summaries (e.g. hardening off vs on).")
+    ap = common.parser("stress compare", "agents.stress compare",
+                       "Compare campaign summaries (e.g. hardening off vs on).")
     ap.add_argument("dirs", nargs="+", help="campaign folders")
     args = ap.parse_args(argv)
     sums = [json.loads((Path(d) / "summary.json").read_text()) for d in args.dirs]
@@ -261,9 +274,29 @@ def compare_cli(argv: list[str]) -> int:
 
 
 def subsystem_cli(argv: list[str]) -> int:
-    from deft_gym.robustness import subsystem
+    ap = common.parser("stress subsystem", "agents.stress subsystem",
+                       "Subsystem replay testing: the dictionary applied to DeFT-extracted planning frames, the "
+                       "planner alone; findings become pytest tests.")
+    ap.add_argument("frames", help="frames.jsonl written by the extractor (deft-gym extract)")
+    common.add_out(ap, common.RUNS / "stress" / "subsystem",
+                   help="output folder (frames copy, cases.json, test module, summary)")
+    ap.add_argument("--budget", type=int, default=300, help="number of tests")
+    common.add_seed(ap)
+    ap.add_argument("--turnover", type=int, default=5, help="unmodified frames planned after the mutated one")
+    ap.add_argument("--invariants", default=None, help="invariants YAML (its `on: planning` ones are used)")
+    ap.add_argument("--hardening", choices=("off", "on"), default="off",
+                    help="sanitise the planner's inputs as the hardened planning node does")
+    common.add_output_flags(ap)
+    args = ap.parse_args(argv)  # before the planner is imported: a fast --help
+    from deft_gym.robustness.subsystem import run_subsystem
 
-    return subsystem.main(argv)
+    s = run_subsystem(args.frames, args.out, args.budget, args.seed, args.invariants, args.turnover,
+                      args.hardening == "on")
+    if not args.quiet:
+        print(", ".join(f"{k.replace('_', ' ')} {sum(s[k].values()) if isinstance(s[k], dict) else s[k]}"
+                        for k in ("tests", "crashes", "hangs", "violations", "harness_errors")))
+    print(f"{len(s['minimised'])} distinct findings -> {args.out}/test_robustness_*.py (pytest {args.out})")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -275,8 +308,7 @@ def main(argv: list[str] | None = None) -> int:
             return cmd(argv[1:])
         return run_campaign_cli(argv)
     except ConfigError as exc:
-        console.print(f"[red]error:[/] {exc}")
-        return 2
+        return common.cli_error(str(exc))
     except KeyboardInterrupt:
         console.print("interrupted: run the same command again to resume")
         return 130

@@ -1,6 +1,6 @@
 """Train the RL adversary on ``deft_gym/Adversary-v0`` with stable-baselines3.
 
-    python -m agents.train --config configs/train/adversary.yaml [--timesteps N] [--out runs/adversary/x]
+    deft-gym train --config configs/train/adversary.yaml [--timesteps N] [--out runs/adversary/x]
     python -m agents.train --config ... --resume runs/adversary/x/checkpoints/ppo_20000_steps.zip
     python -m agents.train --config ... --ray [--ray-address ADDR]   # envs as Ray actors
 
@@ -15,7 +15,6 @@ and ``summary.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import signal
 import sys
@@ -27,25 +26,33 @@ from typing import Any
 import yaml
 
 from agents.config import ALGOS, TrainConfig, load_train_config
+from deft_gym.cli import common
 from deft_gym.config import ConfigError
 from deft_gym.execution import Backend, add_backend_arguments, backend_from_args
 from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
 from deft_gym.record.recorder import init_pool_worker
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m agents.train", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--config", type=Path, default=None, help="training YAML (configs/train/*.yaml)")
-    p.add_argument("--timesteps", type=int, default=None, help="env steps to train (overrides the config)")
-    p.add_argument("--out", type=Path, default=None, help="run folder (default runs/adversary/<name>)")
+def build_parser() -> common.Parser:
+    p = common.parser("train", "agents.train", __doc__)
+    p.add_argument("--config", type=Path, default=None, help="training YAML (configs/train/*.yaml; default: "
+                   "the built-in defaults)")
+    p.add_argument("--timesteps", type=int, default=None, help="env steps to train (default: the config's)")
+    common.add_out(p, None, help="run folder (default: runs/adversary/<config name>)")
     p.add_argument("--resume", type=Path, default=None, help="checkpoint .zip to continue from")
-    p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: config, 2)")
-    p.add_argument("--algo", choices=ALGOS, default=None)
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    common.add_seed(p, None, "seed of the learner and the envs (default: the config's)")
+    p.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: the config's)")
+    p.add_argument("--algo", choices=ALGOS, default=None, help="algorithm (default: the config's)")
+    common.add_render(p)
+    common.add_output_flags(p)
     add_backend_arguments(p)  # --ray: the envs as Ray actors (deft_gym.execution.vec_env), PPO unchanged
-    return p.parse_args(argv)
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    args = build_parser().parse_args(argv)
+    args.out = Path(args.out) if args.out else None
+    return args
 
 
 # -- environments --------------------------------------------------------------------------------
@@ -237,16 +244,16 @@ def main(argv: list[str] | None = None) -> int:
                                               "n_envs": args.n_envs, "algo": args.algo})
         backend = backend_from_args(args, cfg.n_envs)
     except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return common.cli_error(str(err))
+    con = common.console(args)
     if cfg.generated:
         from deft_gym.search.context import robust_generated
 
-        print(f"choosing {cfg.generated} robust generated training scenario(s) ...", flush=True)
+        con.print(f"choosing {cfg.generated} robust generated training scenario(s) ...")
         names = robust_generated(cfg.generated, 0)
         cfg = cfg.model_copy(update={"env": cfg.env.model_copy(update={"scenarios": list(cfg.env.scenarios) + names}),
                                      "generated": 0})
-        print(f"training on {len(cfg.env.scenarios)} scenarios ({len(names)} generated)", flush=True)
+        con.print(f"training on {len(cfg.env.scenarios)} scenarios ({len(names)} generated)")
     out = args.out or Path("runs/adversary") / cfg.name
     step0 = 0
     if args.resume is not None:
@@ -276,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     vec_env = make_vec_env(cfg, out, backend, step0)
     if args.resume is not None:
         model = algo_cls.load(args.resume, env=vec_env, tensorboard_log=str(out / "tb"), device="cpu")
-        print(f"resumed from {args.resume} at {model.num_timesteps} steps")
+        con.print(f"resumed from {args.resume} at {model.num_timesteps} steps")
     else:
         model = algo_cls(cfg.policy, vec_env, seed=cfg.seed, tensorboard_log=str(out / "tb"), device="cpu",
                          policy_kwargs=cfg.policy_kwargs, verbose=0, **cfg.algo_kwargs)
@@ -292,7 +299,9 @@ def main(argv: list[str] | None = None) -> int:
     episodes0 = summarize_run(out)["episodes"]  # a resumed run's earlier episodes
     interrupted = False
     try:
-        model.learn(total_timesteps=remaining, callback=callbacks, progress_bar=not args.no_progress,
+        if common.show_progress(args):
+            callbacks.callbacks.append(progress_callback(remaining))
+        model.learn(total_timesteps=remaining, callback=callbacks, progress_bar=False,
                     reset_num_timesteps=args.resume is None, tb_log_name=cfg.algo)
     except KeyboardInterrupt:
         interrupted = True
@@ -311,9 +320,61 @@ def main(argv: list[str] | None = None) -> int:
                     "cpu_seconds": round(stats.cpu_seconds(), 1),
                     "scenarios_per_cpu_hour": round(stats.counts["episodes"] / max(stats.cpu_seconds(), 1e-9) * 3600, 1)})
     write_json_atomic(out / "summary.json", summary)
-    print(json.dumps({k: v for k, v in summary.items() if k not in ("per_scenario", "extracted_tests")}, indent=1))
-    print(f"model: {out / 'model.zip'}")
+    pictures = render_failures(out, args) if args.render != "none" else []
+    print_summary(con, summary, out, len(pictures))
+    if args.quiet:
+        print(f"model: {out / 'model.zip'}")
     return 0
+
+
+def progress_callback(total: int) -> Any:
+    """The training progress bar (:class:`deft_gym.cli.common.Bar`, env steps)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Progress(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.bar = common.Bar(total, "training (env steps)")
+            self.start = self.num_timesteps
+
+        def _on_step(self) -> bool:
+            self.bar.set(self.num_timesteps - self.start)
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return Progress()
+
+
+def render_failures(out: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Plot and video of every failing episode kept in the run folder (``--render``)."""
+    from deft_gym.viz.episode import render_failures as draw
+
+    with common.bar(args, None, "pictures of failures") as bar:
+        return draw(out / "episodes", progress=lambda done, total: bar.set(done, total))
+
+
+def print_summary(con: Any, s: dict[str, Any], out: Path, pictures: int) -> None:
+    """The run's figures as a table, then where things are."""
+    from rich import box
+    from rich.table import Table
+
+    t = Table(title=f"training run {out}", title_justify="left", box=box.SIMPLE_HEAD, show_header=False)
+    t.add_column("what")
+    t.add_column("value", justify="right")
+    rows = [("env steps", f"{s['timesteps']:,}" + (" (interrupted)" if s.get("interrupted") else "")),
+            ("episodes (simulated scenarios)", f"{s['episodes']:,}"),
+            ("collisions (ego at fault)", str(s["collisions"])), ("non-optimal decisions (NoDS)", str(s["nods"])),
+            ("valid mutations", f"{100 * s['validity']:.1f} %"), ("failure rate", f"{100 * s['failure_rate']:.1f} %"),
+            ("extracted test modules", str(len(s.get("extracted_tests") or []))),
+            ("training time", f"{s['train_seconds']:.0f} s ({s['episodes_per_hour']:.0f} episodes/h)"),
+            ("scenarios per CPU-hour", f"{s['scenarios_per_cpu_hour']:.0f}")]
+    for k, v in rows:
+        t.add_row(k, v)
+    con.print(t)
+    con.print(f"model: {out / 'model.zip'}   curves: tensorboard --logdir {out / 'tb'}   "
+              f"report: deft-gym report {out}" + (f"   pictures of {pictures} failure(s) under {out / 'episodes'}"
+                                                  if pictures else ""), soft_wrap=True)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,42 @@ import yaml
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
 ROOT = Path(__file__).resolve().parent.parent
-CONFIG_DIR = ROOT / "configs"
+
+
+def _config_dir() -> Path:
+    """The configs shipped with the package (``deft_gym/configs``, put there by the build) or,
+    in a source checkout, the repository's ``configs/``."""
+    from importlib.resources import files
+
+    shipped = Path(str(files("deft_gym").joinpath("configs")))
+    return shipped if shipped.is_dir() else ROOT / "configs"
+
+
+CONFIG_DIR = _config_dir()
+
+
+def resolve_config_path(path: str | Path) -> Path:
+    """``path`` as given when it exists or is absolute; a ``configs/...`` path otherwise names a
+    file in :data:`CONFIG_DIR` (so the shipped configs can name each other in an installed
+    package, from any directory)."""
+    p = Path(path)
+    if p.is_absolute() or p.exists():
+        return p
+    if p.parts and p.parts[0] == "configs" and (CONFIG_DIR.joinpath(*p.parts[1:])).exists():
+        return CONFIG_DIR.joinpath(*p.parts[1:])
+    return p
+
+
+def cache_dir() -> Path:
+    """Where cached reference runs go: ``DEFT_GYM_CACHE``, else ``runs/cache`` of a source
+    checkout, else ``~/.cache/deft-gym`` (an installed package never writes beside itself)."""
+    import os
+
+    if os.environ.get("DEFT_GYM_CACHE"):
+        return Path(os.environ["DEFT_GYM_CACHE"])
+    if (ROOT / "pyproject.toml").exists() and (ROOT / "configs").is_dir():
+        return ROOT / "runs" / "cache"
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "deft-gym"
 
 
 class ConfigError(ValueError):
@@ -39,8 +74,9 @@ def format_validation_error(path: Path | str, err: ValidationError) -> str:
 
 
 def load_yaml(path: Path | str) -> Any:
-    """Read a YAML file, turning I/O and syntax errors into :class:`ConfigError`."""
-    path = Path(path)
+    """Read a YAML file (``configs/...`` paths found in the shipped configs too), turning I/O
+    and syntax errors into :class:`ConfigError`."""
+    path = resolve_config_path(path)
     try:
         text = path.read_text()
     except OSError as exc:

@@ -1,10 +1,11 @@
 """Extract deterministic planning-module tests from episode logs (DeFT).
 
-    python -m extract runs/left_turn/0/episode.mcap --out runs/left_turn/0/deft
-    python -m extract runs/left_turn --out runs/left_turn_deft --workers 2
-    pytest runs/left_turn_deft
+    deft-gym extract runs/run/left_turn/0/episode.mcap --out runs/left_turn_0_tests
+    python -m extract runs/run/left_turn --out runs/left_turn_tests --workers 2
+    pytest runs/left_turn_tests
 
-For one log, OUT gets ``frames.jsonl``, ``test_<scenario>.py`` and ``summary.json``; for a folder
+For one log, OUT gets ``frames.jsonl``, ``test_<scenario>_<log id>.py`` and ``summary.json``
+(``deft-gym extract`` adds ``plot.png`` and ``video.mp4`` of a collision, ``--render``); for a folder
 of runs, every log gets its own sub-folder and OUT/summary.json totals them. Exit status: 0 on
 success, 1 when some log of a folder could not be extracted, 2 on bad input.
 """
@@ -17,10 +18,9 @@ from pathlib import Path
 from typing import Any
 
 from rich import box
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from deft_gym.cli import common
 from deft_gym.execution import BackendError, Executor, add_backend_arguments, backend_from_args
 from extract.batch import extract_directory, find_logs
 from extract.episode import ExtractionResult, extract_episode
@@ -32,46 +32,60 @@ from extract.validator import SUMMARY_THETAS, parse_tolerances, theta_key
 MEASURES = ("lsed", "frechet", "hausdorff")
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m extract", description=__doc__.split("\n\n")[0],
-                                 epilog="Generated tests run with plain `pytest OUT`.")
+def build_parser() -> common.Parser:
+    ap = common.parser("extract", "extract", __doc__, epilog="Generated tests run with plain `pytest OUT` "
+                       "(any set of extraction folders: `pytest A B C`).")
     ap.add_argument("log", metavar="LOG_OR_DIR", help="an MCAP episode log, or a folder searched for *.mcap")
-    ap.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    common.add_out(ap, None, help="output folder (default: runs/extract/<log's folder name>)")
     ap.add_argument("--mode", choices=MODES, default="heuristic",
-                    help="input search: heuristic (DeFT TISE, default), last (baseline), headers "
+                    help="input search: heuristic (DeFT TISE), last (baseline), headers "
                          "(inputs named by the output's debug.input_seqs)")
     ap.add_argument("--theta", type=float, default=0.0, metavar="T",
-                    help="reproduction threshold [m] of the generated tests (default 0 = exact)")
-    ap.add_argument("--measure", choices=MEASURES, default="lsed", help="trajectory distance (default lsed)")
+                    help="reproduction threshold [m] of the generated tests (0 = exact)")
+    ap.add_argument("--measure", choices=MEASURES, default="lsed", help="trajectory distance")
     ap.add_argument("--tolerance", action="append", default=[], metavar="FIELD=VALUE",
                     help="tolerance of one output field other than positions, in its unit (v=0.01, heading=1e-6, "
                          "decision=0.5 for the decision's numbers, default=... for unlisted fields); repeatable. "
                          "Default 0: every field equal")
     ap.add_argument("--mapping", metavar="FILE", default=None,
-                    help="topic-role mapping YAML (default configs/mappings/deft_gym.yaml)")
-    ap.add_argument("--workers", type=int, default=1, metavar="N", help="parallel processes for a folder (default 1)")
+                    help="topic-role mapping YAML (default: configs/mappings/deft_gym.yaml)")
+    common.add_workers(ap, "parallel processes for a folder")
     add_backend_arguments(ap)
     ap.add_argument("--no-tests", action="store_true", help="write frames and summary only")
     ap.add_argument("--force", action="store_true", help="redo episodes whose extraction is up to date")
+    ap.add_argument("--xfail-failures", action="store_true",
+                    help="emit each failure oracle as a strict xfail (CI stays green while the failure reproduces "
+                         "and fails once the planner is fixed)")
+    common.add_output_flags(ap)
+    return ap
+
+
+def parse_args(argv: list[str] | None = None, ap: argparse.ArgumentParser | None = None) -> argparse.Namespace:
+    ap = ap or build_parser()
     args = ap.parse_args(argv)
     if args.theta < 0:
         ap.error("--theta must be >= 0")
-    if args.workers < 1:
-        ap.error("--workers must be at least 1")
     try:
         args.tolerances = parse_tolerances(args.tolerance, args.theta).as_dict()
     except ValueError as exc:
-        ap.error(str(exc))
+        ap.error(f"--tolerance: {exc}")
+    if args.out is None:
+        src = Path(args.log)
+        name = (src.parent.name if src.suffix == ".mcap" else src.name) or "log"
+        args.out = str(common.RUNS / "extract" / name)
     return args
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    console = Console(width=None if sys.stdout.isatty() else 130, highlight=False)
+    return run(parse_args(argv))[0]
+
+
+def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
+    """Extract as ``args`` say, print the table; the exit status and the results."""
+    console = common.console(args, width=130)
     kwargs: dict[str, Any] = {"mode": args.mode, "theta": args.theta, "measure": args.measure,
                               "mapping": args.mapping, "emit_tests": not args.no_tests,
-                              "tolerances": args.tolerances}
-    cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
+                              "tolerances": args.tolerances, "xfail_failures": args.xfail_failures}
     try:
         backend = backend_from_args(args, args.workers)
     except BackendError as err:
@@ -83,47 +97,52 @@ def main(argv: list[str] | None = None) -> int:
         logs = find_logs(root)
         if not logs:
             raise LogError(f"{root}: no .mcap logs found")
-        with Progress(*cols, console=console, transient=True) as progress:
-            if root.is_file():
-                task = progress.add_task(root.name, total=None)
-                res = extract_episode(root, args.out, **kwargs,
-                                      on_frame=lambda done, total: progress.update(task, completed=done, total=total))
-                results = [res]
-            else:
-                task = progress.add_task(f"{len(logs)} logs", total=len(logs))
-                with Executor(backend, run_dir=args.out) as ex:
-                    results = extract_directory(root, args.out, workers=args.workers, force=args.force,
-                                                on_episode=lambda _: progress.advance(task), executor=ex, **kwargs)
+        if root.is_file():
+            with common.bar(args, None, f"frames of {root.parent.name or root.name}") as bar:
+                res = extract_episode(root, args.out, **kwargs, on_frame=lambda done, total: bar.set(done, total))
+            results = [res]
+        else:
+            with common.bar(args, len(logs), "logs") as bar, Executor(backend, run_dir=args.out) as ex:
+                results = extract_directory(root, args.out, workers=args.workers, force=args.force,
+                                            on_episode=lambda _: bar.update(), executor=ex, **kwargs)
     except (LogError, MappingError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    console.print(_table(results, args))
+        return common.cli_error(str(err)), []
+    console.print(_table(results, args, root))
     for r in results:
         for w in r.summary.get("warnings", []):
             console.print(f"[yellow]warning:[/yellow] {w}", soft_wrap=True)
         if not r.ok:
             console.print(f"[red]error:[/red] {r.summary['error']}", soft_wrap=True)
     out = Path(args.out)
-    console.print(f"wrote {out / 'summary.json'}" + (f"; run the tests with: pytest {out}" if not args.no_tests else ""))
-    return 0 if all(r.ok for r in results) else 1
+    line = f"wrote {out / 'summary.json'}" + (f"; run the tests with: pytest {out}" if not args.no_tests else "")
+    if args.quiet:
+        print(line)
+    console.print(line, soft_wrap=True)
+    return (0 if all(r.ok for r in results) else 1), results
 
 
-def _table(results: list[ExtractionResult], args: argparse.Namespace) -> Table:
+def _table(results: list[ExtractionResult], args: argparse.Namespace, root: Path) -> Table:
     t = Table(title=f"DeFT extraction: mode {args.mode}, {args.measure}, theta {args.theta:g} m (positions; "
                     f"'all fields': every field within tolerance at theta)",
               title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1))
-    for col in ["scenario", "frames", *(f"<={theta_key(x)} m" for x in SUMMARY_THETAS), "all fields", "ms/frame",
-                "planner", "overhead", "truth", "P_faulty"]:
-        t.add_column(col, justify="left" if col in ("scenario", "P_faulty") else "right", no_wrap=True)
+    for col in ["log", "scenario", "frames", *(f"<={theta_key(x)} m" for x in SUMMARY_THETAS), "all fields",
+                "ms/frame", "planner", "overhead", "truth", "P_faulty"]:
+        t.add_column(col, justify="left" if col in ("log", "scenario", "P_faulty") else "right", no_wrap=True)
     for r in results:
         s = r.summary
+        log = Path(s["log"])
+        try:  # the log's folder under the input folder: which rerun / episode this row is
+            name = str(log.parent.relative_to(root)) if root.is_dir() else log.parent.name
+        except ValueError:
+            name = log.parent.name
+        name = name if name not in ("", ".") else log.stem
         if not r.ok:
-            t.add_row(Path(s["log"]).parent.name, "error", *[""] * 9)
+            t.add_row(name, "error", *[""] * 10)
             continue
         n = s["frames"] or 1
         f = s.get("faulty_trajectory")
         t.add_row(
-            str(s["scenario"]) + (" (cached)" if s.get("skipped") else ""), str(s["frames"]),
+            name, str(s["scenario"]) + (" (cached)" if s.get("skipped") else ""), str(s["frames"]),
             *(f"{100 * s['reproduced'][theta_key(x)] / n:.1f}%" for x in SUMMARY_THETAS),
             "-" if s.get("reproduced_at_theta") is None else f"{100 * s['reproduced_at_theta'] / n:.1f}%",
             f"{s['ms_per_frame']:.2f}", f"{s['planner_ms_per_frame']:.2f}", f"{s['overhead_ms_per_frame']:.2f}",

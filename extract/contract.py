@@ -35,7 +35,6 @@ contract holds, 1 when it is violated, 2 on bad input.
 
 from __future__ import annotations
 
-import argparse
 import datetime
 import json
 import math
@@ -341,21 +340,21 @@ def assert_contract(make_planner: Callable[[], Planner], frames: Sequence[Frame]
 def main(argv: list[str] | None = None) -> int:
     from rich.console import Console
 
+    from deft_gym.cli import common
     from extract.logs import LogError
     from extract.mapping import MappingError
     from extract.runtime import FramesError
 
-    ap = argparse.ArgumentParser(prog="python -m extract.contract", description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog="Checks: " + ", ".join(CHECKS))
+    ap = common.parser("check-planner", "extract.contract", __doc__, epilog="Checks: " + ", ".join(CHECKS))
     ap.add_argument("path", metavar="FRAMES_OR_LOG", help="frames.jsonl of an extraction, or an MCAP episode log")
     ap.add_argument("--planner", metavar="MODULE:CLASS", default=None, help="planner to check (default: the one named)")
     ap.add_argument("--params", metavar="JSON", default=None, help="its parameters (default: those named)")
     ap.add_argument("--mapping", metavar="FILE", default=None, help="topic-role mapping of a log")
     ap.add_argument("--max-frames", type=int, default=None, metavar="N", help="check the first N frames only")
     ap.add_argument("--json", action="store_true", help="print the report as JSON")
+    common.add_output_flags(ap)
     args = ap.parse_args(argv)
-    console = Console(highlight=False, soft_wrap=True)
+    console = Console(highlight=False, soft_wrap=True, quiet=args.quiet)
     try:
         params = json.loads(args.params) if args.params else None
         if params is not None and not isinstance(params, dict):
@@ -365,8 +364,7 @@ def main(argv: list[str] | None = None) -> int:
         report = check_path(args.path, args.planner, params, args.mapping, args.max_frames)
     except (LogError, MappingError, FramesError, ValueError, TypeError) as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        print(f"error: {first}", file=sys.stderr)
-        return 2
+        return common.cli_error(first)
     if args.json:
         print(json.dumps(report.as_dict(), indent=1, default=lambda x: None if not math.isfinite(x) else x))
     else:

@@ -22,7 +22,7 @@ from deft_gym.files import write_atomic
 from deft_gym.planner.base import load_planner, planner_provenance, validate_output
 from extract.emit import slug, test_module, write_frames
 from extract.io_filter import PlanningIOFilter
-from extract.logs import EpisodeLog, LogError, read_log
+from extract.logs import EpisodeLog, LogError, log_id, read_log
 from extract.mapping import MappingError, TopicMapping, get_field, load_mapping
 from extract.minimize import Minimised, Seed, frame_getter, seeded_start, shortest_replay
 from extract.oracle import Faulty, ego_size, find_faulty, participant_track
@@ -68,14 +68,18 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
                     emit_tests: bool = True, test_suffix: str | None = None, truth: Path | str | bool | None = True,
                     search: SearchConfig | None = None, minimize_failure: bool = True,
                     tolerances: Tolerances | Mapping[str, Any] | None = None,
-                    on_frame: Callable[[int, int], None] | None = None) -> ExtractionResult:
+                    on_frame: Callable[[int, int], None] | None = None,
+                    xfail_failures: bool = False) -> ExtractionResult:
     """Extract planning-module tests from one MCAP log.
 
     ``mapping``: None (deft_gym default), a YAML path, a dict or a :class:`TopicMapping`.
     ``tolerances``: how far each output field other than the positions may be from the
     recorded one (:class:`extract.validator.Tolerances` or its dict form; default 0 = equal);
-    positions are judged by ``theta`` [m]. ``test_suffix`` makes the test module name unique in
-    a batch. ``truth``: True looks for
+    positions are judged by ``theta`` [m]. The test module is ``test_<scenario>_<log id>.py``
+    (:func:`extract.logs.log_id`: unique per log, so any set of extraction folders is collected
+    by one ``pytest A B C``; ``_<mode>`` added for modes other than heuristic); ``test_suffix``
+    is accepted for older callers and no longer used. ``xfail_failures``: emit the failure
+    oracle as a strict xfail (for CI). ``truth``: True looks for
     ``truth.jsonl`` beside the log (used only to report ``truth_agreement``), a path names it,
     False/None skips it. ``minimize_failure``: let the failure test start from the planner state
     recorded at P_faulty's frame (planners that can be seeded) or replay the shortest suffix of
@@ -166,10 +170,12 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     summary["findings"] = findings
     test_path = None
     if emit_tests:
-        name = (f"test_{slug(scenario)}" + (f"_{slug(test_suffix)}" if test_suffix else "")
-                + (f"_{cfg.mode}" if cfg.mode != "heuristic" else ""))
+        name = f"test_{slug(scenario)}_{log_id(log_path)}" + (f"_{cfg.mode}" if cfg.mode != "heuristic" else "")
+        for old in out.glob("test_*.py"):  # the module of an earlier extraction into this folder
+            if old.name != f"{name}.py" and old.read_text().startswith('"""DeFT planning-module tests'):
+                old.unlink()
         test_path = write_atomic(out / f"{name}.py", test_module(header, summary, frames_path.name,
-                                                                  name.removeprefix("test_")))
+                                                                  name.removeprefix("test_"), xfail_failures))
     total_s = time.perf_counter() - t_start
     summary.update(_timing(total_s, setup_s, engine, n, mini))
     summary["frames_path"] = str(frames_path)

@@ -27,6 +27,7 @@ round-trip bit-exactly.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import struct
@@ -41,7 +42,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Statistics
 
 from deft_gym.bus.codec import decode
-from deft_gym.bus.messages import NS_PER_S
+from deft_gym.bus.messages import NS_PER_S, VIEWER_TOPICS, log_start_ns
 from extract.mapping import get_field
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -427,7 +428,10 @@ class _Scan:
     def _salvage_channels(self, data: bytes) -> str:
         """Channel records of a damaged chunk whose topic the episode record lists (a log without
         its summary knows its channels only from them): later, intact chunks stay readable."""
-        listed = set((self.metadata.get("deft_gym.episode", {}).get("topics") or {}).values())
+        episode = self.metadata.get("deft_gym.episode", {})
+        listed = set((episode.get("topics") or {}).values())
+        if episode:  # a deft_gym log also has the viewer topics (Foxglove scene)
+            listed |= set(VIEWER_TOPICS)
         taken = []
         for op, body, stop in walk_records(data):
             if op == _CHANNEL:
@@ -587,6 +591,16 @@ def _decompress(chunk: Chunk) -> bytes:
     raise ValueError(f"unsupported chunk compression {chunk.compression!r}")
 
 
+def log_id(path: Path | str) -> str:
+    """A short id of a log file: the first 8 hex digits of its SHA-256 (two logs differ in
+    their bytes - every log records its own start time - so their ids differ)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:8]
+
+
 def read_log(path: Path | str, topics: list[str], seq_field: str | None = None) -> EpisodeLog:
     """Read the messages of ``topics`` (and all metadata records) from an MCAP file, verified
     (see the module docstring).
@@ -616,9 +630,13 @@ def read_log(path: Path | str, topics: list[str], seq_field: str | None = None) 
         why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
         scan._note(-1, "unknown-record", f"reading stopped: {why}")
     _check_totals(scan, buf, summary)
+    start = log_start_ns(scan.metadata.get("deft_gym.episode"))  # log_time = epoch start + sim time
+    for d in integ.damage:
+        d.start_ns = None if d.start_ns is None else d.start_ns - start
+        d.end_ns = None if d.end_ns is None else d.end_ns - start
     out: dict[str, TopicMessages] = {}
     for topic, (pub, seq, raw) in scan.rows.items():
-        pub_a = np.asarray(pub, dtype=np.int64)
+        pub_a = np.asarray(pub, dtype=np.int64) - start
         seq_a = np.asarray(seq, dtype=np.int64)
         if len(pub_a) > 1 and np.any(np.diff(pub_a) < 0):  # stable: keep file order among ties
             order = np.argsort(pub_a, kind="stable")

@@ -15,11 +15,10 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from deft_gym.config import ConfigError, load_yaml
+from deft_gym.config import CONFIG_DIR, ConfigError, load_yaml
 from deft_gym.planner.base import planner_class, resolve_inputs
 
-ROOT = Path(__file__).resolve().parent.parent
-MAPPING_DIR = ROOT / "configs" / "mappings"
+MAPPING_DIR = CONFIG_DIR / "mappings"
 DEFAULT_MAPPING = MAPPING_DIR / "deft_gym.yaml"
 
 

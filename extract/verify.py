@@ -10,7 +10,6 @@ cost). Exit status: 0 when every log is intact, 1 when one is damaged, 2 on bad 
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -25,7 +24,9 @@ def verify(path: Path | str) -> EpisodeLog:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m extract.verify", description=__doc__.split("\n\n")[0])
+    from deft_gym.cli import common
+
+    ap = common.parser("verify", "extract.verify", __doc__)
     ap.add_argument("paths", nargs="+", metavar="LOG_OR_DIR", help="MCAP logs, or folders searched for *.mcap")
     ap.add_argument("--json", action="store_true", help="print the integrity reports as JSON")
     args = ap.parse_args(argv)
@@ -33,16 +34,14 @@ def main(argv: list[str] | None = None) -> int:
     for p in map(Path, args.paths):
         logs += sorted(p.rglob("*.mcap")) if p.is_dir() else [p]
     if not logs:
-        print(f"error: {', '.join(args.paths)}: no .mcap logs found", file=sys.stderr)
-        return 2
+        return common.cli_error(f"{', '.join(args.paths)}: no .mcap logs found")
     damaged = 0
     reports = {}
     for path in logs:
         try:
             log = verify(path)
         except LogError as err:
-            print(f"error: {err}", file=sys.stderr)
-            return 2
+            return common.cli_error(str(err))
         integ = log.integrity
         damaged += not integ.intact
         reports[str(path)] = {"status": log.status, **integ.as_dict()}

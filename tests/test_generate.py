@@ -193,7 +193,7 @@ def test_reference_ads_completes_generated_scenarios(seed: int) -> None:
 def test_check_reports_outcomes(tmp_path: Path) -> None:
     from deft_gym.cli.generate import main
 
-    assert main(["--seeds", "0", "--out", str(tmp_path), "--check"]) == 0
+    assert main(["--seeds", "0", "--out", str(tmp_path), "--check", "--jitter-seed", "0"]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["scenarios"][0]["outcome"] == "completed"
     assert summary["completed"]["all"] == {"runs": 1, "outcomes": {"completed": 1}, "completed": 1.0}

@@ -13,7 +13,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 # lowest first; a module may import its own layer and those below it
 LAYERS: list[tuple[str, ...]] = [
-    ("deft_gym.config", "deft_gym.files", "deft_gym.execution"),
+    # cross-cutting leaves: configuration files, atomic writes, the execution layer, the
+    # command-line conventions
+    ("deft_gym.config", "deft_gym.files", "deft_gym.execution", "deft_gym.cli.common"),
     ("deft_gym.world",),
     ("deft_gym.bus",),
     ("deft_gym.record",),
@@ -31,18 +33,23 @@ LAYERS: list[tuple[str, ...]] = [
 # what extract may import of deft_gym: the log (bus messages and their codec), the planner
 # interface (and trajectory measures), configuration, file helpers and the execution layer
 EXTRACT_MAY_IMPORT = ("deft_gym.bus.codec", "deft_gym.bus.messages", "deft_gym.planner.base",
-                      "deft_gym.planner.trajectory", "deft_gym.config", "deft_gym.files", "deft_gym.execution")
+                      "deft_gym.planner.trajectory", "deft_gym.config", "deft_gym.files", "deft_gym.execution",
+                      "deft_gym.cli.common")
 # the cross-cutting layer 0 imports nothing of deft_gym above it
-LAYER0_MAY_IMPORT = ("deft_gym.config", "deft_gym.files", "deft_gym.execution")
+LAYER0_MAY_IMPORT = ("deft_gym.config", "deft_gym.files", "deft_gym.execution", "deft_gym.cli.common")
 TOP_LEVEL_MODULES = {"__init__.py", "config.py", "files.py"}
 OWN = ("deft_gym", "extract", "agents")
 
 
 def layer(module: str) -> int | None:
+    """The layer of the longest prefix that names ``module`` (``deft_gym.cli.common`` is in
+    layer 0, the rest of ``deft_gym.cli`` higher up)."""
+    best: tuple[int, int] | None = None
     for i, prefixes in enumerate(LAYERS):
-        if any(module == p or module.startswith(p + ".") for p in prefixes):
-            return i
-    return None
+        for p in prefixes:
+            if (module == p or module.startswith(p + ".")) and (best is None or len(p) > best[0]):
+                best = (len(p), i)
+    return None if best is None else best[1]
 
 
 def module_name(path: Path) -> str:

@@ -49,7 +49,7 @@ def test_recorder_process_writes_the_in_process_bytes(tmp_path: Path, monkeypatc
 def test_full_run_same_log_in_both_modes(tmp_path: Path) -> None:
     for name, background in (("p", True), ("i", False)):
         Simulation(SCENARIO, jitter_seed=4, out_dir=tmp_path / name, keep_planning=False,
-                   recorder_process=background).run()
+                   recorder_process=background, log_start_ns=1_700_000_000 * 10**9).run()
     p, i = (_records(tmp_path / name / "episode.mcap") for name in ("p", "i"))
     assert len(p[0]) > 1000 and p[0] == i[0]  # every message, byte for byte
     for meta in (p[1], i[1]):
@@ -181,10 +181,11 @@ def test_pool_initializer_runs_in_the_workers(monkeypatch) -> None:
 
 def test_training_envs_filling_the_cpus_log_inline(monkeypatch) -> None:
     from agents import train
-    from agents.config import TrainConfig
+    from agents.config import TrainConfig, complete
 
     _no_recorder_env(monkeypatch)
     monkeypatch.setattr(recorder, "available_cpus", lambda: 2)
+    complete()
     cfg = TrainConfig()
     train.make_env(cfg, 0, None)().close()  # envs in this process: its own choice
     assert recorder.RECORDER_ENV not in os.environ

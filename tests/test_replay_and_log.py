@@ -8,15 +8,21 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from deft_gym.bus.messages import DEFAULT_TOPICS
+from deft_gym.bus.messages import DEFAULT_TOPICS, VIEWER_TOPICS
 from deft_gym.sim.simulation import run_episode
 
 SCENARIO = Path(__file__).resolve().parent.parent / "configs" / "scenarios" / "cross_intersection.yaml"
 
 
 def _messages(path: str) -> list[tuple[str, int, int, bytes]]:
+    """The bus messages of a log: topic, sim time [ns] (log_time less the log's epoch start),
+    sequence number, payload bytes (the viewer topics, which carry epoch times, left out)."""
     with open(path, "rb") as fh:
-        return [(ch.topic, m.log_time, m.sequence, m.data) for _, ch, m in make_reader(fh).iter_messages()]
+        meta = next((m.metadata for m in make_reader(fh).iter_metadata() if m.name == "deft_gym.episode"), {})
+    start = int(meta.get("log_start_ns", 0))
+    with open(path, "rb") as fh:
+        return [(ch.topic, m.log_time - start, m.sequence, m.data) for _, ch, m in make_reader(fh).iter_messages()
+                if ch.topic not in VIEWER_TOPICS]
 
 
 def test_same_jitter_seed_gives_byte_identical_payloads(tmp_path: Path) -> None:
@@ -35,7 +41,8 @@ def test_log_holds_every_topic_and_the_metadata(lane_follow_log) -> None:
         topics = {ch.topic for _, ch, _ in reader.iter_messages()}
     with open(lane_follow_log.log_path, "rb") as fh:
         meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}
-    assert topics == set(DEFAULT_TOPICS.values())  # (an empty light detection on a map without lights)
+    # every bus topic (an empty light detection on a map without lights) and the viewer topics
+    assert topics == set(DEFAULT_TOPICS.values()) | set(VIEWER_TOPICS)
     ep = meta["deft_gym.episode"]
     assert json.loads(ep["jitter_seed"]) == 7 and ep["scenario_name"] == "lane_follow_static"
     assert json.loads(ep["planner"])["class"] == "deft_gym.planner.lattice:LatticePlanner"
@@ -45,7 +52,10 @@ def test_log_holds_every_topic_and_the_metadata(lane_follow_log) -> None:
 def test_truth_file_names_logged_messages(lane_follow_log) -> None:
     truth = [json.loads(line) for line in Path(lane_follow_log.truth_path).read_text().splitlines()]
     with open(lane_follow_log.log_path, "rb") as fh:
-        logged = {(ch.topic, m.sequence): m.log_time for _, ch, m in make_reader(fh).iter_messages()}
+        start = int(next(m for m in make_reader(fh).iter_metadata() if m.name == "deft_gym.episode").metadata[
+            "log_start_ns"])
+    with open(lane_follow_log.log_path, "rb") as fh:  # log_time = the episode's epoch start + sim time
+        logged = {(ch.topic, m.sequence): m.log_time - start for _, ch, m in make_reader(fh).iter_messages()}
     assert len(truth) == len(lane_follow_log.planning)
     for rec in truth:
         assert (DEFAULT_TOPICS["planning"], rec["planning_seq"]) in logged

@@ -30,6 +30,27 @@ def to_s(ns: int) -> float:
     return ns / NS_PER_S
 
 
+# A log's MCAP ``log_time`` is a real epoch time: the episode's start (this key of its episode
+# metadata record, integer ns since 1970) plus the sim time, so that viewers such as Foxglove
+# show a date. Readers subtract it to get sim time back; logs without the key start at 0.
+LOG_START_KEY = "log_start_ns"
+# topics written for viewers only (Foxglove's SceneUpdate and FrameTransform), not bus messages
+SCENE_TOPIC = "/deft_gym/scene"
+SCENE_MAP_TOPIC = "/deft_gym/scene/map"
+TF_TOPIC = "/deft_gym/tf"
+VIEWER_TOPICS = (SCENE_TOPIC, SCENE_MAP_TOPIC, TF_TOPIC)
+
+
+def log_start_ns(episode_metadata: dict[str, Any] | None) -> int:
+    """The epoch start [ns] of a log's ``log_time`` (0 for logs that start at 0): from its
+    episode metadata record, raw (JSON strings) or decoded."""
+    value = (episode_metadata or {}).get(LOG_START_KEY, 0)
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        return 0
+
+
 @dataclass(slots=True)
 class Message:
     """One message on the bus."""

@@ -1,11 +1,12 @@
 """Speed benchmark: the full stack against bare highway-env, recording on and off.
 
-    python -m deft_gym.cli.bench [--scenario configs/scenarios/bench_highway.yaml] [--repeats 3]
+    deft-gym bench [--scenario bench_highway] [--repeats 3]      # -> runs/bench.json
 
 Measures simulated seconds per wall second (one simulation process) of
 
 1. the full DeFT-Gym stack (world + all ADS modules on the jittered bus) with MCAP recording,
-   written by the recorder process (the default) and by the writer in the simulation's process;
+   written by the recorder process (the default) and by the writer in the simulation's process,
+   and with the recorder process but without the Foxglove scene topics (what they cost);
 2. the same without recording;
 3. highway-env's own ``highway-v0`` stepped with the same vehicle count and simulation
    frequency (its default observation and action types), as the reference;
@@ -17,8 +18,8 @@ Each figure is the median over ``--repeats`` runs; the runs of the three kinds a
 
 from __future__ import annotations
 
-import argparse
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -26,24 +27,25 @@ import time
 from pathlib import Path
 from typing import Any
 
-from rich.console import Console
-from rich.progress import track
-from rich.table import Table
-
-from deft_gym.bus.ads import load_ads_config
-from deft_gym.bus.bus import TimingSupervisor
+from deft_gym.cli import common
 from deft_gym.files import write_atomic
-from deft_gym.planner import lattice
-from deft_gym.scenarios.scenario import SCENARIO_DIR, load_scenario
-from deft_gym.sim.simulation import Simulation
 
 
-def stack_speed(scenario: Any, recorder: str | None, seed: int, breakdown: bool = False) -> dict[str, Any]:
+def stack_speed(scenario: Any, recorder: str | None, seed: int, breakdown: bool = False,
+                scene: bool = True) -> dict[str, Any]:
     """One full-stack run: sim seconds, wall and CPU seconds of this process and (optionally)
     per-node wall time. ``recorder``: None (no log), ``"process"`` (the recorder process) or
-    ``"inline"`` (the MCAP writer in this process). Wall time runs until the log is complete
-    and in place, so a recorder process that lags is charged for it."""
+    ``"inline"`` (the MCAP writer in this process); ``scene``: with the Foxglove scene topics.
+    Wall time runs until the log is complete and in place, so a recorder process that lags is
+    charged for it."""
+    from deft_gym.bus.ads import load_ads_config
+    from deft_gym.bus.bus import TimingSupervisor
+    from deft_gym.sim.simulation import Simulation
+
     ads = load_ads_config()
+    saved = os.environ.get("DEFT_GYM_SCENE_HZ")
+    if not scene:
+        os.environ["DEFT_GYM_SCENE_HZ"] = "0"
     with tempfile.TemporaryDirectory() as tmp:
         sim = Simulation(scenario, ads, jitter_seed=seed, out_dir=tmp if recorder else None, keep_planning=False,
                          recorder_process=recorder == "process")
@@ -54,6 +56,10 @@ def stack_speed(scenario: Any, recorder: str | None, seed: int, breakdown: bool 
         t0, c0 = time.perf_counter(), time.process_time()
         r = sim.run()
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    if saved is None:
+        os.environ.pop("DEFT_GYM_SCENE_HZ", None)
+    else:
+        os.environ["DEFT_GYM_SCENE_HZ"] = saved
     out = {"sim": r.sim_time, "wall": wall, "cpu": cpu, "speed": r.sim_time / wall, "messages": r.messages,
            "recorder_cpu": sim.recorder.process_seconds if recorder else 0.0}
     if sup is not None:
@@ -81,14 +87,25 @@ def highway_speed(vehicles: int, frequency: float, sim_seconds: float, seed: int
     return {"sim": steps / policy_hz, "wall": wall, "speed": steps / policy_hz / wall}
 
 
+def build_parser() -> common.Parser:
+    ap = common.parser("bench", "deft_gym.cli.bench", __doc__)
+    ap.add_argument("--scenario", default="bench_highway",
+                    help="scenario with the participants to benchmark (default: bench_highway, 5 reactive vehicles)")
+    ap.add_argument("--repeats", type=common.positive_int, default=3, help="runs per measurement; the median is shown")
+    common.add_out(ap, common.RUNS / "bench.json", help="JSON file for the figures")
+    common.add_output_flags(ap)
+    return ap
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deft_gym.cli.bench", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenario", default=str(SCENARIO_DIR / "bench_highway.yaml"),
-                    help="scenario with the participants to benchmark (default: 5 reactive vehicles)")
-    ap.add_argument("--repeats", type=int, default=3, help="runs per measurement; the median is shown")
-    ap.add_argument("--out", default=None, help="also write the figures to this JSON file")
-    args = ap.parse_args(argv)
-    console = Console(width=None if sys.stdout.isatty() else 110)
+    args = build_parser().parse_args(argv)
+    console = common.console(args, width=110)
+    from rich.table import Table
+
+    from deft_gym.bus.ads import load_ads_config
+    from deft_gym.planner import lattice
+    from deft_gym.scenarios.scenario import load_scenario
+
     sc = load_scenario(args.scenario)
     ads = load_ads_config()
     n_part = len(sc.participants)
@@ -100,19 +117,27 @@ def main(argv: list[str] | None = None) -> int:
     # its own (also warming up caches), not one of the timed runs
     first = stack_speed(sc, "process", seed=0, breakdown=True)
     # interleaved (one of each per repeat), so drifting machine load biases no measurement
-    rec, inline, norec, hw = [], [], [], []
-    for i in track(range(args.repeats), description="benchmark", console=console, transient=True):
-        rec.append(stack_speed(sc, "process", seed=i))
-        inline.append(stack_speed(sc, "inline", seed=i))
-        norec.append(stack_speed(sc, None, seed=i))
-        hw.append(highway_speed(n_part, ads.world_hz, sc.duration, seed=i))
-    runs = {"stack_recording": rec, "stack_recording_inline": inline, "stack_no_recording": norec, "highway_v0": hw}
+    rec, inline, noscene, norec, hw = [], [], [], [], []
+    with common.bar(args, args.repeats, "benchmark") as bar:
+        for i in range(args.repeats):
+            rec.append(stack_speed(sc, "process", seed=i))
+            inline.append(stack_speed(sc, "inline", seed=i))
+            noscene.append(stack_speed(sc, "process", seed=i, scene=False))
+            norec.append(stack_speed(sc, None, seed=i))
+            hw.append(highway_speed(n_part, ads.world_hz, sc.duration, seed=i))
+            bar.update()
+    runs = {"stack_recording": rec, "stack_recording_inline": inline, "stack_recording_no_scene": noscene,
+            "stack_no_recording": norec, "highway_v0": hw}
     med = {name: statistics.median(r["speed"] for r in rs) for name, rs in runs.items()}
     # recording on and off of one repeat share the jitter seed (the same messages): the median
     # of their wall-time ratios is robust to load that drifts between repeats
     overhead = {
         "wall": statistics.median(r["wall"] / n["wall"] for r, n in zip(rec, norec, strict=True)) - 1.0,
         "wall_inline": statistics.median(r["wall"] / n["wall"] for r, n in zip(inline, norec, strict=True)) - 1.0,
+        "wall_no_scene": statistics.median(r["wall"] / n["wall"] for r, n in zip(noscene, norec, strict=True)) - 1.0,
+        "cpu_sim_process": statistics.median(r["cpu"] / n["cpu"] for r, n in zip(rec, norec, strict=True)) - 1.0,
+        "cpu_sim_process_no_scene": statistics.median(r["cpu"] / n["cpu"] for r, n in zip(noscene, norec,
+                                                                                         strict=True)) - 1.0,
         # CPU of both processes: what recording costs where cores are scarce
         "cpu_both": statistics.median((r["cpu"] + r["recorder_cpu"]) / n["cpu"]
                                       for r, n in zip(rec, norec, strict=True)) - 1.0,
@@ -124,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_column("x real time", justify="right")
     t.add_row("DeFT-Gym full stack, recording on (recorder process)", f"{med['stack_recording']:.1f}")
     t.add_row("DeFT-Gym full stack, recording on (in-process writer)", f"{med['stack_recording_inline']:.1f}")
+    t.add_row("DeFT-Gym full stack, recording on, no scene topics", f"{med['stack_recording_no_scene']:.1f}")
     t.add_row("DeFT-Gym full stack, recording off", f"{med['stack_no_recording']:.1f}")
     t.add_row(f"highway-v0, {n_part} vehicles, {ads.world_hz:g} Hz", f"{med['highway_v0']:.1f}")
     console.print(t)
@@ -132,6 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     console.print(f"recording overhead with the in-process writer = {100 * overhead['wall_inline']:.1f} %; "
                   f"CPU of both processes = {100 * overhead['cpu_both']:.1f} % "
                   f"(the recorder process: {recorder_ms:.2f} ms CPU per sim s)")
+    console.print(f"the Foxglove scene topics: overhead {100 * overhead['wall_no_scene']:.1f} % without them "
+                  f"(wall); the simulation process's CPU {100 * overhead['cpu_sim_process']:.1f} % over an unrecorded "
+                  f"run with them, {100 * overhead['cpu_sim_process_no_scene']:.1f} % without")
     nodes = first["nodes"]
     wall0, sim0 = first["wall"], first["sim"]
     bt = Table(title="where the time goes (a recorded run with per-module timing)", title_justify="left")
@@ -143,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     bt.add_row("bus, jitter, recording", f"{1e3 * rest / sim0:.2f}", f"{100 * rest / wall0:.0f} %")
     console.print(bt)
     if args.out:
+        console.print(f"wrote {args.out}")
         write_atomic(Path(args.out), json.dumps({"median_speed": med, "ratio_vs_highway": ratio,
                                                  "recording_overhead": overhead,
                                                  "recorder_process_ms_per_sim_s": recorder_ms,

@@ -1,6 +1,6 @@
 """How flaky are collisions? Rerun scenario variants and count the non-deterministic ones.
 
-    python -m deft_gym.cli.calibrate --variants 10 --reruns 10 --out runs/calibration
+    deft-gym calibrate --variants 10 --reruns 10 --jitter-seed 1000     # -> runs/calibration
 
 For every seed scenario, ``--variants`` perturbations of it, ``--cut-ins`` variants with a
 vehicle cutting in ahead of the ego and ``--brakes`` variants with a leader braking hard
@@ -22,31 +22,23 @@ Variants and runs are work items of :mod:`deft_gym.execution`: local processes, 
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import sys
 from pathlib import Path
 from typing import Any
 
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-from deft_gym.bus.ads import load_ads_config
+from deft_gym.cli import common
 from deft_gym.config import ConfigError
 from deft_gym.execution import Executor, Record, add_backend_arguments, backend_from_args
-from deft_gym.files import write_atomic
-from deft_gym.scenarios.scenario import (
-    list_scenarios,
-    load_scenario,
-    scenario_from_dict,
-    scenario_to_dict,
-)
-from deft_gym.scenarios.variants import inject_cut_in, inject_hard_brake, perturb
-from deft_gym.sim.simulation import reference_path, run_episode
+from deft_gym.files import read_jsonl, write_atomic
 
 
 def _job(args: tuple[dict[str, Any], int, str | None, str]) -> dict[str, Any]:
+    from deft_gym.bus.ads import load_ads_config
+    from deft_gym.scenarios.scenario import scenario_from_dict
+    from deft_gym.sim.simulation import run_episode
+
     data, seed, ads_path, key = args
     sc = scenario_from_dict(data, source=data["name"])
     r = run_episode(sc, load_ads_config(ads_path), jitter_seed=seed, keep_planning=False)
@@ -59,6 +51,10 @@ def _job(args: tuple[dict[str, Any], int, str | None, str]) -> dict[str, Any]:
 def _variants(args: tuple[str, int, float, int, int, str | None]) -> list[tuple[dict[str, Any], str]]:
     """The variants of one seed scenario (perturbations, cut-ins, hard brakes: the cut-ins and
     brakes need its reference run) as ``(scenario dict, key)``."""
+    from deft_gym.scenarios.scenario import load_scenario, scenario_to_dict
+    from deft_gym.scenarios.variants import inject_cut_in, inject_hard_brake, perturb
+    from deft_gym.sim.simulation import reference_path
+
     path, n_variants, strength, cut_ins, brakes, ads_config = args
     seed_sc = load_scenario(path)
     variants = [perturb(seed_sc, seed=v, strength=strength) if v else seed_sc for v in range(n_variants)]
@@ -73,47 +69,57 @@ def _variants(args: tuple[str, int, float, int, int, str | None]) -> list[tuple[
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deft_gym.cli.calibrate", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenarios", nargs="*", default=None, help="seed scenarios (default: all in configs/scenarios except bench_*)")
-    ap.add_argument("--variants", type=int, default=10, help="perturbed variants per seed (default 10)")
-    ap.add_argument("--reruns", type=int, default=10, help="reruns per variant (default 10)")
-    ap.add_argument("--strength", type=float, default=1.0, help="perturbation strength (default 1.0)")
-    ap.add_argument("--cut-ins", type=int, default=6, help="cut-in variants per seed (default 6)")
-    ap.add_argument("--brakes", type=int, default=6, help="hard-braking-leader variants per seed (default 6)")
-    ap.add_argument("--jitter-seed", type=int, default=1000, help="rerun i uses jitter seed S+i (default 1000)")
-    ap.add_argument("--workers", type=int, default=2, help="parallel processes (default 2)")
-    ap.add_argument("--ads-config", default=None, help="ADS config YAML (default configs/ads/default.yaml)")
-    ap.add_argument("--out", default="runs/calibration", help="output folder")
+def build_parser() -> common.Parser:
+    ap = common.parser("calibrate", "deft_gym.cli.calibrate", __doc__)
+    common.add_scenarios(ap, help="seed scenarios (default: all in configs/scenarios except bench_*)")
+    ap.add_argument("--variants", type=int, default=10, help="perturbed variants per seed")
+    ap.add_argument("--reruns", type=common.positive_int, default=10, help="reruns per variant")
+    ap.add_argument("--strength", type=float, default=1.0, help="perturbation strength")
+    ap.add_argument("--cut-ins", type=int, default=6, help="cut-in variants per seed")
+    ap.add_argument("--brakes", type=int, default=6, help="hard-braking-leader variants per seed")
+    common.add_jitter_seed(ap, "jitter seed of each scenario's initial execution S0; rerun i uses S+i "
+                               "(a resumed calibration keeps its seeds)")
+    common.add_workers(ap)
+    ap.add_argument("--ads-config", default=None, metavar="YAML", help="ADS config (default: configs/ads/default.yaml)")
+    common.add_out(ap, common.RUNS / "calibration")
+    common.add_output_flags(ap)
     add_backend_arguments(ap)
-    args = ap.parse_args(argv)
-    console = Console(width=None if sys.stdout.isatty() else 120)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    console = common.console(args)
     try:
         backend = backend_from_args(args, args.workers)
     except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
+        console.print(f"[red]error:[/red] {err}", highlight=False, soft_wrap=True)
         return 2
+    if args.jitter_seed is None:  # resuming: the seeds of the runs already there; else fresh ones
+        prior = read_jsonl(Path(args.out) / "runs.jsonl")
+        args.jitter_seed = min((r["seed"] for r in prior), default=None)
+        args.jitter_seed = common.fresh_seed() if args.jitter_seed is None else args.jitter_seed
+        console.print(f"jitter seeds {args.jitter_seed}..{args.jitter_seed + args.reruns - 1}")
+    from deft_gym.scenarios.scenario import list_scenarios
+
     paths = args.scenarios or [str(p) for p in list_scenarios() if not p.name.startswith("bench")]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ads_name = args.ads_config or "configs/ads/default.yaml"
     record = Record(out / "runs.jsonl")  # the same scenario data and ADS config -> the same key
-    cols = [TextColumn("[bold]calibration"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
-    with Executor(backend, preload=("deft_gym.sim.simulation",)) as ex, \
-            Progress(*cols, console=console, transient=True) as progress:
+    with Executor(backend, preload=("deft_gym.sim.simulation",)) as ex:
         # the variants of every seed scenario (reference runs included) are work items too
-        task = progress.add_task("variants", total=len(paths))
-        jobs = [(data, args.jitter_seed + r, args.ads_config, key)
-                for variants in ex.map(_variants, [(p, args.variants, args.strength, args.cut_ins, args.brakes,
-                                                    args.ads_config) for p in paths],
-                                       progress=lambda n: progress.advance(task, n))
-                for data, key in variants for r in range(args.reruns)]
+        with common.bar(args, len(paths), "scenario variants") as bar:
+            jobs = [(data, args.jitter_seed + r, args.ads_config, key)
+                    for variants in ex.map(_variants, [(p, args.variants, args.strength, args.cut_ins, args.brakes,
+                                                        args.ads_config) for p in paths], progress=bar.update)
+                    for data, key in variants for r in range(args.reruns)]
         todo = record.todo(jobs, lambda j: (j[3], j[1]), "key", "seed")
         if len(todo) < len(jobs):
             console.print(f"resuming: {len(jobs) - len(todo)} of {len(jobs)} runs already in {record.path}")
-        task = progress.add_task("runs", total=len(todo))
-        for res in ex.map(_job, todo, progress=lambda n: progress.advance(task, n)):
-            record.add(res)
+        with common.bar(args, len(todo), "calibration runs") as bar:
+            for res in ex.map(_job, todo, progress=bar.update):
+                record.add(res)
     results = record.rows
     wanted = {(j[3], j[1]) for j in jobs}
     doc = summarise([r for r in results if (r.get("key"), r["seed"]) in wanted])

@@ -2,13 +2,12 @@
 
     python -m deft_gym.cli.demo --out runs/demo/seeds [--reruns 3]
 
-The first part of ``make demo``: one row per seed scenario with its outcomes over the reruns,
+An overview of the seed scenarios: one row per seed scenario with its outcomes over the reruns,
 collisions, how far the reruns' planning outputs are from the first rerun's, and the sim speed.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -16,11 +15,9 @@ from typing import Any
 
 import numpy as np
 from rich import box
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from deft_gym.bus.jitter import os_seed
+from deft_gym.cli import common
 from deft_gym.cli.run import divergence_stats
 from deft_gym.files import write_atomic
 from deft_gym.scenarios.scenario import list_scenarios, load_scenario
@@ -28,23 +25,24 @@ from deft_gym.sim.simulation import run_episode
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m deft_gym.cli.demo", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default="runs/demo/seeds", help="output folder (logs per scenario and rerun)")
-    ap.add_argument("--reruns", type=int, default=3, help="reruns per seed scenario (default 3)")
+    ap = common.parser("seeds", "deft_gym.cli.demo", __doc__)
+    common.add_out(ap, common.RUNS / "demo" / "seeds", help="output folder (logs per scenario and rerun)")
+    ap.add_argument("--reruns", type=common.positive_int, default=3, help="reruns per seed scenario")
+    common.add_jitter_seed(ap, "jitter seed of rerun 0 of every scenario; rerun i uses S+i")
+    common.add_output_flags(ap)
     args = ap.parse_args(argv)
-    console = Console(width=None if sys.stdout.isatty() else 110)
+    console = common.console(args, width=110)
     out = Path(args.out)
     seeds = [p for p in list_scenarios() if not p.name.startswith("bench")]
     rows: list[dict[str, Any]] = []
-    cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
-    with Progress(*cols, console=console, transient=True) as progress:
-        task = progress.add_task("seed scenarios", total=len(seeds) * args.reruns)
+    with common.bar(args, len(seeds) * args.reruns, "seed scenarios") as progress:
         for path in seeds:
             sc = load_scenario(path)
             results = []
             for i in range(args.reruns):
-                results.append(run_episode(sc, jitter_seed=os_seed(), out_dir=out / sc.name / str(i)))
-                progress.advance(task)
+                seed = common.fresh_seed() if args.jitter_seed is None else args.jitter_seed + i
+                results.append(run_episode(sc, jitter_seed=seed, out_dir=out / sc.name / str(i)))
+                progress.update()
             # reruns without planning outputs to pair have no divergence (median None)
             div = [d for r in results[1:] if (d := divergence_stats(results[0].planning, r.planning))["paired"]]
             rows.append({"scenario": sc.name,

@@ -1,8 +1,8 @@
 """Generate held-out scenarios, write them as YAML, and optionally check that the reference ADS
 completes each one.
 
-    python -m deft_gym.cli.generate --seeds 0-9 --out runs/generated
-    python -m deft_gym.cli.generate --seeds 0-199 --out runs/generated --check
+    deft-gym generate --seeds 0-9                                 # -> runs/generated
+    deft-gym generate --seeds 0-199 --check --jitter-seed 0
 
 Each seed becomes ``OUT/gen-<seed>.yaml`` (loadable with
 :func:`deft_gym.scenarios.scenario.load_scenario`; the same scenario as the spec ``gen:<seed>``)
@@ -19,19 +19,18 @@ import sys
 import time
 from collections import Counter, defaultdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 from rich import box
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from deft_gym.cli import common
 from deft_gym.config import load_mapping, validate
 from deft_gym.files import write_atomic, write_json_atomic
-from deft_gym.scenarios.generate import NAME_PREFIX, SPEC_PREFIX, Generated, GeneratorConfig, build
-from deft_gym.scenarios.scenario import scenario_to_dict
-from deft_gym.sim.simulation import run_episode
+
+if TYPE_CHECKING:
+    from deft_gym.scenarios.generate import Generated
 
 MAX_SEEDS = 100_000
 
@@ -68,9 +67,12 @@ _Dumper.add_representer(list, _represent_list)
 
 def scenario_yaml(g: Generated) -> str:
     """The YAML text of a generated scenario, headed by a comment naming its spec."""
+    from deft_gym.scenarios.generate import SPEC_PREFIX
+    from deft_gym.scenarios.scenario import scenario_to_dict
+
     data = scenario_to_dict(g.scenario)
     data["participants"] = [{"id": p["id"], "type": p["type"], **p} for p in data.get("participants", [])]
-    head = f"# {SPEC_PREFIX}{g.seed}: written by python -m deft_gym.cli.generate\n"
+    head = f"# {SPEC_PREFIX}{g.seed}: written by deft-gym generate\n"
     return head + yaml.dump(data, Dumper=_Dumper, sort_keys=False, width=100)
 
 
@@ -80,18 +82,18 @@ def row_of(g: Generated) -> dict[str, Any]:
             "duration": g.scenario.duration}
 
 
-def check(gens: list[Generated], rows: list[dict[str, Any]], jitter_seed: int, console: Console) -> None:
+def check(gens: list[Generated], rows: list[dict[str, Any]], jitter_seed: int, console: Any,
+          progress: bool = True) -> None:
     """Run each scenario once (jitter seed ``jitter_seed``) and add its outcome to its row."""
-    cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
-    with Progress(*cols, console=console, transient=True) as progress:
-        task = progress.add_task("check", total=len(gens))
+    from deft_gym.sim.simulation import run_episode
+
+    with common.Bar(len(gens), "check", progress, console) as bar:
         for g, row in zip(gens, rows):
-            progress.update(task, description=f"check {g.scenario.name}")
             r = run_episode(g.scenario, jitter_seed=jitter_seed, keep_planning=False)
             row.update(outcome=r.outcome.outcome, sim_time=round(r.sim_time, 2), wall_time=round(r.wall_time, 3))
             if r.outcome.collision is not None:
                 row["hit"] = r.outcome.collision.participant
-            progress.advance(task)
+            bar.update()
 
 
 def shares(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -136,26 +138,34 @@ def _share_table(stats: dict[str, dict[str, Any]], jitter_seed: int) -> Table:
     return t
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m deft_gym.cli.generate", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--seeds", default="0-9",
-                    help="generator seeds: '0-9', '5' or '0-4,10' (default %(default)s)")
-    ap.add_argument("--out", type=Path, default=Path("runs/generated"),
-                    help="folder for gen-<seed>.yaml and summary.json (default %(default)s)")
-    ap.add_argument("--check", action="store_true",
-                    help="run each scenario once, unmutated, and report its outcome (default off)")
-    ap.add_argument("--jitter-seed", type=int, default=0, help="jitter seed of the --check runs (default %(default)s)")
+def build_parser() -> common.Parser:
+    ap = common.parser("generate", "deft_gym.cli.generate", __doc__)
+    ap.add_argument("--seeds", default="0-9", help="generator seeds: '0-9', '5' or '0-4,10' (default %(default)s)")
+    common.add_out(ap, common.RUNS / "generated", help="folder for gen-<seed>.yaml and summary.json")
+    ap.add_argument("--check", action="store_true", help="run each scenario once, unmutated, and report its outcome")
+    common.add_jitter_seed(ap, "jitter seed of the --check runs (every scenario runs with it)")
     ap.add_argument("--config", type=Path, default=None,
                     help="generator config YAML (GeneratorConfig fields; default: the built-in defaults)")
-    return ap.parse_args(argv)
+    common.add_output_flags(ap)
+    return ap
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    args = build_parser().parse_args(argv)
+    args.out = Path(args.out)
+    return args
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    console = Console(stderr=True)
-    out = Console(width=None if sys.stdout.isatty() else 140)
+    console = common.console(args, stderr=True)
+    out = common.console(args, width=140)
+    if args.jitter_seed is None:
+        args.jitter_seed = common.fresh_seed()
     try:
         seeds = parse_seeds(args.seeds)
+        from deft_gym.scenarios.generate import NAME_PREFIX, GeneratorConfig, build
+
         cfg = validate(GeneratorConfig, load_mapping(args.config), args.config) if args.config else GeneratorConfig()
         gens = [build(s, cfg) for s in seeds]
     except (ValueError, OSError) as err:  # ConfigError is a ValueError
@@ -169,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = [row_of(g) for g in gens]
     t0 = time.perf_counter()
     if args.check:
-        check(gens, rows, args.jitter_seed, console)
+        check(gens, rows, args.jitter_seed, console, common.show_progress(args))
     out.print(_table(rows, args.check))
     doc: dict[str, Any] = {"seeds": args.seeds, "config": cfg.model_dump(mode="json"), "scenarios": rows,
                            "created": time.strftime("%Y-%m-%dT%H:%M:%S")}

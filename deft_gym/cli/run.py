@@ -1,5 +1,6 @@
 """Run a system-level scenario test N times and show how the reruns differ.
 
+    deft-gym run left_turn --reruns 10                # -> runs/run/left_turn
     python -m deft_gym.cli.run configs/scenarios/left_turn.yaml --reruns 10 --out runs/left_turn
 
 Each rerun gets its own jitter seed (from the OS, or ``--jitter-seed S`` + rerun index for an
@@ -17,45 +18,36 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from rich import box
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-from rich.table import Table
-
-from deft_gym.bus.ads import DEFAULT_ADS_CONFIG, load_ads_config
-from deft_gym.bus.jitter import os_seed
-from deft_gym.config import ConfigError
+from deft_gym.cli import common
 from deft_gym.files import write_atomic
-from deft_gym.modules.planning import frame_roles
-from deft_gym.planner.base import planner_class
-from deft_gym.planner.trajectory import lockstep_divergence
-from deft_gym.scenarios.scenario import load_scenario
-from deft_gym.sim.simulation import Simulation, build_planner
+
+
+def build_parser() -> common.Parser:
+    p = common.parser("run", "deft_gym.cli.run", __doc__)
+    p.add_argument("scenario", help="scenario name (configs/scenarios), YAML path or gen:<seed> spec")
+    p.add_argument("--reruns", type=common.positive_int, default=10, help="number of reruns")
+    common.add_out(p, None, help="output folder (default: runs/run/<scenario>)")
+    common.add_jitter_seed(p)
+    common.add_render(p)
+    p.add_argument("--ads-config", default=None, metavar="YAML",
+                   help="ADS config (default: configs/ads/default.yaml)")
+    p.add_argument("--headers", action="store_true",
+                   help="planner publishes the sequence numbers of its inputs (debug.input_seqs)")
+    p.add_argument("--compress", action="store_true", help="zstd-compressed MCAP chunks (slower, smaller)")
+    common.add_output_flags(p)
+    return p
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(
-        prog="python -m deft_gym.cli.run",
-        description="Run a scenario N times on the jittered ADS and compare the reruns.")
-    ap.add_argument("scenario", help="scenario YAML (or the name of one in configs/scenarios)")
-    ap.add_argument("--reruns", type=int, default=10, help="number of reruns (default 10)")
-    ap.add_argument("--out", required=True, help="output folder")
-    ap.add_argument("--jitter-seed", type=int, default=None,
-                    help="seed of rerun 0 (rerun i uses S+i); default: fresh seeds from the OS")
-    ap.add_argument("--render", action="store_true", help="write plot.png and video.mp4 per rerun")
-    ap.add_argument("--ads-config", default=None, help="ADS config YAML (default configs/ads/default.yaml)")
-    ap.add_argument("--headers", action="store_true",
-                    help="planner publishes the sequence numbers of its inputs (debug.input_seqs)")
-    ap.add_argument("--compress", action="store_true", help="zstd-compressed MCAP chunks (slower, smaller)")
-    args = ap.parse_args(argv)
-    if args.reruns < 1:
-        ap.error("--reruns must be at least 1")
-    return args
+    return build_parser().parse_args(argv)
 
 
 def divergence_stats(ref: list[dict[str, Any]], other: list[dict[str, Any]]) -> dict[str, Any]:
     """How far ``other``'s planning outputs are from ``ref``'s, lock-step."""
+    import numpy as np
+
+    from deft_gym.planner.trajectory import lockstep_divergence
+
     d = np.array(lockstep_divergence(ref, other)) if ref and other else np.zeros(0)
     if d.size == 0:
         return {"paired": 0, "identical": 0, "median": None, "max": None}
@@ -65,7 +57,14 @@ def divergence_stats(ref: list[dict[str, Any]], other: list[dict[str, Any]]) -> 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    console = Console(width=None if sys.stdout.isatty() else 120)
+    console = common.console(args)
+    from deft_gym.bus.ads import DEFAULT_ADS_CONFIG, load_ads_config
+    from deft_gym.config import ConfigError
+    from deft_gym.modules.planning import frame_roles
+    from deft_gym.planner.base import planner_class
+    from deft_gym.scenarios.scenario import load_scenario
+    from deft_gym.sim.simulation import Simulation, build_planner
+
     try:
         scenario = load_scenario(args.scenario)
         overrides = {"planning": {"publish_input_headers": True}} if args.headers else None
@@ -75,75 +74,77 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ValueError) as err:
         console.print(f"[red]error:[/red] {err}", highlight=False, soft_wrap=True)
         return 2
-    out = Path(args.out)
+    out = Path(args.out or common.RUNS / "run" / scenario.name)
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
     ref_plans: list[dict[str, Any]] = []
     sim_total = wall_total = 0.0
-    cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()]
-    with Progress(*cols, console=console, transient=True) as progress:
-        task = progress.add_task(scenario.name, total=args.reruns)
+    with common.bar(args, args.reruns, scenario.name) as bar:
         for i in range(args.reruns):
-            seed = args.jitter_seed + i if args.jitter_seed is not None else os_seed()
-            sim = Simulation(scenario, ads, jitter_seed=seed, out_dir=out / str(i),
-                             compress=args.compress)
-            trace = None
-            if args.render:
-                from deft_gym.viz.plot import EpisodeTrace
-
-                trace = EpisodeTrace(sim, video=True)
-            result = sim.run()
+            seed = args.jitter_seed + i if args.jitter_seed is not None else common.fresh_seed()
+            result = Simulation(scenario, ads, jitter_seed=seed, out_dir=out / str(i), compress=args.compress).run()
             summary = result.summary()
             if i == 0:
                 ref_plans = result.planning
             summary["divergence"] = divergence_stats(ref_plans, result.planning)
             summary["rerun"] = i
-            if trace is not None:
-                title = f"{scenario.name} rerun {i}: {summary['outcome']} (jitter seed {seed})"
-                trace.save_plot(out / str(i) / "plot.png", title=title, collision=summary["collision_detail"])
-                video = trace.save_video(out / str(i) / "video.mp4")
-                summary["plot"] = str(out / str(i) / "plot.png")
-                summary["video"] = str(video) if video else None
+            if args.render == "all" or (args.render == "failures" and summary["collision"]):
+                from deft_gym.viz.episode import render_log
+
+                pics = render_log(Path(result.log_path))
+                summary["plot"], summary["video"] = pics["plot"], pics["video"]
             rows.append(summary)
             sim_total += result.sim_time
             wall_total += result.wall_time
-            progress.advance(task)
+            bar.update()
     console.print(_table(scenario.name, rows))
     sim_speed = sim_total / wall_total if wall_total > 0 else None
     collided = sum(r["collision"] for r in rows)
-    console.print(f"{collided}/{len(rows)} reruns collided; outcomes "
-                  f"{sorted({r['outcome'] for r in rows})}; sim speed {sim_speed:.1f}x real time")
+    console.print(f"{collided}/{len(rows)} reruns collided; outcomes {', '.join(sorted({r['outcome'] for r in rows}))}; "
+                  f"sim speed {sim_speed:.0f}x real time")
+    for r in rows:
+        if r.get("plot"):
+            console.print(f"rerun {r['rerun']}: {r['plot']}" + (f", {r['video']}" if r.get("video") else ""),
+                          soft_wrap=True)
     summary_doc = {
         "scenario": scenario.name,
         "scenario_file": scenario.source,
         "reruns": [{k: r[k] for k in ("rerun", "outcome", "collision", "collision_detail", "task_completed",
                                       "sim_time", "wall_time", "jitter_seed", "min_distance",
-                                      "planning_outputs", "divergence", "log", "truth")}
+                                      "planning_outputs", "divergence", "log", "truth", "plot", "video")
+                     if k in r}
                    for r in rows],
         "sim_speed": sim_speed,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     write_atomic(out / "summary.json", json.dumps(summary_doc, indent=2))
-    console.print(f"wrote {out / 'summary.json'}")
+    if args.quiet:
+        print(f"{collided}/{len(rows)} reruns collided; {out / 'summary.json'}")
+    console.print(f"wrote {out / 'summary.json'}; next: deft-gym extract {out} --out {out}_tests")
     return 0
 
 
-def _table(name: str, rows: list[dict[str, Any]]) -> Table:
-    t = Table(title=f"{name}: {len(rows)} reruns (distances in m; LSED vs rerun 0, lock-step)",
-              title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1))
-    for col, just in [("#", "right"), ("outcome", "left"), ("hit", "left"), ("min d", "right"),
-                      ("sim s", "right"), ("wall s", "right"), ("seed", "right"),
-                      ("LSED med", "right"), ("LSED max", "right"), ("same", "right")]:
+def _table(name: str, rows: list[dict[str, Any]]) -> Any:
+    from rich import box
+    from rich.table import Table
+
+    t = Table(title=f"{name}: {len(rows)} reruns of one scenario; only the module timing (jitter) differs",
+              title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1),
+              caption="plans vs rerun 0: the i-th planning output against rerun 0's i-th (lock-step distance, m); "
+                      "reruns that differ from rerun 0 are the flakiness DeFT's extracted tests remove",
+              caption_justify="left")
+    for col, just in [("rerun", "right"), ("outcome", "left"), ("hit", "left"), ("closest m", "right"),
+                      ("sim s", "right"), ("wall s", "right"), ("jitter seed", "right"),
+                      ("same plans as rerun 0", "right"), ("plan dist. med/max m", "right")]:
         t.add_column(col, justify=just, no_wrap=True)
     for r in rows:
         dv = r["divergence"]
         coll = r["collision_detail"]
+        ident = "(reference)" if r["rerun"] == 0 else f"{dv['identical']} of {dv['paired']}"
+        dist = "-" if r["rerun"] == 0 or dv["median"] is None else f"{dv['median']:.3f} / {dv['max']:.2f}"
         t.add_row(str(r["rerun"]), r["outcome"], coll["participant"] if coll else "",
                   "-" if r["min_distance"] is None else f"{r['min_distance']:.2f}",
-                  f"{r['sim_time']:.1f}", f"{r['wall_time']:.2f}", str(r["jitter_seed"]),
-                  "-" if dv["median"] is None else f"{dv['median']:.3f}",
-                  "-" if dv["max"] is None else f"{dv['max']:.2f}",
-                  f"{dv['identical']}/{dv['paired']}")
+                  f"{r['sim_time']:.1f}", f"{r['wall_time']:.2f}", str(r["jitter_seed"]), ident, dist)
     return t
 
 

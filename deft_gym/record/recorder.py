@@ -37,8 +37,9 @@ from typing import Any
 import orjson
 
 from deft_gym.bus.codec import encode
-from deft_gym.bus.messages import SCHEMAS, Message
+from deft_gym.bus.messages import SCENE_TOPIC, SCHEMAS, Message, log_start_ns
 from deft_gym.files import write_atomic
+from deft_gym.record.scene import expand
 from deft_gym.record.worker import Batch, Entry, EpisodeLog, read_frame, write_frame
 
 EPISODE_METADATA = "deft_gym.episode"
@@ -166,19 +167,25 @@ class McapRecorder:
     payload as it was then; messages are handed on in batches of :attr:`BATCH`.
     :meth:`close` returns once the log is complete and in place, and raises
     :class:`RecorderError` if it could not be written.
+
+    ``log_time`` is ``metadata["log_start_ns"]`` (an epoch time, 0 when absent) plus the
+    publish time; ``extra_channels`` are ``(topic, "", schema title, JSON schema)`` of
+    viewer-only topics (no role).
     """
 
     BATCH = 256
 
     def __init__(self, path: Path | str, topics: dict[str, str], metadata: dict[str, Any],
-                 compress: bool = False, background: bool | None = None) -> None:
+                 compress: bool = False, background: bool | None = None,
+                 extra_channels: list[tuple[str, str, str, bytes]] = ()) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if background is None:
             background = not recorder_in_process()
         channels = [(topic, role, SCHEMAS[role]["title"], json.dumps(SCHEMAS[role]).encode())
-                    for role, topic in topics.items()]
-        args = (str(self.path), channels, EPISODE_METADATA, _meta(metadata), compress)
+                    for role, topic in topics.items()] + list(extra_channels)
+        self.start_ns = log_start_ns(metadata)
+        args = (str(self.path), channels, EPISODE_METADATA, _meta(metadata), compress, self.start_ns)
         self._log: EpisodeLog | None = None
         self._proc: RecorderProcess | None = None
         self._pending: list[Entry] = []
@@ -215,7 +222,10 @@ class McapRecorder:
 
     def _encode(self, msg: Message) -> None:
         # the tap of a log written here: the payload encoded as it is now
-        self._pending.append((msg.topic, msg.publish_ns, encode(msg.payload), msg.seq))
+        if msg.topic == SCENE_TOPIC and (scene := expand(msg.publish_ns, msg.seq, msg.payload, self.start_ns)):
+            self._pending += scene
+        else:
+            self._pending.append((msg.topic, msg.publish_ns, encode(msg.payload), msg.seq))
         self._count += 1
         if len(self._pending) >= self.BATCH:
             self.flush()

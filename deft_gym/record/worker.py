@@ -3,13 +3,15 @@
 The recorder process (``python -m deft_gym.record.worker``) is fed batches of messages,
 each with a snapshot of its payload taken at its publish time (:class:`Batch`, which costs the
 simulation less than JSON encoding), and does the rest: JSON encoding (:func:`deft_gym.bus.codec.encode`, the same bytes as encoding in
-the simulation's process) and the MCAP writer's per-message Python. Apollo records the same
+the simulation's process), the Foxglove scene messages made from the compact scene states the
+simulation hands over (:func:`deft_gym.record.scene.expand`) and the MCAP writer's per-message
+Python. Apollo records the same
 way: ``cyber_recorder`` is a process of its own, fed serialised messages.
 
 It reads commands from its stdin and answers some on its stdout. A frame is a 4-byte
 little-endian length and a pickled tuple ``(op, log_id, *args)``:
 
-- ``("open", id, path, channels, metadata, compress)`` -> ``("ok",)`` or ``("error", text)``
+- ``("open", id, path, channels, metadata name, metadata, compress, start_ns)`` -> ``("ok",)`` or ``("error", text)``
 - ``("write", id, batch)``: ``batch`` is the bytes of :meth:`Batch.take`
 - ``("meta", id, name, values)``
 - ``("close", id, outcome)`` -> ``("ok", path, cpu_seconds)`` or ``("error", text)``
@@ -33,6 +35,8 @@ from typing import Any, BinaryIO
 from mcap.writer import CompressionType, IndexType, Writer
 
 from deft_gym.bus.codec import encode
+from deft_gym.bus.messages import SCENE_TOPIC
+from deft_gym.record.scene import expand
 
 try:  # the payload snapshot compiled (setup.py), 3x faster than pickle for plain payloads
     from deft_gym.record import _snapshot_c
@@ -120,8 +124,9 @@ class EpisodeLog:
     CHUNK_BYTES = 32 * 1024
 
     def __init__(self, path: Path | str, channels: list[tuple[str, str, str, bytes]], metadata_name: str,
-                 metadata: dict[str, str], compress: bool = False) -> None:
+                 metadata: dict[str, str], compress: bool = False, start_ns: int = 0) -> None:
         self.path = Path(path)
+        self.start_ns = start_ns  # added to every publish time: log_time is an epoch time
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = self.path.with_name(self.path.name + ".tmp")
         self._file = open(self.tmp, "wb", buffering=1 << 20)  # noqa: SIM115 - closed in close()
@@ -132,23 +137,27 @@ class EpisodeLog:
         self._channels: dict[str, int] = {}
         for topic, role, title, schema in channels:
             sid = self.writer.register_schema(title, "jsonschema", schema)
-            self._channels[topic] = self.writer.register_channel(topic, "json", sid, {"role": role})
+            # a viewer-only topic (role "") carries no role: readers of bus messages skip it
+            self._channels[topic] = self.writer.register_channel(topic, "json", sid, {"role": role} if role else {})
         self.writer.add_metadata(metadata_name, metadata)
 
     def write(self, batch: list[Entry]) -> None:
         """Add messages in publish order; a new topic's channel record goes just before its
         first message."""
-        channels, add = self._channels, self.writer.add_message
+        channels, add, start = self._channels, self.writer.add_message, self.start_ns
         for topic, ns, data, seq in batch:
             cid = channels.get(topic)
             if cid is None:
                 cid = channels[topic] = self.writer.register_channel(topic, "json", 0, {})
-            add(cid, ns, data, ns, seq)
+            add(cid, start + ns, data, start + ns, seq)
 
     def write_batch(self, data: bytes) -> None:
         """:meth:`write` of a batch of entries (:meth:`Batch.take`), payloads JSON-encoded here."""
         out = []
         for topic, ns, payload, seq in read_batch(data):
+            if topic == SCENE_TOPIC and (scene := expand(ns, seq, payload, self.start_ns)) is not None:
+                out += scene  # the Foxglove scene, made here rather than in the simulation
+                continue
             try:
                 out.append((topic, ns, encode(payload), seq))
             except TypeError as exc:
@@ -200,8 +209,7 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
         c0 = time.process_time()
         try:
             if op == "open":
-                path, channels, meta_name, meta, compress = args
-                logs[lid] = EpisodeLog(path, channels, meta_name, meta, compress)
+                logs[lid] = EpisodeLog(*args)
                 write_frame(out, ("ok",))
             elif lid in errors:
                 if op == "close":

@@ -16,7 +16,7 @@ from typing import Any
 from mcap.reader import make_reader
 
 from deft_gym.bus.codec import decode
-from deft_gym.bus.messages import NS_PER_S
+from deft_gym.bus.messages import NS_PER_S, log_start_ns
 from deft_gym.record.recorder import EPISODE_METADATA, OUTCOME_METADATA
 from deft_gym.robustness.interception import EVENTS_TOPIC, ORIGINAL_PREFIX
 from deft_gym.robustness.invariants import (
@@ -66,6 +66,7 @@ def check_log(path: Path | str, invariants: InvariantSet | Path | str | None = N
             elif "role" in channel.metadata:
                 roles[topic] = channel.metadata["role"]
     monitor = InvariantMonitor(inv, episode["map"])
+    start = log_start_ns(episode)  # log_time = epoch start + sim time
     with open(path, "rb") as f:
         for _, channel, message in make_reader(f).iter_messages():
             role = roles.get(channel.topic)
@@ -77,7 +78,7 @@ def check_log(path: Path | str, invariants: InvariantSet | Path | str | None = N
             payload = originals.get(key)
             if payload is None:
                 payload = decode(message.data)
-            last_ns = max(last_ns, message.log_time)
-            monitor.observe(role, payload, message.log_time / NS_PER_S)
+            last_ns = max(last_ns, message.log_time - start)
+            monitor.observe(role, payload, (message.log_time - start) / NS_PER_S)
     outcome = meta.get(OUTCOME_METADATA)
     return monitor.finish(outcome, float((outcome or {}).get("sim_time", last_ns / NS_PER_S)))

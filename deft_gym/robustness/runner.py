@@ -27,7 +27,7 @@ import numpy as np
 from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.bus.codec import encode
 from deft_gym.bus.messages import Message, to_ns
-from deft_gym.config import ROOT
+from deft_gym.config import CONFIG_DIR, ROOT, resolve_config_path
 from deft_gym.robustness.hardening import harden_overrides
 from deft_gym.robustness.interception import Interceptor, attach
 from deft_gym.robustness.invariants import (
@@ -120,13 +120,14 @@ def foundation_digest() -> str:
     for f in sorted(seen):
         h.update(str(f.relative_to(ROOT)).encode())
         h.update(f.read_bytes())
-    h.update((ROOT / "configs" / "ads" / "default.yaml").read_bytes())
+    h.update((CONFIG_DIR / "ads" / "default.yaml").read_bytes())
     return h.hexdigest()
 
 
 def resolve(path: str | Path) -> Path:
-    """A path relative to the repository root unless absolute or existing as given."""
-    p = Path(path)
+    """A path relative to the repository root (or the shipped configs) unless absolute or
+    existing as given."""
+    p = resolve_config_path(path)
     return p if p.is_absolute() or p.exists() else ROOT / p
 
 

@@ -16,7 +16,6 @@ fail while the planner is not robust to the case and pass once it is.
 
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import shutil
@@ -285,27 +284,6 @@ def pytest_module_source(name: str, frames_name: str, n: int, hardening: bool = 
             problem = _replay().problem(case)
             assert problem is None, problem
         ''')
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m agents.stress subsystem``."""
-    ap = argparse.ArgumentParser(prog="python -m agents.stress subsystem",
-                                 description="Subsystem replay testing: the dictionary applied to DeFT-extracted "
-                                             "planning frames, the planner alone; findings become pytest tests.")
-    ap.add_argument("frames", help="frames.jsonl written by the extractor (python -m extract)")
-    ap.add_argument("--out", required=True, help="output folder (frames copy, cases.json, test module, summary)")
-    ap.add_argument("--budget", type=int, default=300, help="number of tests (default 300)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--turnover", type=int, default=5, help="unmodified frames planned after the mutated one")
-    ap.add_argument("--invariants", default=None, help="invariants YAML (its `on: planning` ones are used)")
-    ap.add_argument("--hardening", choices=("off", "on"), default="off",
-                    help="sanitise the planner's inputs as the hardened planning node does")
-    args = ap.parse_args(argv)
-    s = run_subsystem(args.frames, args.out, args.budget, args.seed, args.invariants, args.turnover,
-                      args.hardening == "on")
-    print(json.dumps({k: s[k] for k in ("tests", "crashes", "hangs", "violations", "harness_errors")}, indent=1))
-    print(f"{len(s['minimised'])} distinct findings -> {args.out}/test_robustness_*.py (pytest {args.out})")
-    return 0
 
 
 __all__ = ["FrameCase", "FrameReplay", "generate", "minimise_frame_case", "run_subsystem"]

@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 
 from deft_gym.bus.ads import AdsConfig, load_ads_config
-from deft_gym.config import ROOT
+from deft_gym.config import cache_dir
 from deft_gym.files import write_atomic
 from deft_gym.scenarios.scenario import Scenario, scenario_to_dict
 
-CACHE_DIR = ROOT / "runs" / "cache" / "reference"
+CACHE_DIR = cache_dir() / "reference"
 TRACE_FORMAT = 2  # bump when the recorded content changes (invalidates the cache)
 
 

@@ -32,7 +32,7 @@ import numpy as np
 from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.bus.bus import Bus, Node, header
 from deft_gym.bus.jitter import JitterModel
-from deft_gym.bus.messages import NS_PER_S, to_ns
+from deft_gym.bus.messages import LOG_START_KEY, NS_PER_S, to_ns
 from deft_gym.config import ConfigError
 from deft_gym.files import write_atomic
 from deft_gym.modules.control import ControlNode
@@ -42,6 +42,7 @@ from deft_gym.modules.routing import RoutingNode
 from deft_gym.modules.sensors import LocalizationNode, PerceptionNode, TrafficLightNode
 from deft_gym.planner.base import import_object, load_planner, planner_fingerprint
 from deft_gym.record.recorder import McapRecorder, write_truth
+from deft_gym.record.scene import SceneWriter, scene_hz, viewer_channels
 from deft_gym.scenarios.scenario import (
     Scenario,
     build_world,
@@ -228,7 +229,8 @@ class Simulation:
     def __init__(self, scenario: Scenario | str | Path, ads: AdsConfig | None = None,
                  jitter_seed: int | None = None, out_dir: Path | str | None = None,
                  keep_planning: bool = True, compress: bool = False,
-                 recorder_process: bool | None = None, watchdog_s: float | None = None) -> None:
+                 recorder_process: bool | None = None, watchdog_s: float | None = None,
+                 log_start_ns: int | None = None) -> None:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.ads = ads or load_ads_config()
         sc, ads = self.scenario, self.ads
@@ -267,10 +269,16 @@ class Simulation:
             self.bus.add(n)
         self.out_dir = Path(out_dir) if out_dir else None
         self.recorder: McapRecorder | None = None
+        self.scene: SceneWriter | None = None
+        # the log's time base: a real epoch time (whole seconds) + sim time, so viewers show a date
+        self.log_start_ns = int(time.time()) * NS_PER_S if log_start_ns is None else int(log_start_ns)
         if self.out_dir is not None:
+            hz = scene_hz()
             self.recorder = McapRecorder(self.out_dir / "episode.mcap", topics, self.metadata(), compress=compress,
-                                         background=recorder_process)
+                                         background=recorder_process, extra_channels=viewer_channels() if hz else ())
             self.bus.taps.append(self.recorder.tap)
+            if hz:
+                self.scene = SceneWriter(self, self.recorder.tap, self.log_start_ns, hz)
         self.added: list[dict[str, Any]] = []
         self._wall = 0.0
         self._started = False
@@ -287,6 +295,7 @@ class Simulation:
         return {
             "format": "deft_gym.episode/1",
             "deft_gym_version": PACKAGE_VERSION,
+            LOG_START_KEY: self.log_start_ns,
             "scenario_name": self.scenario.name,
             "scenario_source": self.scenario.source or "",
             "scenario": scenario_to_dict(self.scenario),
@@ -357,6 +366,8 @@ class Simulation:
         result = EpisodeResult(self.scenario.name, outcome, self._wall, self.jitter.seed,
                                self.planning_outputs, messages=bus.published, drops=self.jitter.drops)
         if self.recorder is not None:
+            if self.scene is not None:
+                self.scene.finish(outcome.collision.as_dict() if outcome.collision else None)
             self.recorder.flush()  # the last messages are written while the truth file is
             result.truth_path = str(write_truth(self.out_dir / "truth.jsonl", self.planning.truth, self.ads.topics))
             result.log_path = str(self.recorder.close({**outcome.as_dict(), "wall_time": self._wall,

@@ -1,7 +1,8 @@
 """Pictures of episodes.
 
-- :mod:`.plot` - :class:`~.plot.EpisodeTrace` (hooks a simulation) and its plot and video;
-  :func:`~.plot.draw_map`.
+- :mod:`.episode` - plot and video of a recorded episode, drawn from its MCAP log alone
+  (``deft-gym render``);
+- :mod:`.plot` - :func:`~.plot.draw_map`, the road map of a live world.
 
-Imports: the world and the simulation (duck-typed), matplotlib and highway-env's graphics.
+Imports: the log's codec and messages, the road map (duck-typed), matplotlib, imageio.
 """

@@ -1,0 +1,265 @@
+"""The command-line conventions every DeFT-Gym program shares, defined once.
+
+Every program (``deft-gym <command>`` or its ``python -m`` module) builds its parser with
+:func:`parser` and takes its shared options from the ``add_*`` functions here, so that one
+flag means one thing everywhere:
+
+========================  ==================================================================
+``--scenarios A B``       scenario names (``configs/scenarios``), YAML paths or specs such as
+                          ``gen:7``; space-separated (commas also accepted: ``A,B``)
+``--out DIR``             output folder; every program has a default under ``runs/``
+``--workers N``           parallel processes; default: the CPUs this process may use
+``--seed S``              seed of the program's own randomness (tests, adversary); default 0
+``--jitter-seed S``       jitter seed of the first run (run *i* uses S+i); default: fresh seeds
+                          from the OS, printed and recorded, as in a real system
+``--no-progress``         no progress bar (rich, one style everywhere)
+``--quiet``               print only errors and the final line (implies ``--no-progress``)
+``--render WHAT``         pictures of episodes: ``failures`` (default), ``all`` or ``none``
+``--ray``                 (execution layer) run jobs on Ray instead of local processes
+``--ray-address ADDR``    (execution layer) the Ray cluster to join
+``--version``             the package version
+========================  ==================================================================
+
+Bad input is one line naming the flag or field, exit status 2 (:class:`Parser`). Help lists
+every option with its default. Nothing here imports more than the standard library and rich
+(lazily), so ``--help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+RUNS = Path("runs")
+RENDER_CHOICES = ("failures", "all", "none")
+# set by the ``deft-gym`` console script: programs then name themselves ``deft-gym <command>``
+INVOKED_AS: str | None = None
+
+
+def version() -> str:
+    """The installed package version (the source tree's when not installed)."""
+    try:
+        from importlib.metadata import PackageNotFoundError
+        from importlib.metadata import version as _version
+
+        return _version("deft-gym")
+    except PackageNotFoundError:  # pragma: no cover - a source tree never installed
+        return "0.1.0"
+
+
+def cpus() -> int:
+    """How many CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the description's layout and appends ``(default: X)`` to every option's help that
+    does not state its default itself."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        if "default" in text or action.default is argparse.SUPPRESS or not action.option_strings:
+            return text
+        if isinstance(action, argparse._StoreTrueAction | argparse._StoreFalseAction):
+            return f"{text} (default: {'on' if action.default else 'off'})".strip()
+        if action.default is None:
+            return f"{text} (default: none)".strip()
+        shown = " ".join(map(str, action.default)) if isinstance(action.default, list | tuple) else action.default
+        return f"{text} (default: {shown})".strip()
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line naming the flag, exit status 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
+
+
+def parser(name: str, module: str, doc: str | None, epilog: str | None = None) -> Parser:
+    """The parser of program ``name`` (``deft-gym name``, or ``python -m module``): its
+    description is the first paragraph of ``doc``; ``--version`` included."""
+    prog = f"{INVOKED_AS} {name}" if INVOKED_AS else f"python -m {module}"
+    description = (doc or "").strip().split("\n\n")[0] or None
+    p = Parser(prog=prog, description=description, epilog=epilog, formatter_class=HelpFormatter)
+    p.add_argument("--version", action="version", version=f"deft-gym {version()}",
+                   help="print the version and exit")
+    return p
+
+
+def cli_error(message: str) -> int:
+    """Print a one-line error to stderr; returns exit status 2 (bad input)."""
+    print(f"error: {message}", file=sys.stderr)
+    return 2
+
+
+# -- the shared options ----------------------------------------------------------------------------
+class ListAction(argparse.Action):
+    """Space- and comma-separated values, flattened."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        items = [v.strip() for s in (values if isinstance(values, list) else [values]) for v in str(s).split(",")]
+        setattr(namespace, self.dest, [v for v in items if v])
+
+
+def split_list(value: str | Sequence[str] | None) -> list[str] | None:
+    """``"a,b c"`` or ``["a,b", "c"]`` -> ``["a", "b", "c"]`` (None stays None)."""
+    if value is None:
+        return None
+    parts = [value] if isinstance(value, str) else list(value)
+    return [v.strip() for s in parts for v in s.replace(",", " ").split() if v.strip()]
+
+
+def add_scenarios(p: argparse.ArgumentParser, default: Sequence[str] | None = None, help: str | None = None,
+                  flags: Sequence[str] = ("--scenarios",)) -> None:
+    """``--scenarios A B`` (or ``A,B``): scenario names, YAML paths or specs."""
+    p.add_argument(*flags, dest="scenarios", nargs="+", action=ListAction, metavar="SCENARIO",
+                   default=list(default) if default is not None else None,
+                   help=help or "scenario names (configs/scenarios), YAML paths or gen:<seed> specs; "
+                                "space- or comma-separated")
+
+
+def add_out(p: argparse.ArgumentParser, default: str | Path | None, help: str = "output folder") -> None:
+    """``--out DIR`` with a default under ``runs/`` (a string default may name a placeholder
+    the program fills in, e.g. ``runs/run/<scenario>``)."""
+    p.add_argument("--out", default=str(default) if default is not None else None, metavar="DIR", help=help)
+
+
+def add_workers(p: argparse.ArgumentParser, help: str = "parallel processes") -> None:
+    """``--workers N``, default the CPUs this process may use."""
+    p.add_argument("--workers", type=positive_int, default=cpus(), metavar="N",
+                   help=f"{help} (default: the CPUs, {cpus()} here)")
+
+
+def add_seed(p: argparse.ArgumentParser, default: int | None = 0,
+             help: str = "seed of this program's own randomness") -> None:
+    """``--seed S``."""
+    p.add_argument("--seed", type=int, default=default, metavar="S", help=help)
+
+
+def add_jitter_seed(p: argparse.ArgumentParser, help: str = "jitter seed of the first run; run i uses S+i") -> None:
+    """``--jitter-seed S``, default fresh seeds from the OS."""
+    p.add_argument("--jitter-seed", type=int, default=None, metavar="S",
+                   help=f"{help} (default: fresh seeds from the OS, recorded in the output)")
+
+
+def add_output_flags(p: argparse.ArgumentParser) -> None:
+    """``--no-progress`` and ``--quiet``."""
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="print only errors and the final line (no progress bar)")
+
+
+def add_render(p: argparse.ArgumentParser, default: str = "failures") -> None:
+    """``--render failures|all|none`` (pictures of episodes: plot and video)."""
+    p.add_argument("--render", choices=RENDER_CHOICES, default=default,
+                   help="draw a plot and a video of these episodes (deft-gym render)")
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
+
+
+def fresh_seed() -> int:
+    """A jitter seed from the OS (as :func:`deft_gym.bus.jitter.os_seed`, without its imports)."""
+    return int.from_bytes(os.urandom(4), "little") & 0x7FFFFFFF
+
+
+# -- console and progress --------------------------------------------------------------------------
+def console(args: argparse.Namespace | None = None, stderr: bool = False, width: int = 120) -> Any:
+    """The rich console of a program (silent with ``--quiet``)."""
+    from rich.console import Console
+
+    stream = sys.stderr if stderr else sys.stdout
+    return Console(stderr=stderr, width=None if stream.isatty() else width, highlight=False,
+                   quiet=bool(getattr(args, "quiet", False)))
+
+
+def show_progress(args: argparse.Namespace | None) -> bool:
+    """Whether a progress bar is wanted (not ``--no-progress`` nor ``--quiet``)."""
+    return not (getattr(args, "no_progress", False) or getattr(args, "quiet", False))
+
+
+def rich_progress(con: Any = None, info: bool = False) -> Any:
+    """A rich ``Progress`` in the one style (for programs that run several tasks at once)."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    cols = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+            TextColumn("eta"), TimeRemainingColumn()]
+    if info:
+        cols.append(TextColumn("{task.fields[info]}"))
+    return Progress(*cols, console=con or console(stderr=True), transient=True)
+
+
+class Bar:
+    """The one progress-bar style (rich): description, bar, done/total, elapsed, remaining.
+
+    ``update(n)`` advances like tqdm's; ``set(done, total)`` sets; ``close()`` ends it. Disabled
+    bars cost nothing. Use as a context manager or call :meth:`close`."""
+
+    def __init__(self, total: int | None, description: str, enabled: bool = True, con: Any = None,
+                 info: bool = False) -> None:
+        self._progress = None
+        if not enabled:
+            return
+        self._progress = rich_progress(con, info)
+        self._progress.start()
+        self._task = self._progress.add_task(description, total=total, info="")
+
+    def update(self, n: int = 1) -> None:
+        """Advance by ``n``."""
+        if self._progress is not None:
+            self._progress.advance(self._task, n)
+
+    def set(self, done: int, total: int | None = None, info: str | None = None) -> None:
+        """Set the count (and the total, and the info text)."""
+        if self._progress is not None:
+            kw: dict[str, Any] = {"completed": done}
+            if total is not None:
+                kw["total"] = total
+            if info is not None:
+                kw["info"] = info
+            self._progress.update(self._task, **kw)
+
+    def close(self) -> None:
+        """End the bar (it disappears; what was printed stays)."""
+        if self._progress is not None:
+            self._progress.stop()
+            self._progress = None
+
+    def __enter__(self) -> Bar:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+@contextmanager
+def bar(args: argparse.Namespace | None, total: int | None, description: str, con: Any = None) -> Iterator[Bar]:
+    """A :class:`Bar` that honours ``--no-progress``/``--quiet``."""
+    b = Bar(total, description, show_progress(args), con)
+    try:
+        yield b
+    finally:
+        b.close()

@@ -1,0 +1,86 @@
+"""``deft-gym``: one command for every program (``deft-gym <command> --help``).
+
+Each command is a module's ``main(argv)``; the module is imported only when its command runs,
+so ``deft-gym --help`` imports nothing heavy. The modules keep working as ``python -m MODULE``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+from deft_gym.cli import common
+
+# command -> (module, one line); grouped as the help lists them. The modules are named, not
+# imported: agents (the adversary programs) sit above deft_gym.cli in the layers and load
+# only when their command runs.
+COMMANDS: dict[str, tuple[str, str]] = {
+    # simulate
+    "run": ("deft_gym.cli.run", "run a scenario N times on the jittered ADS; logs, table, pictures"),
+    "calibrate": ("deft_gym.cli.calibrate", "how many collision scenarios are flaky over reruns"),
+    "generate": ("deft_gym.cli.generate", "generated scenarios as YAML, optionally run once each"),
+    "bench": ("deft_gym.cli.bench", "simulation speed and recording overhead"),
+    "digest": ("deft_gym.cli.digest", "behaviour digests that prove a change neutral"),
+    # look at episodes
+    "render": ("deft_gym.cli.render", "plot and video of episodes (LOG, episode.json or a folder)"),
+    "report": ("deft_gym.cli.report", "one HTML page for a run folder: numbers, plots, failures"),
+    # DeFT: logs -> planning-module tests
+    "extract": ("deft_gym.cli.extract", "deterministic planning-module tests (pytest) from episode logs"),
+    "check-planner": ("extract.contract", "check a planner's contract on a log's frames"),
+    "verify": ("extract.verify", "a log's integrity (chunk CRCs, counts)"),
+    # the adversary
+    "train": ("agents.train", "train the RL adversary (stable-baselines3)"),
+    "evaluate": ("agents.evaluate", "compare adversaries at an equal budget of scenarios"),
+    "eval-report": ("agents.eval_report", "re-render an evaluation's tables and plots"),
+    "bench-env": ("agents.bench_env", "adversary env steps/s and scenarios/hour"),
+    # robustness (ASTAA)
+    "stress": ("agents.stress", "robustness campaign: exceptional values on the live bus"),
+    # experiments and tools
+    "demo": ("agents.demo", "the end-to-end demo (make demo): flaky -> deterministic, adversary, report"),
+    "record": ("agents.record", "record one episode (optionally renamed topics, headers)"),
+    "extract-eval": ("agents.extract_eval_args", "DeFT's research questions on a scenario pool"),
+    "planner-edits": ("agents.planner_edits", "do generated tests catch small planner edits?"),
+    "log-damage": ("agents.log_damage", "damage logs on purpose and check what the reader recovers"),
+}
+GROUPS = (("simulate", ("run", "calibrate", "generate", "bench", "digest")),
+          ("look at episodes", ("render", "report")),
+          ("DeFT: logs -> planning-module tests", ("extract", "check-planner", "verify")),
+          ("the adversary", ("train", "evaluate", "eval-report", "bench-env")),
+          ("robustness (ASTAA)", ("stress",)),
+          ("experiments and tools", ("demo", "record", "extract-eval", "planner-edits", "log-damage")))
+
+
+def usage() -> str:
+    """The top-level help text."""
+    lines = ["usage: deft-gym [--version] <command> [options]   (deft-gym <command> --help)", "",
+             "DeFT-Gym: test autonomous-driving planners - jittered ADS simulation, RL adversary,",
+             "deterministic planning-module tests from logs (DeFT), robustness testing (ASTAA).", ""]
+    for title, names in GROUPS:
+        lines.append(f"{title}:")
+        lines += [f"  {n:<15} {COMMANDS[n][1]}" for n in names]
+        lines.append("")
+    lines.append("shared options (every command that has them): --scenarios, --out (default under runs/), "
+                 "--workers (default: the CPUs), --seed, --jitter-seed, --no-progress, --quiet, --render")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help", "help"):
+        print(usage())
+        return 0
+    if args[0] == "--version":
+        print(f"deft-gym {common.version()}")
+        return 0
+    name = args[0]
+    if name not in COMMANDS:
+        close = [c for c in COMMANDS if c.startswith(name[:3])]
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        return common.cli_error(f"unknown command {name!r}{hint} (deft-gym --help lists them)")
+    common.INVOKED_AS = "deft-gym"
+    module = importlib.import_module(COMMANDS[name][0])
+    return int(module.main(args[1:]) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
