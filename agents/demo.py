@@ -198,13 +198,11 @@ def main(argv: list[str] | None = None) -> int:
     warnings.simplefilter("ignore")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
-        con.print(f"[red]error:[/red] --out {out}: is a file; expected a folder for the demo's outputs")
-        return 2
+        return common.cli_error(f"--out {out}: is a file; expected a folder for the demo's outputs")
     marker = out / MARKER
     if not marker.exists() and any((out / part).exists() for part in ("flaky", "train", "eval")):
-        con.print(f"[red]error:[/red] --out {out}: holds flaky/, train/ or eval/ that agents.demo did not write "
-                  f"(no {MARKER}); choose another --out", soft_wrap=True)
-        return 2
+        return common.cli_error(f"--out {out}: holds flaky/, train/ or eval/ that agents.demo did not write "
+                                f"(no {MARKER}); choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     marker.write_text("written by agents.demo; a new demo into this folder replaces flaky/, train/ and eval/\n")
     t0 = time.perf_counter()

@@ -93,8 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         backend = backend_from_args(args, args.workers)
     except ConfigError as err:
-        console.print(f"[red]error:[/red] {err}", highlight=False, soft_wrap=True)
-        return 2
+        return common.cli_error(str(err))
     if args.jitter_seed is None:  # resuming: the seeds of the runs already there; else fresh ones
         prior = read_jsonl(Path(args.out) / "runs.jsonl")
         args.jitter_seed = min((r["seed"] for r in prior), default=None)
