@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from deft_gym.cli import common
 from deft_gym.execution import Backend, Executor, ray_installed, without_timings
 from deft_gym.files import read_jsonl, write_json_atomic
 
@@ -55,17 +56,18 @@ def driver_cost(backend: Backend, n: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m agents.bench_scale", description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--campaign", choices=("evaluate", "calibrate"), default="evaluate")
-    ap.add_argument("--workers", default="1,2", help="comma-separated worker counts (default 1,2)")
-    ap.add_argument("--backends", default="local,ray", help="comma-separated, of local,ray (default both)")
-    ap.add_argument("--budget", type=int, default=4, help="evaluate: scenarios per job (default 4)")
-    ap.add_argument("--repeats", type=int, default=2, help="evaluate: repeats (default 2)")
-    ap.add_argument("--reruns", type=int, default=8, help="calibrate: reruns per variant (default 8: 256 runs)")
+    ap = common.parser("bench-scale", "agents.bench_scale", __doc__)
+    ap.add_argument("--campaign", choices=("evaluate", "calibrate"), default="evaluate", help="campaign to scale")
+    ap.add_argument("--workers", default="1,2", help="comma-separated worker counts")
+    ap.add_argument("--backends", default="local,ray", help="comma-separated, of local,ray")
+    ap.add_argument("--budget", type=int, default=4, help="evaluate: scenarios per job")
+    ap.add_argument("--repeats", type=int, default=2, help="evaluate: repeats")
+    ap.add_argument("--reruns", type=int, default=8, help="calibrate: reruns per variant (8: 256 runs)")
     ap.add_argument("--scenarios", default=None, help="comma-separated seed scenarios (default: four)")
-    ap.add_argument("--out", type=Path, default=Path("runs/bench_scale"))
+    common.add_out(ap, common.RUNS / "bench_scale")
+    common.add_output_flags(ap)
     a = ap.parse_args(argv)
+    a.out = Path(a.out)
     try:
         counts = [int(w) for w in a.workers.split(",")]
         assert counts and min(counts) >= 1

@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("agents.evaluate", "compare adversaries at an equal budget of scenarios"),
     "eval-report": ("agents.eval_report", "re-render an evaluation's tables and plots"),
     "bench-env": ("agents.bench_env", "adversary env steps/s and scenarios/hour"),
+    "profile-env": ("agents.profile_env", "where an adversary env process spends its CPU (cProfile)"),
     # robustness (ASTAA)
     "stress": ("agents.stress", "robustness campaign: exceptional values on the live bus"),
     # experiments and tools
@@ -41,13 +42,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "extract-eval": ("agents.extract_eval_args", "DeFT's research questions on a scenario pool"),
     "planner-edits": ("agents.planner_edits", "do generated tests catch small planner edits?"),
     "log-damage": ("agents.log_damage", "damage logs on purpose and check what the reader recovers"),
+    "bench-scale": ("agents.bench_scale", "a campaign at 1..N workers, local processes and Ray"),
 }
 GROUPS = (("simulate", ("run", "calibrate", "generate", "bench", "digest")),
           ("look at episodes", ("render", "report")),
           ("DeFT: logs -> planning-module tests", ("extract", "check-planner", "verify")),
-          ("the adversary", ("train", "evaluate", "eval-report", "bench-env")),
+          ("the adversary", ("train", "evaluate", "eval-report", "bench-env", "profile-env")),
           ("robustness (ASTAA)", ("stress",)),
-          ("experiments and tools", ("demo", "record", "extract-eval", "planner-edits", "log-damage")))
+          ("experiments and tools", ("demo", "record", "extract-eval", "planner-edits", "log-damage", "bench-scale")))
 
 
 def usage() -> str:
