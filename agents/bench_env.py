@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     common.add_scenarios(p, help="seed scenarios (default: the seven seeds)")
     p.add_argument("--policy", choices=("random", "noop"), default="random", help="the adversary's actions")
     common.add_seed(p)
-    common.add_out(p, None, help="also write the figures to this JSON file (default: none)")
+    common.add_out(p, None, help="also write the figures to this JSON file (default: none)", folder=False)
     common.add_output_flags(p)
     args = p.parse_args(argv)
     from deft_gym.envs.adversary import AdversaryEnv

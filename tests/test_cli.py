@@ -174,3 +174,22 @@ def test_make_refuses_another_python(tmp_path: Path) -> None:
     out = subprocess.run(["make", "-s", "check-python", "PYTHON=no-such-python3.11"], capture_output=True, text=True,
                          cwd=ROOT, env=env)
     assert out.returncode != 0 and "was not found" in out.stderr
+
+
+FOLDER_OUT = ["run", "calibrate", "generate", "extract", "train", "evaluate", "stress", "demo", "record",
+              "extract-eval", "planner-edits", "log-damage", "render", "bench-scale"]
+
+
+@pytest.mark.parametrize("name", FOLDER_OUT)
+def test_out_that_is_a_file_is_one_line_before_any_work(name: str, tmp_path, capsys) -> None:
+    """A program that writes a folder refuses an --out that names an existing file (exit 2, one
+    line naming the flag), before it imports the simulation or writes anything."""
+    afile = tmp_path / "afile"
+    afile.write_text("the user's file")
+    positional = {"run": ["left_turn"], "extract": [str(tmp_path / "x.mcap")], "render": [str(tmp_path)]}
+    with pytest.raises(SystemExit) as exc:
+        deft_gym([name, *positional.get(name, []), "--out", str(afile)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--out" in err and "is a file" in err, err
+    assert afile.read_text() == "the user's file"

@@ -92,7 +92,7 @@ def build_parser() -> common.Parser:
     ap.add_argument("--scenario", default="bench_highway",
                     help="scenario with the participants to benchmark (default: bench_highway, 5 reactive vehicles)")
     ap.add_argument("--repeats", type=common.positive_int, default=3, help="runs per measurement; the median is shown")
-    common.add_out(ap, common.RUNS / "bench.json", help="JSON file for the figures")
+    common.add_out(ap, common.RUNS / "bench.json", help="JSON file for the figures", folder=False)
     common.add_output_flags(ap)
     return ap
 

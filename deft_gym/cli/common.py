@@ -127,10 +127,20 @@ def add_scenarios(p: argparse.ArgumentParser, default: Sequence[str] | None = No
                                 "space- or comma-separated")
 
 
-def add_out(p: argparse.ArgumentParser, default: str | Path | None, help: str = "output folder") -> None:
+def out_folder(text: str) -> str:
+    """``--out`` of a program that writes a folder: a path that is an existing file is refused
+    before any work starts (one line, exit 2)."""
+    if Path(text).exists() and not Path(text).is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file; expected a folder (new or existing)")
+    return text
+
+
+def add_out(p: argparse.ArgumentParser, default: str | Path | None, help: str = "output folder",
+            folder: bool = True) -> None:
     """``--out DIR`` with a default under ``runs/`` (a string default may name a placeholder
-    the program fills in, e.g. ``runs/run/<scenario>``)."""
-    p.add_argument("--out", default=str(default) if default is not None else None, metavar="DIR", help=help)
+    the program fills in, e.g. ``runs/run/<scenario>``); ``folder=False`` for a file."""
+    p.add_argument("--out", default=str(default) if default is not None else None, metavar="DIR" if folder else "FILE",
+                   type=out_folder if folder else str, help=help)
 
 
 def add_workers(p: argparse.ArgumentParser, help: str = "parallel processes") -> None:

@@ -441,7 +441,7 @@ def write_report(root: Path | str, out: Path | str | None = None, draw: bool = T
 def build_parser() -> common.Parser:
     p = common.parser("report", "deft_gym.cli.report", __doc__)
     p.add_argument("dir", metavar="DIR", help="run folder (demo, reruns, extraction, training, evaluation, stress)")
-    common.add_out(p, None, help="the HTML file (default: DIR/report.html)")
+    common.add_out(p, None, help="the HTML file (default: DIR/report.html)", folder=False)
     p.add_argument("--no-draw", action="store_true", help="do not draw missing pictures of failures")
     common.add_output_flags(p)
     return p
