@@ -100,6 +100,9 @@ def run_campaign_cli(argv: list[str]) -> int:
     from deft_gym.robustness.runner import build_ads
 
     build_ads(campaign.base_case(cfg.scenarios[0], 0, "check"))
+    from deft_gym.robustness.invariants import load_invariants
+
+    load_invariants(cfg.invariants)  # a missing or bad invariants file: one line, before any run
     backend = backend_from_args(args, args.workers)
     out = Path(args.out)
     bars: dict[str, common.Bar] = {}

@@ -330,3 +330,16 @@ def test_bad_ads_configs_are_one_line_errors_and_exit_2_before_any_run(fault, tm
     msg = " ".join(capsys.readouterr().out.split())  # the console may wrap
     assert msg.startswith(f"error: {path}: ") and field in msg and "Traceback" not in msg, msg
     assert not out.exists()
+
+
+def test_stress_campaign_with_a_missing_invariants_file_is_a_setup_error(tmp_path, capsys):
+    """A campaign set-up error exits 2 with one line before any run (it used to exit 0 with every
+    test errored)."""
+    from agents import stress
+
+    code = stress.main(["--invariants", str(tmp_path / "missing.yaml"), "--budget", "1",
+                        "--out", str(tmp_path / "campaign"), "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing.yaml" in err
+    assert not (tmp_path / "campaign").exists()
