@@ -149,6 +149,8 @@ def print_summary(s: dict[str, Any], out: Path) -> None:
         t.add_row(f"  violation {name}", str(n))
     t.add_row("wall time [s]", f"{s['wall_time_s']:.0f}")
     console.print(t)
+    for sig, n in (s.get("baseline_findings") or {}).items():  # the unmodified runs already fail
+        console.print(f"[red]baseline finding:[/red] {sig} in {n} unmodified run(s)", soft_wrap=True)
     if s["findings"]:
         f = Table(title="distinct findings", box=box.SIMPLE)
         for col in ("signature", "runs", "first run"):

@@ -89,3 +89,23 @@ def test_planted_fault_campaign_finds_and_minimises_nan_speed(tmp_path: Path) ->
     d = info["minimised"]["dimensionality"]
     assert "localization:v" in d["fields"] and d["topics"] == ["localization"], d
     assert info["minimised"]["deterministic"]
+
+
+def test_failing_baseline_is_a_finding_and_errored_rows_are_run_again(tmp_path: Path) -> None:
+    """An invariant the unmodified ADS already violates is reported as a baseline finding (it
+    used to be only nominal, hidden from the tests' diff); a row whose harness failed is run again
+    on resume instead of being reused."""
+    inv = tmp_path / "inv.yaml"
+    inv.write_text("invariants:\n  - name: never_brakes\n    kind: simple\n    description: planted, always false\n"
+                   "    on: control\n    assert: control.acceleration > 100.0\n")
+    cfg = tmp_path / "stress.yaml"
+    cfg.write_text(json.dumps({"scenarios": ["configs/scenarios/lane_follow_static.yaml"], "seeds_per_scenario": 1,
+                               "invariants": str(inv), "generation": {"start_s": {"min": 2.0, "max": 6.0}}}))
+    out = tmp_path / "c"
+    out.mkdir()
+    (out / "runs.jsonl").write_text(json.dumps({"index": 0, "harness_errors": ["run: planted harness error"]}) + "\n")
+    s = run_campaign(Campaign(load_campaign_config(cfg), seed=7), out, budget=1, minimise_findings="none")
+    assert s["baseline_findings"] == {"violation:never_brakes": 1}
+    assert s["runs"] == 1 and s["harness_errors"] == 0
+    rows = [json.loads(line) for line in (out / "runs.jsonl").read_text().splitlines()]
+    assert len(rows) == 2 and rows[0]["harness_errors"] and not rows[1]["harness_errors"]  # appended, not reused

@@ -205,7 +205,8 @@ def _run_campaign(campaign: Campaign, out: Path, budget: int, ex: Executor, mini
 
     # 2. tests
     runs = Record(out / "runs.jsonl", fsync=True)
-    rows = {r["index"]: r for r in runs.rows if r.get("index", budget) < budget}
+    # a row whose harness failed (not the ADS) is run again on resume, never reused
+    rows = {r["index"]: r for r in runs.rows if r.get("index", budget) < budget and not r.get("harness_errors")}
     todo = [i for i in range(budget) if i not in rows]
     # 3. planted faults (inline, in test order): which finding disappears without the fault
     attribution = _Attribution(campaign, out / "attribution.jsonl")
@@ -398,6 +399,9 @@ def _time_of(r: RunResult, signature: str) -> float | None:
     return None
 
 
+FAILURE_PREFIXES = ("crash:", "hang:", "violation:")  # signatures that are failures of the ADS
+
+
 def _summary(campaign: Campaign, rows: list[dict[str, Any]], baseline: dict[Any, Any],
              planted: dict[str, Any], minimised: list[dict[str, Any]], budget: int, wall: float) -> dict[str, Any]:
     c = _counts(rows)
@@ -424,6 +428,8 @@ def _summary(campaign: Campaign, rows: list[dict[str, Any]], baseline: dict[Any,
         "findings": dict(sorted(findings.items(), key=lambda kv: kv[1]["first_run"])),
         "minimised": minimised, "planted": planted,
         "baseline": {"runs": len(baseline), "signatures": base_viol},
+        # the unmodified ADS already fails: findings too (they are nominal for the tests' diff)
+        "baseline_findings": {k: n for k, n in sorted(base_viol.items()) if k.startswith(FAILURE_PREFIXES)},
         "hardening": campaign.hardening, "seed": campaign.seed, "foundation": foundation_digest(),
         "sim_time_s": round(sum(r["sim_time"] for r in rows), 2),
         "test_wall_time_s": round(sum(r["wall_time"] for r in rows), 2),
