@@ -343,3 +343,57 @@ def test_stress_campaign_with_a_missing_invariants_file_is_a_setup_error(tmp_pat
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "missing.yaml" in err
     assert not (tmp_path / "campaign").exists()
+
+
+# -- kill -9 and resume ------------------------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.parametrize("program", ["evaluate", "calibrate"])
+def test_kill_9_then_resume_loses_nothing_and_duplicates_nothing(program, tmp_path):
+    """A campaign killed with SIGKILL (its whole process group, workers included) mid-run and run
+    again with the same command ends with the records of an uninterrupted run: no finished work
+    lost, nothing counted twice."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from deft_gym.execution import without_timings
+    from deft_gym.files import read_jsonl
+
+    if program == "evaluate":
+        args = ["agents.evaluate", "--methods", "random,random_delta", "--budget", "4", "--scenarios",
+                "lane_follow_static,take_exit", "--held-out", "0", "--placements", "closest", "--seed", "3",
+                "--workers", "2", "--no-progress"]
+        record, key = "records.jsonl", None
+    else:
+        args = ["deft_gym.cli.calibrate", "--scenarios", "take_exit", "lane_follow_static", "--variants", "2",
+                "--cut-ins", "1", "--brakes", "0", "--reruns", "3", "--jitter-seed", "1000", "--workers", "2",
+                "--no-progress"]
+        record, key = "runs.jsonl", (lambda r: (r["key"], r["seed"]))
+    root = Path(__file__).resolve().parent.parent
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    assert subprocess.run([sys.executable, "-m", *args, "--out", str(full)], cwd=root, capture_output=True,
+                          timeout=600).returncode == 0
+    expected = read_jsonl(full / record)
+    proc = subprocess.Popen([sys.executable, "-m", *args, "--out", str(cut)], cwd=root, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if (cut / record).exists() and len((cut / record).read_text().splitlines()) >= len(expected) // 3:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run ended before it could be killed; give it more work"
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=60)
+    killed_at = len(read_jsonl(cut / record))
+    assert 0 < killed_at < len(expected)
+    assert subprocess.run([sys.executable, "-m", *args, "--out", str(cut)], cwd=root, capture_output=True,
+                          timeout=600).returncode == 0
+    resumed = read_jsonl(cut / record)
+    if key is None:  # evaluation records: in job order, identical to the uninterrupted run
+        assert without_timings(resumed) == without_timings(expected)
+    else:  # calibration runs: one per (variant, seed), the same outcomes
+        assert sorted(map(key, resumed)) == sorted(map(key, expected))  # none lost, none twice
+        strip = lambda rows: sorted((key(r), r["outcome"], r["collision"]) for r in rows)  # noqa: E731
+        assert strip(resumed) == strip(expected)
