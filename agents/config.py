@@ -59,3 +59,47 @@ def load_train_config(path: Path | str | None = None, overrides: dict[str, Any] 
         if value is not None:
             data[key] = value
     return validate(TrainConfig, data, path if path is not None else "<defaults>")
+
+
+# bounds of the SB3 hyper-parameters a config commonly sets: (low, low inclusive, high)
+_ALGO_BOUNDS: dict[str, tuple[float, bool, float]] = {
+    "learning_rate": (0.0, False, 1.0), "n_steps": (1, True, 1e7), "batch_size": (2, True, 1e7),
+    "n_epochs": (1, True, 1e4), "gamma": (0.0, False, 1.0), "gae_lambda": (0.0, True, 1.0),
+    "clip_range": (0.0, False, 10.0), "ent_coef": (0.0, True, 10.0), "vf_coef": (0.0, True, 100.0),
+    "max_grad_norm": (0.0, False, 1e6)}
+
+
+def check_algorithm_settings(cfg: TrainConfig, source: Path | str | None) -> None:
+    """ConfigError (one line naming the file and field) for an ``algo_kwargs`` key the SB3
+    algorithm does not take, a value out of range, a rollout of one sample, or an env scenario
+    that does not resolve - before any env starts."""
+    import inspect
+    import math
+
+    from stable_baselines3 import A2C, PPO
+
+    from deft_gym.config import ConfigError
+
+    name = str(source) if source is not None else "<defaults>"
+    algo = {"ppo": PPO, "a2c": A2C}[cfg.algo]
+    taken = set(inspect.signature(algo.__init__).parameters) - {"self", "policy", "env", "policy_kwargs"}
+    for key, value in cfg.algo_kwargs.items():
+        if key not in taken:
+            raise ConfigError(f"{name}: algo_kwargs.{key}: not a parameter of SB3 {algo.__name__}; "
+                              f"expected one of {sorted(taken)}")
+        if key in _ALGO_BOUNDS and not callable(value):
+            low, inclusive, high = _ALGO_BOUNDS[key]
+            ok = (isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+                  and (value >= low if inclusive else value > low) and value <= high)
+            if not ok:
+                raise ConfigError(f"{name}: algo_kwargs.{key}: expected a number {'>=' if inclusive else '>'} {low:g} "
+                                  f"and <= {high:g}, got {value!r}")
+    if cfg.algo_kwargs.get("n_steps", 2048 if cfg.algo == "ppo" else 5) * cfg.n_envs < 2:
+        raise ConfigError(f"{name}: algo_kwargs.n_steps: n_steps x n_envs must be at least 2")
+    from deft_gym.scenarios.scenario import load_scenario
+
+    for i, scenario in enumerate(dict.fromkeys(cfg.env.scenarios)):
+        try:
+            load_scenario(scenario)
+        except (ConfigError, ValueError, OSError) as err:
+            raise ConfigError(f"{name}: env.scenarios.{i}: {scenario!r} does not resolve ({err})") from None

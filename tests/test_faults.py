@@ -397,3 +397,24 @@ def test_kill_9_then_resume_loses_nothing_and_duplicates_nothing(program, tmp_pa
         assert sorted(map(key, resumed)) == sorted(map(key, expected))  # none lost, none twice
         strip = lambda rows: sorted((key(r), r["outcome"], r["collision"]) for r in rows)  # noqa: E731
         assert strip(resumed) == strip(expected)
+
+
+@pytest.mark.parametrize("body, field", [
+    ("algo_kwargs: {learning_rate: -1}", "algo_kwargs.learning_rate"),
+    ("algo_kwargs: {n_steps: 0}", "algo_kwargs.n_steps"),
+    ("algo_kwargs: {learnin_rate: 0.001}", "algo_kwargs.learnin_rate"),
+    ("algo_kwargs: {gamma: .nan}", "algo_kwargs.gamma"),
+    ("env: {scenarios: [no_such_scenario]}", "env.scenarios.0"),
+])
+def test_bad_training_settings_are_one_line_before_any_env_starts(body, field, tmp_path, capsys):
+    """Hyper-parameters SB3 would reject (or silently accept) and scenario names that do not
+    resolve: one line naming the file and the field, exit 2, no run folder (they used to be an
+    AssertionError or a dead env worker's traceback)."""
+    from agents import train
+
+    cfg = tmp_path / "train.yaml"
+    cfg.write_text(f"name: bad\ntimesteps: 8\n{body}\n")
+    assert train.main(["--config", str(cfg), "--out", str(tmp_path / "run"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(cfg) in err and field in err, err
+    assert not (tmp_path / "run").exists()
