@@ -418,3 +418,21 @@ def test_bad_training_settings_are_one_line_before_any_env_starts(body, field, t
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(cfg) in err and field in err, err
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("body, field", [
+    ("generation:\n  start_s: {min: 6.0, max: 2.0}\n", "generation.start_s"),
+    ("generation:\n  window_s: {min: 0.1, max: .inf}\n", "generation.window_s"),
+    ("generation:\n  roles: [no_such_role]\n", "generation.roles"),
+])
+def test_stress_policies_out_of_order_or_unknown_are_one_line(body, field, tmp_path, capsys):
+    """Policy ranges with min > max or infinite bounds, and roles the spec does not know, are
+    set-up errors (they used to be accepted and drawn from silently)."""
+    from agents import stress
+
+    cfg = tmp_path / "stress.yaml"
+    cfg.write_text(body)
+    assert stress.main(["--config", str(cfg), "--budget", "1", "--out", str(tmp_path / "c"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and field in err and str(cfg) in err, err
+    assert not (tmp_path / "c").exists()

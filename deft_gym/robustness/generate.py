@@ -14,7 +14,7 @@ import math
 import random
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from deft_gym.robustness.dictionary import candidates
 from deft_gym.robustness.spec import CONSUMED_ROLES, FieldSpec, TestSpecification
@@ -24,10 +24,18 @@ ONE_SHOT_ROLES = ("routing",)  # published once at start-up: windows start at 0
 
 
 class Range(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """``[min, max]``, finite, 0 <= min <= max."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     min: float = Field(ge=0.0)
     max: float = Field(ge=0.0)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Range:
+        if self.min > self.max:
+            raise ValueError(f"min {self.min:g} is above max {self.max:g}; expected min <= max")
+        return self
 
 
 class GenerationConfig(BaseModel):
@@ -46,6 +54,14 @@ class GenerationConfig(BaseModel):
     window_s: Range = Range(min=0.1, max=5.0)
     start_s: Range = Range(min=1.0, max=15.0)
     inject_delay_ms: Range = Range(min=0.0, max=150.0)
+
+    @field_validator("roles")
+    @classmethod
+    def _known_roles(cls, roles: list[str]) -> list[str]:
+        unknown = [r for r in roles if r not in CONSUMED_ROLES]
+        if unknown or not roles:
+            raise ValueError(f"unknown role(s) {unknown}; expected some of {list(CONSUMED_ROLES)}")
+        return roles
 
 
 def generate_policies(spec: TestSpecification, cfg: GenerationConfig, rng: random.Random) -> list[Policy]:
