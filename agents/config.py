@@ -69,7 +69,7 @@ _ALGO_BOUNDS: dict[str, tuple[float, bool, float]] = {
     "max_grad_norm": (0.0, False, 1e6)}
 
 
-def check_algorithm_settings(cfg: TrainConfig, source: Path | str | None) -> None:
+def check_train_settings(cfg: TrainConfig, source: Path | str | None) -> None:
     """ConfigError (one line naming the file and field) for an ``algo_kwargs`` key the SB3
     algorithm does not take, a value out of range, a rollout of one sample, or an env scenario
     that does not resolve - before any env starts."""
@@ -82,7 +82,8 @@ def check_algorithm_settings(cfg: TrainConfig, source: Path | str | None) -> Non
 
     name = str(source) if source is not None else "<defaults>"
     algo = {"ppo": PPO, "a2c": A2C}[cfg.algo]
-    taken = set(inspect.signature(algo.__init__).parameters) - {"self", "policy", "env", "policy_kwargs"}
+    params = inspect.signature(algo.__init__).parameters
+    taken = set(params) - {"self", "policy", "env", "policy_kwargs"}
     for key, value in cfg.algo_kwargs.items():
         if key not in taken:
             raise ConfigError(f"{name}: algo_kwargs.{key}: not a parameter of SB3 {algo.__name__}; "
@@ -94,12 +95,16 @@ def check_algorithm_settings(cfg: TrainConfig, source: Path | str | None) -> Non
             if not ok:
                 raise ConfigError(f"{name}: algo_kwargs.{key}: expected a number {'>=' if inclusive else '>'} {low:g} "
                                   f"and <= {high:g}, got {value!r}")
-    if cfg.algo_kwargs.get("n_steps", 2048 if cfg.algo == "ppo" else 5) * cfg.n_envs < 2:
+    if cfg.algo_kwargs.get("n_steps", params["n_steps"].default) * cfg.n_envs < 2:
         raise ConfigError(f"{name}: algo_kwargs.n_steps: n_steps x n_envs must be at least 2")
-    from deft_gym.scenarios.scenario import load_scenario
+    from deft_gym.search.context import resolve_scenario  # names, paths, gen:<seed>, <name>~v<seed>
 
-    for i, scenario in enumerate(dict.fromkeys(cfg.env.scenarios)):
+    seen: set[str] = set()
+    for i, scenario in enumerate(cfg.env.scenarios):
+        if scenario in seen:
+            continue
+        seen.add(scenario)
         try:
-            load_scenario(scenario)
+            resolve_scenario(scenario)
         except (ConfigError, ValueError, OSError) as err:
             raise ConfigError(f"{name}: env.scenarios.{i}: {scenario!r} does not resolve ({err})") from None

@@ -49,16 +49,13 @@ def build_parser() -> common.Parser:
     return p
 
 
-def _episodes(env: Any, n: int, start: int) -> int:
-    steps = 0
+def _episodes(env: Any, n: int, start: int) -> None:
     for ep in range(start, start + n):
         env.reset(seed=ep)
         done = False
         while not done:
             _, _, term, trunc, _ = env.step(env.action_space.sample())
-            steps += 1
             done = term or trunc
-    return steps
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -66,27 +63,25 @@ def main(argv: list[str] | None = None) -> int:
     con = common.console(args)
     from deft_gym.config import ConfigError, load_mapping
     from deft_gym.envs.adversary import AdversaryEnv
-    from deft_gym.scenarios.scenario import list_scenarios
-    from deft_gym.search.context import robust_generated
+    from deft_gym.search.context import SEED_SCENARIOS, robust_generated
 
     try:
         env_cfg = dict(load_mapping(args.config).get("env") or {})
     except (ConfigError, OSError) as err:
         return common.cli_error(f"--config {args.config}: {err}")
-    seeds = [p.stem for p in list_scenarios() if not p.name.startswith("bench")]
-    names = seeds + robust_generated(args.generated, 0)
-    env_cfg.update(scenarios=names, log_dir=tempfile.mkdtemp(prefix="profile_env_"))
-    env = AdversaryEnv(config=env_cfg)
-    for name in names:  # contexts (reference runs, feasible areas) are built once per process
-        env.reset(seed=0, options={"scenario": name})
-    env.action_space.seed(args.seed)
-    t0 = time.process_time()
-    _episodes(env, args.episodes, args.seed + 10_000)
-    cpu = time.process_time() - t0
-    prof = cProfile.Profile(timer=time.process_time)
-    prof.enable()
-    _episodes(env, args.episodes, args.seed + 20_000)
-    prof.disable()
+    names = sorted(SEED_SCENARIOS) + robust_generated(args.generated, 0)  # the order the figures were taken in
+    with tempfile.TemporaryDirectory(prefix="profile_env_") as logs:  # the kept failures' logs
+        env = AdversaryEnv(config={**env_cfg, "scenarios": names, "log_dir": logs})
+        for name in names:  # contexts (reference runs, feasible areas) are built once per process
+            env.reset(seed=0, options={"scenario": name})
+        env.action_space.seed(args.seed)
+        t0 = time.process_time()
+        _episodes(env, args.episodes, args.seed + 10_000)
+        cpu = time.process_time() - t0
+        prof = cProfile.Profile(timer=time.process_time)
+        prof.enable()
+        _episodes(env, args.episodes, args.seed + 20_000)
+        prof.disable()
     stats = pstats.Stats(prof).stats  # type: ignore[attr-defined]
     total = sum(v[2] for v in stats.values())  # own time of every function = the profiled CPU
     cum: dict[tuple[str, str], float] = {}

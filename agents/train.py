@@ -25,7 +25,7 @@ from typing import Any
 
 import yaml
 
-from agents.config import ALGOS, TrainConfig, check_algorithm_settings, load_train_config
+from agents.config import ALGOS, TrainConfig, check_train_settings, load_train_config
 from deft_gym.cli import common
 from deft_gym.config import ConfigError
 from deft_gym.execution import Backend, add_backend_arguments, backend_from_args
@@ -243,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_train_config(args.config, {"timesteps": args.timesteps, "seed": args.seed,
                                               "n_envs": args.n_envs, "algo": args.algo})
         backend = backend_from_args(args, cfg.n_envs)
-        check_algorithm_settings(cfg, args.config)
+        check_train_settings(cfg, args.config)
     except ConfigError as err:
         return common.cli_error(str(err))
     con = common.console(args)

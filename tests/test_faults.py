@@ -436,3 +436,12 @@ def test_stress_policies_out_of_order_or_unknown_are_one_line(body, field, tmp_p
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and field in err and str(cfg) in err, err
     assert not (tmp_path / "c").exists()
+
+
+def test_training_settings_check_accepts_every_scenario_spec(tmp_path):
+    """The up-front check resolves scenarios as the env does: names, gen:<seed> and <name>~v<seed>."""
+    from agents.config import check_train_settings, load_train_config
+
+    cfg = tmp_path / "train.yaml"
+    cfg.write_text("name: ok\nenv: {scenarios: [left_turn, gen:3, lane_follow_static~v1000000, left_turn]}\n")
+    check_train_settings(load_train_config(cfg), cfg)  # no ConfigError

@@ -9,6 +9,7 @@ name (``left_turn~v1000003``: :func:`deft_gym.scenarios.variants.perturb` with t
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -135,33 +136,28 @@ def robust(ctx: SeedContext, runs: int = 8, cache_dir: Path | str | None = CACHE
     return ok
 
 
-def held_out_variants(seed_name: str, count: int, base: int = 1_000_000, tries: int = 20) -> list[str]:
-    """The first ``count`` robust perturbed variants ``<seed>~v<base + i>`` of a seed scenario."""
+def _first_robust(names: Iterable[str], count: int) -> list[str]:
+    """The first ``count`` of ``names`` whose context is robust (see :func:`robust`); names that
+    do not resolve or whose reference run fails are skipped."""
     out: list[str] = []
-    for i in range(tries):
+    for name in names:
         if len(out) >= count:
             break
-        name = f"{seed_name}~v{base + i}"
         try:
             if robust(seed_context(name)):
                 out.append(name)
         except (ValueError, ConfigError):
             continue
     return out
+
+
+def held_out_variants(seed_name: str, count: int, base: int = 1_000_000, tries: int = 20) -> list[str]:
+    """The first ``count`` robust perturbed variants ``<seed>~v<base + i>`` of a seed scenario."""
+    return _first_robust((f"{seed_name}~v{base + i}" for i in range(tries)), count)
 
 
 def robust_generated(count: int, base: int, tries: int | None = None) -> list[str]:
     """The first ``count`` robust generated scenarios ``gen:<seed>`` from seed ``base`` on (their
     reference run completes and their unmutated runs stay consistent under timing noise); at most
     ``tries`` seeds are looked at (default ``4 count + 20``)."""
-    out: list[str] = []
-    for i in range(tries if tries is not None else 4 * count + 20):
-        if len(out) >= count:
-            break
-        name = f"gen:{base + i}"
-        try:
-            if robust(seed_context(name)):
-                out.append(name)
-        except (ValueError, ConfigError):
-            continue
-    return out
+    return _first_robust((f"gen:{base + i}" for i in range(tries if tries is not None else 4 * count + 20)), count)
