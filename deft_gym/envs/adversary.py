@@ -569,13 +569,22 @@ class AdversaryEnv(gym.Env):
     def _closest_static(self, anchors: np.ndarray) -> list[float]:
         """Per anchor and side: smallest feasible |lateral| of a cone, normalised (1.5: none)."""
         lats = np.arange(1.2, 6.01, 0.6)
-        n_a, n_l = len(anchors), len(lats)
-        sig = np.repeat(anchors, 2 * n_l)
-        lat = np.tile(np.concatenate([-lats, lats]), n_a)
-        xy, h = self.ctx.path.offset(sig, lat)
-        ok = self.layout.static_ok(xy[:, 0], xy[:, 1], h, 0.6, 0.6).reshape(n_a, 2, n_l)
-        first = np.where(ok.any(axis=2), lats[np.argmax(ok, axis=2)], 7.5)
-        return ((first - 1.2) / 4.0).ravel().tolist()  # 7.5 (none) -> 1.575
+        sig = np.repeat(anchors, 2)  # (anchor, side) pairs
+        side = np.tile([-1.0, 1.0], len(anchors))
+        first = np.full(len(sig), 7.5)  # 7.5: none
+        todo = np.arange(len(sig))
+        # the nearest laterals first, the rest only where none of them is feasible (each box is
+        # judged alone, so the answer is the same as testing them all at once, at a third the cost)
+        for part in (lats[:3], lats[3:]):
+            s_k, lat_k = np.repeat(sig[todo], len(part)), (side[todo, None] * part).ravel()
+            xy, h = self.ctx.path.offset(s_k, lat_k)
+            ok = self.layout.static_ok(xy[:, 0], xy[:, 1], h, 0.6, 0.6).reshape(len(todo), len(part))
+            hit = ok.any(axis=1)
+            first[todo[hit]] = part[np.argmax(ok[hit], axis=1)]
+            todo = todo[~hit]
+            if not len(todo):
+                break
+        return ((first - 1.2) / 4.0).tolist()  # 7.5 (none) -> 1.575
 
     def _nearest(self, x: float, y: float, sigma_e: float) -> list[float]:
         parts = self.sim.world.present_participants()

@@ -285,11 +285,16 @@ class DecisionOracle:
     def iou(self, xy: np.ndarray) -> float:
         return iou(self.ref_cells, self.cells(xy))
 
-    def f_p(self, xy: np.ndarray) -> float:
-        """Eq. 7: mean over the path's points of the exact distance to the reference path [m]."""
+    def distances(self, xy: np.ndarray) -> np.ndarray:
+        """Exact distance [m] of each point of a path to the reference path."""
+        return shapely.distance(shapely.points(np.asarray(xy).reshape(-1, 2)), self.ref_line)
+
+    def f_p(self, xy: np.ndarray, dist: np.ndarray | None = None) -> float:
+        """Eq. 7: mean over the path's points of the exact distance to the reference path [m]
+        (``dist``: :meth:`distances` of ``xy``, when already known)."""
         if len(xy) == 0:
             return 0.0
-        return float(shapely.distance(shapely.points(np.asarray(xy).reshape(-1, 2)), self.ref_line).mean())
+        return float((self.distances(xy) if dist is None else dist).mean())
 
     def f_b(self, ego: np.ndarray) -> float:
         """Eq. 8: mean over reference lanes of the Gaussian-kernel MMD (the distance, in [0,
@@ -303,11 +308,11 @@ class DecisionOracle:
                 for j, ref_feats in self.ref_lanes.items()]
         return float(np.mean(vals))
 
-    def off_length(self, xy: np.ndarray) -> float:
+    def off_length(self, xy: np.ndarray, dist: np.ndarray | None = None) -> float:
         """Longest stretch [m] of the path farther than half a lane from the reference path."""
         if len(xy) < 2:
             return 0.0
-        far = shapely.distance(shapely.points(xy), self.ref_line) > self.roadmap.spec.lane_width / 2
+        far = (self.distances(xy) if dist is None else dist) > self.roadmap.spec.lane_width / 2
         step = np.hypot(*np.diff(xy, axis=0).T)
         best = run = 0.0
         for i in range(1, len(xy)):
@@ -319,18 +324,20 @@ class DecisionOracle:
         """Task check, consistency check, feedback, validity and a failure signature."""
         outcome = trace.outcome
         xy = trace.xy
-        io, fp, fb = self.iou(xy), self.f_p(xy), self.f_b(trace.ego)
+        dist = self.distances(xy) if len(xy) else np.zeros(0)  # computed once: f_p, off_length, signature
+        io, fp, fb = self.iou(xy), self.f_p(xy, dist), self.f_b(trace.ego)
         bad = invasive_actors(self.ref, trace, clearance=self.clearance)
         is_collision = outcome == "collision"
         nods = outcome == "completed" and io <= self.threshold
-        off = self.off_length(xy)
+        off = self.off_length(xy, dist)
         v = Verdict(outcome, is_collision, nods, io, fp, fb, not bad, bad, collision_detail=collision,
                     ego_at_fault=bool(is_collision and collision and ego_at_fault(trace, collision)),
                     off_length=off, nods_local=outcome == "completed" and off >= self.local_length)
-        v.signature = self.signature(v, trace, collision)
+        v.signature = self.signature(v, trace, collision, dist)
         return v
 
-    def signature(self, v: Verdict, trace: Trace, collision: dict[str, Any] | None) -> str:
+    def signature(self, v: Verdict, trace: Trace, collision: dict[str, Any] | None,
+                  dist: np.ndarray | None = None) -> str:
         """Root-cause signature of a failure, for counting distinct failures: its kind, where
         along the optimal path it happened (10 m buckets), the participant involved (seed or
         added, kind, type) and the decision change (the planning decisions of the run that the
@@ -342,7 +349,7 @@ class DecisionOracle:
             return f"collision@{where}:{who}:{change}"
         if v.nods or v.nods_local or v.task_failure:
             xy = trace.xy
-            d = shapely.distance(shapely.points(xy), self.ref_line)
+            d = self.distances(xy) if dist is None else dist
             off = np.flatnonzero(d > self.roadmap.spec.lane_width / 2)
             k = int(off[0]) if len(off) else int(np.argmax(d))
             side = _side(self.ref.xy, xy[k])
