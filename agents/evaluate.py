@@ -188,7 +188,18 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
     from deft_gym.search.trace import code_fingerprint
 
     code = code_fingerprint()  # the simulation code this job ran (a changed planner shows here)
-    return [{**base, **r, "code": code} for r in recs]
+    key = scenario_key(scenario)  # and the scenario's content (an edited scenario file shows here)
+    return [{**base, **r, "code": code, "scenario_key": key} for r in recs]
+
+
+def scenario_key(spec: str) -> str:
+    """Hash of a scenario's content, the default ADS config and the simulation code: a record
+    made on another version of any of them is stale."""
+    from deft_gym.bus.ads import load_ads_config
+    from deft_gym.search.context import resolve_scenario
+    from deft_gym.search.trace import content_key
+
+    return content_key(resolve_scenario(spec), load_ads_config(), 0)
 
 
 def _log_root(job: dict[str, Any]) -> Path:
@@ -327,12 +338,16 @@ def main(argv: list[str] | None = None) -> int:
     if rec_path.exists():  # resume: keep what earlier runs simulated with the same simulation code
         from deft_gym.search.trace import code_fingerprint
 
-        code, names = code_fingerprint(), set(seeds + held_out)
+        code = code_fingerprint()
+        keys = {name: scenario_key(name) for name in seeds + held_out}
         records = read_jsonl(rec_path)
-        stale = sum(1 for r in records if r.get("code") != code)
-        records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code and r["scenario"] in names]
+        stale = sum(1 for r in records if r.get("code") != code
+                    or (r["scenario"] in keys and r.get("scenario_key") != keys[r["scenario"]]))
+        records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code
+                   and r["scenario"] in keys and r.get("scenario_key") == keys[r["scenario"]]]
         if stale:
-            con.print(f"{stale} earlier record(s) ran other simulation code: simulating them again")
+            con.print(f"{stale} earlier record(s) ran other simulation code or another version of their "
+                      "scenario: simulating them again")
         for r in records:
             done[(r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"])] += 1
     jobs = []

@@ -131,3 +131,27 @@ def test_the_execution_layer_is_not_simulation_code() -> None:
     changed = code_fingerprint(pkg, read=lambda f: b"# changed\n" + f.read_bytes() if "execution" in f.parts
                                else f.read_bytes())
     assert changed == code_fingerprint(pkg)
+
+
+def test_evaluation_resume_simulates_again_what_an_edited_scenario_file_made(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Records carry their scenario's content key: after the scenario file changes, a resumed
+    evaluation does not reuse the records of the old version."""
+    from agents import evaluate
+    from deft_gym.files import read_jsonl
+
+    scn = tmp_path / "lfs.yaml"
+    scn.write_text((ROOT / "configs" / "scenarios" / "lane_follow_static.yaml").read_text())
+    args = ["--methods", "random", "--budget", "1", "--scenarios", str(scn), "--placements", "closest",
+            "--held-out", "0", "--repeats", "1",
+            "--no-progress", "--workers", "1", "--out", str(tmp_path / "ev")]
+    assert evaluate.main(args) == 0
+    before = read_jsonl(tmp_path / "ev" / "records.jsonl")
+    assert evaluate.main(args) == 0  # unchanged: nothing simulated again
+    assert "0 jobs" in capsys.readouterr().out
+    scn.write_text(scn.read_text().replace("duration: 40.0", "duration: 39.0"))
+    assert evaluate.main(args) == 0
+    out = capsys.readouterr().out
+    assert "1 earlier record(s) ran other simulation code or another version of their scenario" in out
+    after = read_jsonl(tmp_path / "ev" / "records.jsonl")
+    assert len(after) == 1 and after[0]["scenario_key"] != before[0]["scenario_key"]
