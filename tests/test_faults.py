@@ -241,6 +241,40 @@ def test_planner_exceptions_during_extraction_are_counted_and_shown(lane_follow_
     assert s["reproduced"]["7"] == 0 and any("the planner raised in" in w for w in s["warnings"])
 
 
+@pytest.mark.parametrize("after", [0, 40])
+def test_a_planner_that_blocks_during_extraction_is_a_hang_finding(after, lane_follow_log, tmp_path):
+    """plan() sleeping a minute per call used to hang extract (no watchdog on the replays): now
+    the first call past the wall-clock watchdog is the finding planner_hang (message, frame time,
+    output), no plan() is called after it, and the extraction finishes with its summary."""
+    import time
+
+    from extract import extract_episode
+    from extract.logs import read_log
+    from extract.mapping import load_mapping
+
+    meta = read_log(Path(lane_follow_log.log_path), []).episode_meta()
+    mapping = load_mapping(ROOT / "configs" / "mappings" / "deft_gym.yaml").model_dump(by_alias=True)
+    mapping["planner"] = {"class": FAULTY, "params": {"fault": "sleep", "after": after, "sleep_s": 60.0},
+                          "map": meta["map"]}
+    t0 = time.perf_counter()
+    s = extract_episode(lane_follow_log.log_path, tmp_path, mapping=mapping, emit_tests=False,
+                        watchdog_s=0.5).summary
+    assert time.perf_counter() - t0 < 30
+    hang = s["findings"]["planner_hang"]
+    assert hang["kind"] == "hang" and hang["module"] == "planning" and "0.5 s wall-clock watchdog" in hang["exception"]
+    assert hang["time"] >= 0 and hang["output"] >= 0
+    assert s["findings"]["outputs_without_replay"] > 0 and s["frames"] > 0
+    assert any("the planner hung" in w for w in s["warnings"])
+    assert json.loads((tmp_path / "summary.json").read_text())["findings"]["planner_hang"] == hang
+
+
+def test_extraction_of_a_valid_log_has_no_hang_finding(lane_follow_log, tmp_path):
+    from extract import extract_episode
+
+    s = extract_episode(lane_follow_log.log_path, tmp_path, emit_tests=False, watchdog_s=5.0).summary
+    assert s["findings"]["planner_hang"] is None and s["reproduced"]["0"] == s["frames"]
+
+
 def test_a_mapping_field_missing_from_the_log_is_one_line_up_front(lane_follow_log, tmp_path):
     from extract import extract_episode
     from extract.mapping import MappingError, load_mapping
