@@ -73,12 +73,18 @@ def campaign_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-replays", type=int, default=None, help="replays per minimisation")
     ap.add_argument("--max-signatures", type=int, default=None, help="distinct findings to minimise")
     common.add_render(ap)
+    common.add_watchdog(ap)
     common.add_output_flags(ap)
     return ap
 
 
 def run_campaign_cli(argv: list[str]) -> int:
     args = campaign_parser().parse_args(argv)  # before the simulation is imported: a fast --help
+    with common.watchdog_env(args):
+        return _campaign(args)
+
+
+def _campaign(args: argparse.Namespace) -> int:
     from deft_gym.robustness.campaign import Campaign, load_campaign_config, run_campaign
 
     overrides: dict[str, Any] = {}

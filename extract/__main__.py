@@ -56,6 +56,7 @@ def build_parser() -> common.Parser:
     ap.add_argument("--xfail-failures", action="store_true",
                     help="emit each failure oracle as a strict xfail (CI stays green while the failure reproduces "
                          "and fails once the planner is fixed)")
+    common.add_watchdog(ap)
     common.add_output_flags(ap)
     return ap
 
@@ -77,7 +78,9 @@ def parse_args(argv: list[str] | None = None, ap: argparse.ArgumentParser | None
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run(parse_args(argv))[0]
+    args = parse_args(argv)
+    with common.watchdog_env(args):
+        return run(args)[0]
 
 
 def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
@@ -85,7 +88,8 @@ def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
     console = common.console(args, width=130)
     kwargs: dict[str, Any] = {"mode": args.mode, "theta": args.theta, "measure": args.measure,
                               "mapping": args.mapping, "emit_tests": not args.no_tests,
-                              "tolerances": args.tolerances, "xfail_failures": args.xfail_failures}
+                              "tolerances": args.tolerances, "xfail_failures": args.xfail_failures,
+                              "watchdog_s": getattr(args, "watchdog_s", None)}
     try:
         backend = backend_from_args(args, args.workers)
     except BackendError as err:

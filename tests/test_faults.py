@@ -193,13 +193,69 @@ def test_watchdog_setting_is_checked(monkeypatch):
     from deft_gym.sim.simulation import DEFAULT_WATCHDOG_S, watchdog_seconds
 
     assert watchdog_seconds() == DEFAULT_WATCHDOG_S
+    from deft_gym.robustness.monitors import wall_budget
+
+    assert wall_budget(1.0) == 3.0  # the stress campaign's own budget, unless the watchdog is set
     monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "2.5")
-    assert watchdog_seconds() == 2.5
+    assert watchdog_seconds() == 2.5 and wall_budget(1.0) == 2.5
     monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "soon")
     with pytest.raises(ValueError, match="DEFT_GYM_WATCHDOG_S"):
         watchdog_seconds()
     with pytest.raises(ValueError, match="watchdog_s"):
         watchdog_seconds(float("nan"))
+
+
+def test_watchdog_flag_overrides_the_environment_and_is_restored(tmp_path, monkeypatch, capsys):
+    """--watchdog-s 0.5 wins over DEFT_GYM_WATCHDOG_S=600: a planner that sleeps is a hang of
+    planning within seconds; after the program the variable is what it was."""
+    import os
+    import time
+
+    from deft_gym.cli import run
+
+    ads = tmp_path / "ads.yaml"
+    ads.write_text(f"planning:\n  planner:\n    class: {FAULTY}\n    params: {{fault: sleep, after: 20, sleep_s: 60}}\n")
+    monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "600")
+    t0 = time.perf_counter()
+    assert run.main([str(LANE_FOLLOW), "--ads-config", str(ads), "--reruns", "1", "--jitter-seed", "7",
+                     "--watchdog-s", "0.5", "--out", str(tmp_path / "out"), "--quiet", "--render", "none"]) == 0
+    assert time.perf_counter() - t0 < 30
+    row = json.loads((tmp_path / "out" / "summary.json").read_text())["reruns"][0]
+    assert row["outcome"] == "hang"
+    assert log_outcome(row["log"])["failure"]["exception"].endswith("within the 0.5 s wall-clock watchdog")
+    assert os.environ["DEFT_GYM_WATCHDOG_S"] == "600"
+
+
+@pytest.mark.parametrize("value", ["soon", "-1", "nan"])
+def test_a_bad_watchdog_variable_is_one_line_exit_2_before_any_work(value, tmp_path, monkeypatch, capsys):
+    from deft_gym.cli import run
+
+    monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", value)
+    with pytest.raises(SystemExit) as exc:
+        run.main([str(LANE_FOLLOW), "--reruns", "1", "--out", str(tmp_path / "out")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "DEFT_GYM_WATCHDOG_S" in err and "--watchdog-s" in err
+    assert not (tmp_path / "out").exists()
+
+
+def _watchdog_of_worker(_: int) -> float:
+    from deft_gym.execution.watchdog import watchdog_seconds
+
+    return watchdog_seconds()
+
+
+def test_worker_processes_follow_the_watchdog_setting_of_the_program(monkeypatch):
+    """The forkserver outlives one setting (it may start before --watchdog-s is read, or serve
+    later programs of the same process): the pool hands every worker the setting it starts with."""
+    from deft_gym.cli import common
+    from deft_gym.execution import Backend, Executor
+
+    monkeypatch.delenv("DEFT_GYM_WATCHDOG_S", raising=False)
+    with common.watchdog_env(common.argparse.Namespace(watchdog_s=2.5)), Executor(Backend("local", 2)) as ex:
+        assert list(ex.map(_watchdog_of_worker, range(4))) == [2.5] * 4
+    with Executor(Backend("local", 2)) as ex:
+        assert list(ex.map(_watchdog_of_worker, range(2))) == [10.0] * 2
 
 
 def test_an_ego_that_never_received_a_plan_is_not_completed(tmp_path):

@@ -22,6 +22,7 @@ Variants and runs are work items of :mod:`deft_gym.execution`: local processes, 
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import sys
@@ -84,11 +85,17 @@ def build_parser() -> common.Parser:
     common.add_out(ap, common.RUNS / "calibration")
     common.add_output_flags(ap)
     add_backend_arguments(ap)
+    common.add_watchdog(ap)
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    with common.watchdog_env(args):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     console = common.console(args)
     try:
         backend = backend_from_args(args, args.workers)
