@@ -271,13 +271,47 @@ def test_an_ego_that_never_received_a_plan_is_not_completed(tmp_path):
     assert r.outcome.outcome == "no_plan" and not r.outcome.task_completed
 
 
-def test_nan_outputs_are_reproduced_and_reported_as_findings(tmp_path):
+@pytest.fixture(scope="module")
+def nan_run(tmp_path_factory):
     from deft_gym.sim.simulation import Simulation
+
+    return Simulation(LANE_FOLLOW, faulty_ads("nan"), jitter_seed=7, out_dir=tmp_path_factory.mktemp("nan")).run()
+
+
+def test_a_plan_with_nan_ends_the_episode_as_a_crash_of_planning(nan_run):
+    """A NaN plan used to be tracked as full throttle and full lock until the run timed out
+    (outcome timeout, 40 s): it is a crash of planning, reason non-finite output, at the time it
+    was published, in the result and the log, and the log holds the offending plan."""
+    from extract.logs import read_log
+
+    s = nan_run.summary()
+    assert s["outcome"] == "crash" and not s["task_completed"] and nan_run.sim_time < 5
+    f = s["failure"]
+    assert (f["kind"], f["module"], f["reason"]) == ("crash", "planning", "non-finite output")
+    assert f["exception"] == "NonFiniteOutput: trajectory.x.0 is not finite on /apollo/planning" and 0 < f["time"] < 5
+    rec = log_outcome(nan_run.log_path)
+    assert rec["outcome"] == "crash" and rec["failure"] == f
+    plans = read_log(Path(nan_run.log_path), ["/apollo/planning"]).topics["/apollo/planning"]
+    assert plans.payload(len(plans) - 1)["trajectory"]["x"][0] != plans.payload(len(plans) - 1)["trajectory"]["x"][0]
+
+
+def test_non_finite_fields_are_found_wherever_they_are():
+    from deft_gym.bus.messages import non_finite_field
+
+    nan, inf = float("nan"), float("inf")
+    assert non_finite_field({"header": {"seq": 1, "stamp": 0.5, "module": "m"}, "a": [1.0, 2], "b": [],
+                             "c": ["x", 3], "d": {}, "e": None, "f": True, "g": 10**400}) is None
+    assert non_finite_field({"trajectory": {"t": [0.0, 0.1], "x": [1.0, nan]}}) == "trajectory.x.1"
+    assert non_finite_field({"obstacles": [{"id": "a", "v": 1.0}, {"id": "b", "v": -inf}]}) == "obstacles.1.v"
+    assert non_finite_field({"xs": [1e308, 1e308]}) is None  # a sum that overflows is not a NaN
+    assert non_finite_field({"xs": [1.0, "x", inf]}) == "xs.2" and non_finite_field(nan) == ""
+
+
+def test_nan_outputs_are_reproduced_and_reported_as_findings(nan_run, tmp_path):
     from extract import extract_episode
 
-    r = Simulation(LANE_FOLLOW, faulty_ads("nan"), jitter_seed=7, out_dir=tmp_path / "run").run()
-    s = extract_episode(r.log_path, tmp_path / "x", emit_tests=False).summary
-    assert s["findings"]["nan_outputs"] > 100
+    s = extract_episode(nan_run.log_path, tmp_path / "x", emit_tests=False).summary
+    assert s["findings"]["nan_outputs"] == 1 and s["findings"]["run_failure"]["reason"] == "non-finite output"
     assert s["reproduced"]["0"] == s["frames"]  # NaN == NaN: the replay gives the recorded NaN
     assert any("NaN or inf" in w for w in s["warnings"])
 

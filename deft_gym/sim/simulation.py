@@ -9,7 +9,8 @@ perception, traffic-light perception, prediction, planning and control. Hooks le
 attach without touching the core: ``bus.taps``/``bus.interceptors``/``bus.supervisor`` (see
 :mod:`deft_gym.bus.bus`) and ``on_step`` callbacks called after every world step.
 
-The default supervisor (:class:`WatchedSupervisor`) turns a module that raises into the outcome
+The default supervisor (:class:`WatchedSupervisor`) turns a module that raises, or publishes a NaN
+or an infinity on the planning or control topic (reason ``non-finite output``), into the outcome
 ``crash`` and a module call that runs past ``watchdog_s`` seconds of wall clock (default
 :data:`DEFAULT_WATCHDOG_S`, or the ``DEFT_GYM_WATCHDOG_S`` environment variable; 0 switches it
 off) into ``hang``: module, exception and sim time go into the log's outcome record and the
@@ -29,7 +30,7 @@ import numpy as np
 from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.bus.bus import Bus, Node, header
 from deft_gym.bus.jitter import JitterModel
-from deft_gym.bus.messages import LOG_START_KEY, NS_PER_S, to_ns
+from deft_gym.bus.messages import LOG_START_KEY, NS_PER_S, non_finite_field, to_ns
 from deft_gym.config import ConfigError
 from deft_gym.execution.watchdog import DEFAULT_WATCHDOG_S, ModuleHang, Watchdog, watchdog_seconds
 from deft_gym.files import write_atomic
@@ -60,12 +61,16 @@ class WatchedSupervisor:
     ``crash``, one that runs ``seconds`` of wall clock past its start as a ``hang`` (the
     wall-clock :class:`~deft_gym.execution.watchdog.Watchdog`, armed while the bus runs; main
     thread only). Per call it only notes the start time, so valid runs cost nothing measurable
-    and behave exactly as before."""
+    and behave exactly as before. A module that publishes a NaN or an infinity on one of
+    ``finite_topics`` (the simulation's: planning and control, what drives the vehicle) ends it
+    as a ``crash`` too, reason ``non-finite output``, once the message is out (so the log holds
+    it); otherwise a NaN plan was tracked as full throttle and full lock, and the run timed out."""
 
-    def __init__(self, bus: Bus, seconds: float) -> None:
+    def __init__(self, bus: Bus, seconds: float, finite_topics: frozenset[str] = frozenset()) -> None:
         self.bus = bus
         self.dog = Watchdog(seconds)
         self.failure: dict[str, Any] | None = None
+        self.finite_topics = finite_topics
 
     @property
     def seconds(self) -> float:
@@ -73,21 +78,26 @@ class WatchedSupervisor:
 
     def run(self, node: Node, fn: Callable[..., Any], *args: Any) -> Any:
         try:
-            return self.dog.call(fn, *args)
+            out = self.dog.call(fn, *args)
         except ModuleHang:
             self._fail("hang", node, self.dog.message())
+            return None
         except Exception as exc:
             msg = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
             self._fail("crash", node, f"{type(exc).__name__}: {msg}"[:300])
-        return None
+            return None
+        if self.finite_topics and getattr(fn, "__name__", "") == "_publish":
+            for topic, payload in args[0]:
+                if topic in self.finite_topics and (path := non_finite_field(payload)) is not None:
+                    self._fail("crash", node, f"NonFiniteOutput: {path} is not finite on {topic}",
+                               "non-finite output")
+                    break
+        return out
 
-    def fail(self, node: Node, what: str, kind: str = "crash") -> None:
-        """End the episode as a failure of ``node`` (``what``: the exception or the reason)."""
-        self._fail(kind, node, what)
-
-    def _fail(self, kind: str, node: Node, what: str) -> None:
+    def _fail(self, kind: str, node: Node, what: str, reason: str | None = None) -> None:
         if self.failure is None:
-            self.failure = {"kind": kind, "module": node.name, "exception": what, "time": self.bus.now}
+            self.failure = {"kind": kind, "module": node.name, "exception": what, "time": self.bus.now,
+                            **({"reason": reason} if reason else {})}
         node.alive = False
         self.bus.stop()
 
@@ -195,7 +205,8 @@ class Simulation:
         self.world: World = build_world(sc, self.roadmap)
         self.jitter = JitterModel(ads.jitter, jitter_seed)
         self.bus = Bus(self.jitter)
-        self.watch = WatchedSupervisor(self.bus, watchdog_seconds(watchdog_s))
+        self.watch = WatchedSupervisor(self.bus, watchdog_seconds(watchdog_s),
+                                       frozenset({ads.topic("planning"), ads.topic("control")}))
         self.bus.supervisor = self.watch
         self.bus.reliable = {ads.topic(role) for role in ads.jitter.reliable}
         self.on_step: list[Callable[[Simulation], None]] = []
