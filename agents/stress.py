@@ -98,9 +98,12 @@ def _campaign(args: argparse.Namespace) -> int:
         overrides["minimise"] = {k: v for k, v in (("max_replays", args.max_replays),
                                                    ("max_signatures", args.max_signatures)) if v is not None}
     cfg = load_campaign_config(args.config, overrides)
+    from deft_gym.bus.ads import load_ads_config
+
     ads_overrides: dict[str, Any] = {}
-    for path in args.ads_overlay:
+    for path in args.ads_overlay:  # an overlay that breaks the config is named, one line, before any run
         ads_overrides = deep_merge(ads_overrides, load_mapping(path))
+        load_ads_config(args.ads_config, ads_overrides, source=f"{path} (--ads-overlay)")
     campaign = Campaign(cfg, args.seed, args.ads_config, ads_overrides, args.hardening == "on")
     # validate the ADS configuration once, up front (a bad file is one clear line, not N failed runs)
     from deft_gym.robustness.runner import build_ads

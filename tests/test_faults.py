@@ -439,6 +439,12 @@ ADS_FAULTS = {
     "unknown trigger role": ("planning:\n  trigger: nosuchrole\n", "planning.trigger"),
     "unknown planner class": ("planning:\n  planner:\n    class: nosuch.module:Planner\n", "planning.planner"),
     "unknown planner params": ("planning:\n  planner:\n    params: {bogus_param: 3}\n", "bogus_param"),
+    "two roles on one topic": ("topics:\n  prediction: /apollo/planning\n",
+                               "topics.prediction and topics.planning are both '/apollo/planning'"),
+    "control on the chassis topic": ("topics:\n  control: /apollo/canbus/chassis\n",
+                                     "topics.chassis and topics.control are both"),
+    "empty topic name": ("topics:\n  planning: ''\n", "topics.planning: '' is not a topic name"),
+    "viewer topic": ("topics:\n  planning: /deft_gym/scene\n", "topics.planning: '/deft_gym/scene' is reserved"),
 }
 
 
@@ -454,6 +460,26 @@ def test_bad_ads_configs_are_one_line_errors_and_exit_2_before_any_run(fault, tm
     msg = " ".join(capsys.readouterr().out.split())  # the console may wrap
     assert msg.startswith(f"error: {path}: ") and field in msg and "Traceback" not in msg, msg
     assert not out.exists()
+
+
+def test_a_topic_clash_in_an_ads_overlay_or_a_calibration_config_is_one_line(tmp_path, capsys):
+    """Two roles on one topic used to be a KeyError traceback (run), a traceback from a worker
+    with exit 1 (calibrate), or a run that 'completed' with control on the chassis topic; now one
+    line naming the file (the overlay, for stress) and the field, exit 2, nothing written."""
+    from agents import stress
+    from deft_gym.cli import calibrate
+
+    clash = tmp_path / "clash.yaml"
+    clash.write_text("topics:\n  prediction: /apollo/planning\n")
+    assert stress.main(["--ads-overlay", str(clash), "--budget", "1", "--out", str(tmp_path / "s"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {clash} (--ads-overlay): topics: ")
+    assert "topics.prediction and topics.planning" in err
+    assert calibrate.main(["--scenarios", "lane_follow_static", "--ads-config", str(clash), "--reruns", "1",
+                           "--variants", "1", "--out", str(tmp_path / "c"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {clash}: topics: ")
+    assert not (tmp_path / "s").exists() and not (tmp_path / "c").exists()
 
 
 def test_stress_campaign_with_a_missing_invariants_file_is_a_setup_error(tmp_path, capsys):
