@@ -432,6 +432,54 @@ def test_bad_scenarios_are_one_line_errors_naming_file_and_field(fault, tmp_path
     assert "\n" not in msg and msg.startswith(f"{path}: ") and field in msg, msg
 
 
+def _scenario_with(tmp_path, participants: list, pad: int = 0) -> Path:
+    import yaml
+
+    data = yaml.safe_load(LANE_FOLLOW.read_text())
+    data["participants"] = participants
+    path = tmp_path / "many.yaml"
+    path.write_text(yaml.safe_dump(data) + "#" * pad)
+    return path
+
+
+def _cones(n: int, s0: float = 30.0) -> list:
+    return [{"id": f"c{i}", "type": "static", "obstacle": "CONE", "lane": ["a", "b", 1], "s": s0 + (i % 1000) * 0.1,
+             "d": 1.0 + (i // 1000) * 0.01} for i in range(n)]
+
+
+def test_oversized_scenarios_are_one_line_before_parsing(tmp_path, capsys):
+    """A 10 MB scenario of 120k participants took about a minute to parse and validate and its
+    run could not finish (5000 participants run at a third of real time): a file over
+    MAX_SCENARIO_BYTES is refused before it is parsed, more than MAX_PARTICIPANTS participants
+    before each is validated, one line, exit 2."""
+    import time
+
+    from deft_gym.cli import run
+    from deft_gym.scenarios.scenario import MAX_PARTICIPANTS, MAX_SCENARIO_BYTES
+
+    big = _scenario_with(tmp_path, _cones(3), pad=MAX_SCENARIO_BYTES)
+    t0 = time.perf_counter()
+    assert run.main([str(big), "--reruns", "1", "--out", str(tmp_path / "out")]) == 2
+    msg = " ".join(capsys.readouterr().out.split())
+    assert msg.startswith(f"error: {big}: 2.0 MB; expected a scenario file of at most 2 MB"), msg
+    many = _scenario_with(tmp_path, _cones(MAX_PARTICIPANTS + 1))
+    assert run.main([str(many), "--reruns", "1", "--out", str(tmp_path / "out")]) == 2
+    msg = " ".join(capsys.readouterr().out.split())
+    assert msg.startswith(f"error: {many}: participants: ") and f"{MAX_PARTICIPANTS + 1} participants; expected at most" in msg
+    assert time.perf_counter() - t0 < 30 and not (tmp_path / "out").exists()
+
+
+def test_a_scenario_with_thousands_of_problems_lists_ten_and_counts_the_rest(tmp_path):
+    from deft_gym.config import ConfigError
+    from deft_gym.scenarios.scenario import MAX_PROBLEMS, load_scenario
+
+    path = _scenario_with(tmp_path, _cones(600, s0=200.0))  # lane a-b-1 is 156 m long
+    with pytest.raises(ConfigError) as err:
+        load_scenario(path)
+    lines = str(err.value).splitlines()
+    assert len(lines) == MAX_PROBLEMS + 1 and lines[-1] == f"{path}: ... and {600 - MAX_PROBLEMS} more problem(s)"
+
+
 ADS_FAULTS = {
     "world_hz 1e9": ("world_hz: 1.0e9\n", "world_hz"),
     "control rate 1e7": ("control:\n  rate_hz: 1.0e7\n", "control.rate_hz"),
