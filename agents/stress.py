@@ -225,14 +225,19 @@ def replay_cli(argv: list[str]) -> int:
 
 def check_cli(argv: list[str]) -> int:
     ap = common.parser("stress check", "agents.stress check",
-                       "Evaluate the safety invariants offline on an episode log (MCAP).")
+                       "Evaluate the safety invariants offline on an episode log (MCAP). Exit status: 0 when "
+                       "none is violated, 1 when one is, 2 when the log is damaged (CRCs, counts, footer) or "
+                       "not an episode log.")
     ap.add_argument("log", help="episode.mcap")
     ap.add_argument("--invariants", default=None, help="invariants YAML (default configs/invariants/default.yaml)")
     ap.add_argument("--json", action="store_true", help="print the violations as JSON")
     args = ap.parse_args(argv)
     from deft_gym.robustness.offline import check_log
 
-    violations = check_log(args.log, args.invariants)
+    try:
+        violations = check_log(args.log, args.invariants)
+    except ValueError as err:  # a damaged log (LogDamaged), one that is no episode log
+        return common.cli_error(str(err))
     if args.json:
         print(json.dumps([v.as_dict() for v in violations], indent=1, allow_nan=True))
     else:
