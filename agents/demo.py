@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import io
 import json
@@ -43,6 +44,7 @@ def build_parser() -> common.Parser:
     p.add_argument("--budget", type=int, default=16, help="simulated scenarios per method in the evaluation")
     p.add_argument("--reruns", type=common.positive_int, default=10, help="system reruns and test runs")
     p.add_argument("--skip-adversary", action="store_true", help="only the flaky -> deterministic part")
+    common.add_watchdog(p)
     common.add_output_flags(p)
     return p
 
@@ -193,6 +195,11 @@ def adversary_story(args: Any, out: Path, con: Any) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    with common.watchdog_env(args):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     con = common.console(args)
     os.environ.setdefault("PYTHONWARNINGS", "ignore")  # the demo shows results, not library warnings
     warnings.simplefilter("ignore")

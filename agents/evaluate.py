@@ -106,6 +106,7 @@ def build_parser() -> common.Parser:
                    help="keep MCAP logs of failing scenarios and extract tests from them (default: off)")
     common.add_out(p, common.RUNS / "evaluate")
     common.add_render(p)
+    common.add_watchdog(p)
     common.add_output_flags(p)
     add_backend_arguments(p)
     return p
@@ -301,6 +302,11 @@ def worker_preload(methods: list[str]) -> tuple[str, ...]:
 # -- main -----------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    with common.watchdog_env(args):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     con = common.console(args)
     try:
         cfg = load_eval_config(args)

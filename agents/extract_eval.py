@@ -21,7 +21,9 @@ can be extracted from the same log; the heuristic and last modes never read them
   both alike.
 
 Writes ``DIR/report.md``, ``DIR/results.json`` and plots; intermediate results are appended to
-``DIR/records/*.jsonl`` so an interrupted run resumes where it stopped.
+``DIR/records/*.jsonl`` so an interrupted run resumes where it stopped. An S0 log that is not
+intact (a chunk failing its CRC, missing messages) is named in the headline and in
+``results.json`` (``damaged_logs``), and the exit status is 1.
 """
 
 from __future__ import annotations
@@ -400,6 +402,10 @@ def _run(args: argparse.Namespace, console: Any, ev: Evaluation, seeds: list[str
                            {"planner": ev.planner, "planner_sha256": ev.planner_sha, "git": _git_state()})
     console.print(results["headline_text"])
     console.print(f"wrote {ev.out / 'report.md'} and {ev.out / 'results.json'}")
+    if results["damaged_logs"]:
+        console.print(f"[red]{len(results['damaged_logs'])} extraction(s) read a damaged S0 log[/red] "
+                      "(results.json damaged_logs)", soft_wrap=True)
+        return 1
     return 0
 
 

@@ -45,6 +45,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--no-pin-planner", dest="pin_planner", action="store_false",
                     help="use the planner module in place instead of a copy pinned at the start")
     add_backend_arguments(ap)
+    common.add_watchdog(ap)
     common.add_output_flags(ap)
     args = ap.parse_args(argv)
     if args.reruns < 2:
@@ -59,10 +60,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parse_args(argv)  # --help and bad input answered here, before the simulation loads
+    args = parse_args(argv)  # --help and bad input answered here, before the simulation loads
     from agents.extract_eval import main as run
 
-    return run(argv)
+    with common.watchdog_env(args):
+        return run(argv)
 
 
 if __name__ == "__main__":

@@ -171,7 +171,11 @@ def collect(ev: Evaluation, names: set[str], cold: float) -> dict[str, Any]:
         t["reduction_cold"] = 1 - t["module_cold_s"] / t["system_cold_s"] if t["system_cold_s"] else None
     replays = {m: {"frames": sum(r["frames"] for r in ev.replays.rows if r["mode"] == m),
                    "same": sum(r["same_distance"] for r in ev.replays.rows if r["mode"] == m)} for m in modes}
+    # S0 logs that are not intact: extracted as far as they are, never counted as good silently
+    damaged = {f"{m}/{n}": s["log_status"] for m in modes for n, s in sorted(summaries[m].items())
+               if s.get("log_status", "complete") != "complete"}
     return {"modes": modes, "scenarios": len(s0), "collision_scenarios": len(coll), "outputs": total_outputs,
+            "damaged_logs": damaged,
             "reruns": ev.args.reruns, "test_runs": ev.args.test_runs, "cold_start_s": cold,
             "rq1": {"thetas": list(RQ1_THETAS), "system": rq1_sys, "deft": rq1_deft, "deft_frames": deft_frames},
             "rq2": {"system_same": rq2_sys, "system_any": rq2_sys_any, "system_all_reruns": all_reruns,
@@ -221,6 +225,10 @@ def _markdown(r: dict[str, Any]) -> tuple[str, str]:
     sys0 = [v["0"] for v in rq1["system"].values()]
     if sys0:
         h.append(f"system reruns: {_pct(statistics.mean(sys0), n_out)} at theta = 0 (mean over reruns)")
+    damaged = r.get("damaged_logs") or {}
+    if damaged:
+        h.insert(0, f"**{len(damaged)} extraction(s) read a damaged S0 log** (their numbers count only the intact "
+                    f"messages): " + "; ".join(f"{k}: {v}" for k, v in damaged.items()))
     L += ["## Headline", ""] + [f"- {x}" for x in h]
     ms = rq3["ms_per_frame"]
     for m in modes:

@@ -14,6 +14,7 @@ another planner class. The library function
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -64,8 +65,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--planner-params", metavar="JSON", default=None, help="planner parameters, e.g. '{\"w_speed\": 4}'")
     ap.add_argument("--headers", action="store_true", help="planning outputs carry debug.input_seqs")
     ap.add_argument("--planner", metavar="MODULE:CLASS", default=None, help="planner class (default: the ADS config's)")
+    common.add_watchdog(ap)
     common.add_output_flags(ap)
     args = ap.parse_args(argv)
+    with common.watchdog_env(args):
+        return _record(args)
+
+
+def _record(args: argparse.Namespace) -> int:
     from deft_gym.scenarios.scenario import load_scenario
 
     try:

@@ -73,12 +73,18 @@ def campaign_parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-replays", type=int, default=None, help="replays per minimisation")
     ap.add_argument("--max-signatures", type=int, default=None, help="distinct findings to minimise")
     common.add_render(ap)
+    common.add_watchdog(ap)
     common.add_output_flags(ap)
     return ap
 
 
 def run_campaign_cli(argv: list[str]) -> int:
     args = campaign_parser().parse_args(argv)  # before the simulation is imported: a fast --help
+    with common.watchdog_env(args):
+        return _campaign(args)
+
+
+def _campaign(args: argparse.Namespace) -> int:
     from deft_gym.robustness.campaign import Campaign, load_campaign_config, run_campaign
 
     overrides: dict[str, Any] = {}
@@ -92,9 +98,12 @@ def run_campaign_cli(argv: list[str]) -> int:
         overrides["minimise"] = {k: v for k, v in (("max_replays", args.max_replays),
                                                    ("max_signatures", args.max_signatures)) if v is not None}
     cfg = load_campaign_config(args.config, overrides)
+    from deft_gym.bus.ads import load_ads_config
+
     ads_overrides: dict[str, Any] = {}
-    for path in args.ads_overlay:
+    for path in args.ads_overlay:  # an overlay that breaks the config is named, one line, before any run
         ads_overrides = deep_merge(ads_overrides, load_mapping(path))
+        load_ads_config(args.ads_config, ads_overrides, source=f"{path} (--ads-overlay)")
     campaign = Campaign(cfg, args.seed, args.ads_config, ads_overrides, args.hardening == "on")
     # validate the ADS configuration once, up front (a bad file is one clear line, not N failed runs)
     from deft_gym.robustness.runner import build_ads
@@ -216,14 +225,19 @@ def replay_cli(argv: list[str]) -> int:
 
 def check_cli(argv: list[str]) -> int:
     ap = common.parser("stress check", "agents.stress check",
-                       "Evaluate the safety invariants offline on an episode log (MCAP).")
+                       "Evaluate the safety invariants offline on an episode log (MCAP). Exit status: 0 when "
+                       "none is violated, 1 when one is, 2 when the log is damaged (CRCs, counts, footer) or "
+                       "not an episode log.")
     ap.add_argument("log", help="episode.mcap")
     ap.add_argument("--invariants", default=None, help="invariants YAML (default configs/invariants/default.yaml)")
     ap.add_argument("--json", action="store_true", help="print the violations as JSON")
     args = ap.parse_args(argv)
     from deft_gym.robustness.offline import check_log
 
-    violations = check_log(args.log, args.invariants)
+    try:
+        violations = check_log(args.log, args.invariants)
+    except ValueError as err:  # a damaged log (LogDamaged), one that is no episode log
+        return common.cli_error(str(err))
     if args.json:
         print(json.dumps([v.as_dict() for v in violations], indent=1, allow_nan=True))
     else:

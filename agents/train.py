@@ -29,6 +29,7 @@ from agents.config import ALGOS, TrainConfig, check_train_settings, load_train_c
 from deft_gym.cli import common
 from deft_gym.config import ConfigError
 from deft_gym.execution import Backend, add_backend_arguments, backend_from_args
+from deft_gym.execution.watchdog import apply_env, carried_env
 from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
 from deft_gym.record.recorder import init_pool_worker
 
@@ -44,6 +45,7 @@ def build_parser() -> common.Parser:
     p.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: the config's)")
     p.add_argument("--algo", choices=ALGOS, default=None, help="algorithm (default: the config's)")
     common.add_render(p)
+    common.add_watchdog(p)
     common.add_output_flags(p)
     add_backend_arguments(p)  # --ray: the envs as Ray actors (deft_gym.execution.vec_env), PPO unchanged
     return p
@@ -60,11 +62,14 @@ def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1, st
     """A thunk building env ``rank`` (own worker id, own episode journal, Monitor-wrapped) in one
     of ``workers`` env processes (:func:`deft_gym.record.recorder.init_pool_worker`; 1 when the envs
     share this process). ``step0``: the env's steps before this session (a resumed run: its
-    episode numbers and journal continue, its Monitor file is appended to)."""
+    episode numbers and journal continue, its Monitor file is appended to). The env process
+    follows this one's watchdog setting (``--watchdog-s``)."""
+    settings = carried_env()
 
     def thunk() -> Any:
         from stable_baselines3.common.monitor import Monitor
 
+        apply_env(settings)
         if workers > 1:
             init_pool_worker(workers)
 
@@ -239,6 +244,11 @@ def _interrupt(signum: int, frame: Any) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    with common.watchdog_env(args):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     try:
         cfg = load_train_config(args.config, {"timesteps": args.timesteps, "seed": args.seed,
                                               "n_envs": args.n_envs, "algo": args.algo})

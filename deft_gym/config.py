@@ -73,6 +73,10 @@ def format_validation_error(path: Path | str, err: ValidationError) -> str:
     return "\n".join(lines)
 
 
+# libyaml's parser when PyYAML has it (the same documents, parsed about 3x faster), else PyYAML's
+_SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
 def load_yaml(path: Path | str) -> Any:
     """Read a YAML file (``configs/...`` paths found in the shipped configs too), turning I/O
     and syntax errors into :class:`ConfigError`."""
@@ -82,7 +86,7 @@ def load_yaml(path: Path | str) -> Any:
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_SAFE_LOADER)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark else ""

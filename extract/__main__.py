@@ -7,7 +7,9 @@
 For one log, OUT gets ``frames.jsonl``, ``test_<scenario>_<log id>.py`` and ``summary.json``
 (``deft-gym extract`` adds ``plot.png`` and ``video.mp4`` of a collision, ``--render``); for a folder
 of runs, every log gets its own sub-folder and OUT/summary.json totals them. Exit status: 0 on
-success, 1 when some log of a folder could not be extracted, 2 on bad input.
+success, 1 when some log could not be extracted or is damaged (a chunk fails its CRC, messages are
+missing, the file is cut short: it is extracted as far as it is intact, its row is marked and its
+summary says what was lost), 2 on bad input.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from rich.table import Table
 
 from deft_gym.cli import common
 from deft_gym.execution import BackendError, Executor, add_backend_arguments, backend_from_args
-from extract.batch import extract_directory, find_logs
+from extract.batch import damaged_log, extract_directory, find_logs
 from extract.episode import ExtractionResult, extract_episode
 from extract.logs import LogError
 from extract.mapping import MappingError, load_mapping
@@ -56,6 +58,7 @@ def build_parser() -> common.Parser:
     ap.add_argument("--xfail-failures", action="store_true",
                     help="emit each failure oracle as a strict xfail (CI stays green while the failure reproduces "
                          "and fails once the planner is fixed)")
+    common.add_watchdog(ap)
     common.add_output_flags(ap)
     return ap
 
@@ -77,7 +80,9 @@ def parse_args(argv: list[str] | None = None, ap: argparse.ArgumentParser | None
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run(parse_args(argv))[0]
+    args = parse_args(argv)
+    with common.watchdog_env(args):
+        return run(args)[0]
 
 
 def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
@@ -85,7 +90,8 @@ def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
     console = common.console(args, width=130)
     kwargs: dict[str, Any] = {"mode": args.mode, "theta": args.theta, "measure": args.measure,
                               "mapping": args.mapping, "emit_tests": not args.no_tests,
-                              "tolerances": args.tolerances, "xfail_failures": args.xfail_failures}
+                              "tolerances": args.tolerances, "xfail_failures": args.xfail_failures,
+                              "watchdog_s": getattr(args, "watchdog_s", None)}
     try:
         backend = backend_from_args(args, args.workers)
     except BackendError as err:
@@ -113,12 +119,16 @@ def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
             console.print(f"[yellow]warning:[/yellow] {w}", soft_wrap=True)
         if not r.ok:
             console.print(f"[red]error:[/red] {r.summary['error']}", soft_wrap=True)
+    damaged = [r.summary for r in results if r.ok and damaged_log(r.summary)]
+    for s in damaged:
+        console.print(f"[red]damaged log:[/red] {s['log']}: {s['log_status']}; its tests cover only its intact "
+                      "messages", soft_wrap=True)
     out = Path(args.out)
     line = f"wrote {out / 'summary.json'}" + (f"; run the tests with: pytest {out}" if not args.no_tests else "")
     if args.quiet:
         print(line)
     console.print(line, soft_wrap=True)
-    return (0 if all(r.ok for r in results) else 1), results
+    return (0 if all(r.ok for r in results) and not damaged else 1), results
 
 
 def _table(results: list[ExtractionResult], args: argparse.Namespace, root: Path) -> Table:
@@ -147,7 +157,8 @@ def _table(results: list[ExtractionResult], args: argparse.Namespace, root: Path
             "-" if s.get("reproduced_at_theta") is None else f"{100 * s['reproduced_at_theta'] / n:.1f}%",
             f"{s['ms_per_frame']:.2f}", f"{s['planner_ms_per_frame']:.2f}", f"{s['overhead_ms_per_frame']:.2f}",
             "-" if s.get("truth_agreement") is None else f"{100 * s['truth_agreement']:.1f}%",
-            f"frame {f['index']} t={f['time']:.2f}s" if f else ("-" if not s.get("collision") else "none found"))
+            f"frame {f['index']} t={f['time']:.2f}s" if f else ("-" if not s.get("collision") else "none found"),
+            style="red" if damaged_log(s) else None)  # named below the table ("damaged log: ...")
     return t
 
 

@@ -145,8 +145,14 @@ def extract_directory(root: Path | str, out_root: Path | str, *, workers: int = 
     return final
 
 
+def damaged_log(summary: dict[str, Any]) -> bool:
+    """Whether an episode's extraction read a log that is not intact (damaged or cut short)."""
+    return summary.get("log_status", "complete") != "complete"
+
+
 def batch_summary(results: list[ExtractionResult], options: dict[str, Any]) -> dict[str, Any]:
-    """Totals over episodes (shares and per-frame times weighted by frames)."""
+    """Totals over episodes (shares and per-frame times weighted by frames); ``damaged_logs``
+    lists the logs that are not intact (extracted as far as they are)."""
     ok = [r.summary for r in results if r.ok]
     frames = sum(s["frames"] for s in ok)
     keys = [theta_key(t) for t in SUMMARY_THETAS]
@@ -160,6 +166,7 @@ def batch_summary(results: list[ExtractionResult], options: dict[str, Any]) -> d
 
     return {
         "format": BATCH_FORMAT, **options, "episodes": len(results), "failed": len(results) - len(ok),
+        "damaged_logs": [{"log": s["log"], "log_status": s["log_status"]} for s in ok if damaged_log(s)],
         "frames": frames, "reproduced": reproduced,
         "reproduced_share": {k: (v / frames if frames else None) for k, v in reproduced.items()},
         "reproduced_all_fields": whole, "reproduced_at_theta": sum(s.get("reproduced_at_theta", 0) for s in ok),
@@ -167,9 +174,9 @@ def batch_summary(results: list[ExtractionResult], options: dict[str, Any]) -> d
         "overhead_ms_per_frame": weighted("overhead_ms_per_frame"), "truth_agreement": weighted("truth_agreement"),
         "collisions": sum(1 for s in ok if s.get("collision")),
         "faulty_trajectories": sum(1 for s in ok if s.get("faulty_trajectory")),
-        "episodes_list": [{k: s.get(k) for k in ("log", "scenario", "frames", "reproduced", "ms_per_frame",
-                                                 "truth_agreement", "faulty_trajectory", "test_path", "error",
-                                                 "skipped")}
+        "episodes_list": [{k: s.get(k) for k in ("log", "log_status", "scenario", "frames", "reproduced",
+                                                 "ms_per_frame", "truth_agreement", "faulty_trajectory", "test_path",
+                                                 "error", "skipped")}
                           for s in (r.summary for r in results)],
     }
 

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.execution.watchdog import ModuleHang
 from deft_gym.files import write_atomic
 from deft_gym.planner.base import load_planner, planner_provenance, validate_output
 from extract.emit import slug, test_module, write_frames
@@ -69,7 +70,7 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
                     search: SearchConfig | None = None, minimize_failure: bool = True,
                     tolerances: Tolerances | Mapping[str, Any] | None = None,
                     on_frame: Callable[[int, int], None] | None = None,
-                    xfail_failures: bool = False) -> ExtractionResult:
+                    xfail_failures: bool = False, watchdog_s: float | None = None) -> ExtractionResult:
     """Extract planning-module tests from one MCAP log.
 
     ``mapping``: None (deft_gym default), a YAML path, a dict or a :class:`TopicMapping`.
@@ -84,7 +85,9 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     False/None skips it. ``minimize_failure``: let the failure test start from the planner state
     recorded at P_faulty's frame (planners that can be seeded) or replay the shortest suffix of
     frames that still reproduces P_faulty exactly (:mod:`extract.minimize`).
-    ``on_frame(done, total)`` reports progress. Raises :class:`LogError` /
+    ``on_frame(done, total)`` reports progress. ``watchdog_s``: wall-clock seconds one ``plan()``
+    may take (None: ``DEFT_GYM_WATCHDOG_S`` or 10 s; 0: unwatched); a ``plan()`` that runs past
+    it is the finding ``planner_hang`` and no ``plan()`` is called after it. Raises :class:`LogError` /
     :class:`MappingError` (one-line messages) when the log or the mapping cannot be used."""
     t_start = time.perf_counter()
     log_path, out = Path(log), Path(out_dir)
@@ -115,7 +118,7 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     def fresh() -> Any:
         return load_planner(planner_spec["class"], planner_spec["map"], planner_spec["params"])
 
-    engine = InputSearch(pif, planner, cfg, factory=fresh)
+    engine = InputSearch(pif, planner, cfg, factory=fresh, watchdog_s=watchdog_s)
 
     def tick(fc: FrameChoice) -> None:
         if on_frame is not None:
@@ -140,18 +143,30 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
 
     def minimize(index: int) -> tuple[int, dict[str, Any] | None]:
         """Where the failure test starts: seeded at ``index`` when the planner can be, else the
-        shortest suffix of frames that reproduces P_faulty."""
+        shortest suffix of frames that reproduces P_faulty (every frame when a ``plan()`` of it
+        hangs: the hang is a finding)."""
         frame = frame_getter([c.time for c in choices], lambda j: engine.frame_inputs(choices[j].choice))
-        seed = seeded_start(fresh, frame, index, lambda j: choices[j].output.payload)
-        mini.append(seed)
-        if seed.state is not None:
-            return index, {"frame": index, "state": seed.state}
-        mini.append(shortest_replay(fresh, frame, index, lambda j: choices[j].output.payload, cfg.measure))
+
+        def watched() -> Any:
+            return engine.watched(fresh())
+
+        try:
+            with engine.dog.armed():
+                seed = seeded_start(watched, frame, index, lambda j: choices[j].output.payload)
+                mini.append(seed)
+                if seed.state is not None:
+                    return index, {"frame": index, "state": seed.state}
+                mini.append(shortest_replay(watched, frame, index, lambda j: choices[j].output.payload,
+                                            cfg.measure))
+        except ModuleHang:
+            engine.note_hang(None, index, "failure-test minimisation")
+            _hang_finding(elog, engine, findings, choices)
+            return 0, None
         return mini[-1].replay_from, None
 
     reproduced = [c.reproduced for c in comparisons]
     faulty, oracle, oracle_note = _oracle(elog, mp, outcome, choices, distances, reproduced, ego, theta,
-                                          minimize if minimize_failure else None)
+                                          minimize if minimize_failure and engine.hang is None else None)
 
     header = {
         "format": FORMAT, "planner": planner_spec, "roles": list(pif.roles), "scenario": scenario,
@@ -215,8 +230,25 @@ def _findings(elog: EpisodeLog, engine: InputSearch, choices: list[FrameChoice],
         elog.warnings.append(f"the planner raised in {engine.exceptions} of {engine.plan_calls} replays "
                              f"({engine.errors[0] if engine.errors else '?'}); {len(no_output)} output(s) got no "
                              "replayed plan")
-    return {"run_failure": failure, "nan_outputs": len(nan), "nan_output_indices": nan[:50],
-            "planner_exceptions": engine.exceptions, "outputs_without_replay": len(no_output)}
+    found = {"run_failure": failure, "nan_outputs": len(nan), "nan_output_indices": nan[:50],
+             "planner_exceptions": engine.exceptions, "planner_hang": None, "outputs_without_replay": len(no_output)}
+    _hang_finding(elog, engine, found, choices)
+    return found
+
+
+def _hang_finding(elog: EpisodeLog, engine: InputSearch, findings: dict[str, Any],
+                  choices: list[FrameChoice]) -> None:
+    """A ``plan()`` that ran past the watchdog, as the finding ``planner_hang`` and a warning
+    (once)."""
+    hang = engine.hang
+    if hang is None or findings.get("planner_hang") is not None:
+        return
+    findings["planner_hang"] = hang
+    at = f" at t={hang['time']:.3f} s" if hang.get("time") is not None else ""
+    no_output = sum(1 for c in choices if c.actual is None)
+    elog.warnings.append(f"the planner hung during the {hang['during']}{at} (output {hang['output']}): "
+                         f"{hang['exception']}; no plan() was called after it, {no_output} output(s) got no "
+                         "replayed plan")
 
 
 def _contract_warnings(elog: EpisodeLog, engine: InputSearch, choices: list[FrameChoice]) -> None:

@@ -31,6 +31,13 @@ Modes:
 ``headers``
     The output names its inputs' sequence numbers (``debug.input_seqs``); outputs without them
     fall back to the heuristic.
+
+Every ``plan()`` call runs under the wall-clock watchdog of :mod:`deft_gym.execution.watchdog`
+(``watchdog_s``, else ``DEFT_GYM_WATCHDOG_S``, else 10 s): a call that blocks or spins past it is
+a *hang* finding (:attr:`InputSearch.hang`: module, message, frame time, output) and no further
+``plan()`` call is made - the planner's state is unknown after an interrupted call, and each
+further call could cost the watchdog again - so the search finishes, every output after it
+without a replayed plan.
 """
 
 from __future__ import annotations
@@ -46,6 +53,7 @@ import numpy as np
 
 from deft_gym.bus.codec import encode
 from deft_gym.bus.messages import NS_PER_S
+from deft_gym.execution.watchdog import ModuleHang, Watchdog, watchdog_seconds
 from deft_gym.planner.base import Frame, Planner
 from extract.io_filter import Output, PlanningIOFilter
 from extract.mapping import get_field
@@ -91,12 +99,19 @@ class InputSearch:
     """Runs one of the modes over all outputs of a :class:`PlanningIOFilter`.
 
     ``factory`` builds fresh planners like ``planner`` (for the validation replay and the
-    snapshot-free fallback; without it the search trusts ``snapshot()``/``restore()``)."""
+    snapshot-free fallback; without it the search trusts ``snapshot()``/``restore()``).
+    ``watchdog_s``: wall-clock seconds one ``plan()`` may take (None: ``DEFT_GYM_WATCHDOG_S`` or
+    the default; 0: unwatched)."""
 
     def __init__(self, pif: PlanningIOFilter, planner: Planner, cfg: SearchConfig,
-                 factory: Callable[[], Planner] | None = None) -> None:
+                 factory: Callable[[], Planner] | None = None, watchdog_s: float | None = None) -> None:
         self.pif, self.planner, self.cfg = pif, planner, cfg
         self.factory = factory
+        self.dog = Watchdog(watchdog_seconds(watchdog_s))
+        #: the first plan() that ran past the watchdog (kind, module, exception, time, output); no
+        #: plan() is called after it
+        self.hang: dict[str, Any] | None = None
+        self._at: int | None = None  # the output being searched (or replayed)
         self.measure = measure_fn(cfg.measure)
         self.roles = pif.roles
         d = pif.mapping.delivery
@@ -122,11 +137,17 @@ class InputSearch:
     def run(self, on_frame: Callable[[FrameChoice], None] | None = None) -> list[FrameChoice]:
         """Choose a frame for every output, in order; ``on_frame`` sees each result (an output
         searched again after a failed validation replay is seen again)."""
+        with self.dog.armed():
+            return self._run(on_frame)
+
+    def _run(self, on_frame: Callable[[FrameChoice], None] | None) -> list[FrameChoice]:
         out = self._chosen = []
         self._run_from(0, on_frame)
-        if self.factory is None or not self.restores:
+        if self.factory is None or not self.restores or self.hang is not None:
             return out
         k = self._validate(out)
+        if self.hang is not None:  # the validation replay hung: nothing more is known
+            return out
         self.restore_faithful = k is None
         if k is None:
             return out
@@ -144,6 +165,7 @@ class InputSearch:
         synced = out[start - 1].exact if start else True
         step = {"heuristic": self._heuristic, "last": self._last, "headers": self._headers}[self.cfg.mode]
         for o in self.pif.outputs[start:]:
+            self._at = o.index
             fc = step(o, prev, synced, out[-1] if out else None)
             fc.exact = fc.distance == 0.0 and same_output(o.payload, fc.actual)
             synced = fc.exact
@@ -161,6 +183,7 @@ class InputSearch:
         bit for bit (None: all)."""
         planner = self.factory()
         for i, fc in enumerate(out):
+            self._at = fc.output.index
             got = self._call(planner, fc.time, fc.choice)
             if not _same(got, fc.actual):
                 return i
@@ -188,7 +211,22 @@ class InputSearch:
     def _plan(self, t: float, choice: Choice) -> dict[str, Any] | None:
         return self._call(self.planner, t, choice)
 
+    def watched(self, planner: Planner) -> Planner:
+        """``planner`` with its ``plan()`` under this search's watchdog (for other replays of the
+        extraction, e.g. the failure-test minimisation; :class:`ModuleHang` propagates, see
+        :meth:`note_hang`, and the caller arms the watchdog: ``with search.dog.armed()``)."""
+        return _Watched(planner, self.dog)  # type: ignore[return-value]
+
+    def note_hang(self, t: float | None, output: int | None, where: str = "") -> None:
+        """Record a hang of ``plan()`` (the first one is kept)."""
+        if self.hang is None:
+            self.hang = {"kind": "hang", "module": "planning", "exception": self.dog.message("plan() gave no return"),
+                         "time": t, "output": output, "during": where or "search"}
+            self.errors.append(f"planner hung: {self.hang['exception']} at t={t if t is None else round(t, 3)}")
+
     def _call(self, planner: Planner, t: float, choice: Choice) -> dict[str, Any] | None:
+        if self.hang is not None:  # after a hang no plan() is called again
+            return None
         try:
             inputs = self.frame_inputs(choice)
         except ValueError:
@@ -198,7 +236,10 @@ class InputSearch:
             return None
         t0 = time.perf_counter()
         try:
-            return planner.plan(Frame(t, inputs))
+            return self.dog.call(planner.plan, Frame(t, inputs))
+        except ModuleHang:
+            self.note_hang(t, self._at)
+            return None
         except Exception as exc:  # a candidate frame may be garbage to the planner: counted, reported
             self.exceptions += 1
             if len(self.errors) < 20:
@@ -453,6 +494,19 @@ class _Stage:
     choices: Iterator[Choice]
     cap: int
     name: str = "ranked"
+
+
+class _Watched:
+    """A planner whose ``plan()`` runs under a watchdog (everything else is the planner's)."""
+
+    def __init__(self, planner: Planner, dog: Watchdog) -> None:
+        self._planner, self._dog = planner, dog
+
+    def plan(self, frame: Frame) -> dict[str, Any] | None:
+        return self._dog.call(self._planner.plan, frame)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._planner, name)
 
 
 def _one(choice: Choice) -> Iterator[Choice]:

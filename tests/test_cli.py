@@ -118,6 +118,10 @@ def test_shared_flags_mean_the_same_everywhere() -> None:
         assert "--scenarios" in _options(_help(name)), name
     for name in ("train", "evaluate", "stress", "extract", "run"):
         assert "{failures,all,none}" in _options(_help(name))["--render"], name
+    for name in ("run", "calibrate", "generate", "extract", "train", "evaluate", "stress", "demo", "record",
+                 "extract-eval"):
+        help_text = _options(_help(name))["--watchdog-s"]
+        assert "hang" in help_text and "DEFT_GYM_WATCHDOG_S" in help_text and "else 10" in help_text, name
 
 
 def test_scenarios_take_spaces_and_commas() -> None:
@@ -135,6 +139,11 @@ def test_scenarios_take_spaces_and_commas() -> None:
     (["report", "/no/such/folder"], "DIR"),
     (["stress", "--budget", "0"], "--budget"),
     (["evaluate", "--methods", "nope", "--out", "/tmp/deft-gym-x"], "methods"),
+    (["run", "left_turn", "--watchdog-s", "0"], "--watchdog-s"),
+    (["extract", "x.mcap", "--watchdog-s", "nan"], "--watchdog-s"),
+    (["stress", "--watchdog-s", "inf"], "--watchdog-s"),
+    (["evaluate", "--watchdog-s", "-1"], "--watchdog-s"),
+    (["calibrate", "--watchdog-s", "soon"], "--watchdog-s"),
 ])
 def test_bad_input_is_one_line_naming_the_flag_exit_2(argv: list[str], flag: str, capfd) -> None:
     try:

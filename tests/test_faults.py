@@ -193,13 +193,69 @@ def test_watchdog_setting_is_checked(monkeypatch):
     from deft_gym.sim.simulation import DEFAULT_WATCHDOG_S, watchdog_seconds
 
     assert watchdog_seconds() == DEFAULT_WATCHDOG_S
+    from deft_gym.robustness.monitors import wall_budget
+
+    assert wall_budget(1.0) == 3.0  # the stress campaign's own budget, unless the watchdog is set
     monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "2.5")
-    assert watchdog_seconds() == 2.5
+    assert watchdog_seconds() == 2.5 and wall_budget(1.0) == 2.5
     monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "soon")
     with pytest.raises(ValueError, match="DEFT_GYM_WATCHDOG_S"):
         watchdog_seconds()
     with pytest.raises(ValueError, match="watchdog_s"):
         watchdog_seconds(float("nan"))
+
+
+def test_watchdog_flag_overrides_the_environment_and_is_restored(tmp_path, monkeypatch, capsys):
+    """--watchdog-s 0.5 wins over DEFT_GYM_WATCHDOG_S=600: a planner that sleeps is a hang of
+    planning within seconds; after the program the variable is what it was."""
+    import os
+    import time
+
+    from deft_gym.cli import run
+
+    ads = tmp_path / "ads.yaml"
+    ads.write_text(f"planning:\n  planner:\n    class: {FAULTY}\n    params: {{fault: sleep, after: 20, sleep_s: 60}}\n")
+    monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "600")
+    t0 = time.perf_counter()
+    assert run.main([str(LANE_FOLLOW), "--ads-config", str(ads), "--reruns", "1", "--jitter-seed", "7",
+                     "--watchdog-s", "0.5", "--out", str(tmp_path / "out"), "--quiet", "--render", "none"]) == 0
+    assert time.perf_counter() - t0 < 30
+    row = json.loads((tmp_path / "out" / "summary.json").read_text())["reruns"][0]
+    assert row["outcome"] == "hang"
+    assert log_outcome(row["log"])["failure"]["exception"].endswith("within the 0.5 s wall-clock watchdog")
+    assert os.environ["DEFT_GYM_WATCHDOG_S"] == "600"
+
+
+@pytest.mark.parametrize("value", ["soon", "-1", "nan"])
+def test_a_bad_watchdog_variable_is_one_line_exit_2_before_any_work(value, tmp_path, monkeypatch, capsys):
+    from deft_gym.cli import run
+
+    monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", value)
+    with pytest.raises(SystemExit) as exc:
+        run.main([str(LANE_FOLLOW), "--reruns", "1", "--out", str(tmp_path / "out")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "DEFT_GYM_WATCHDOG_S" in err and "--watchdog-s" in err
+    assert not (tmp_path / "out").exists()
+
+
+def _watchdog_of_worker(_: int) -> float:
+    from deft_gym.execution.watchdog import watchdog_seconds
+
+    return watchdog_seconds()
+
+
+def test_worker_processes_follow_the_watchdog_setting_of_the_program(monkeypatch):
+    """The forkserver outlives one setting (it may start before --watchdog-s is read, or serve
+    later programs of the same process): the pool hands every worker the setting it starts with."""
+    from deft_gym.cli import common
+    from deft_gym.execution import Backend, Executor
+
+    monkeypatch.delenv("DEFT_GYM_WATCHDOG_S", raising=False)
+    with common.watchdog_env(common.argparse.Namespace(watchdog_s=2.5)), Executor(Backend("local", 2)) as ex:
+        assert list(ex.map(_watchdog_of_worker, range(4))) == [2.5] * 4
+    with Executor(Backend("local", 2)) as ex:
+        assert list(ex.map(_watchdog_of_worker, range(2))) == [10.0] * 2
 
 
 def test_an_ego_that_never_received_a_plan_is_not_completed(tmp_path):
@@ -215,13 +271,47 @@ def test_an_ego_that_never_received_a_plan_is_not_completed(tmp_path):
     assert r.outcome.outcome == "no_plan" and not r.outcome.task_completed
 
 
-def test_nan_outputs_are_reproduced_and_reported_as_findings(tmp_path):
+@pytest.fixture(scope="module")
+def nan_run(tmp_path_factory):
     from deft_gym.sim.simulation import Simulation
+
+    return Simulation(LANE_FOLLOW, faulty_ads("nan"), jitter_seed=7, out_dir=tmp_path_factory.mktemp("nan")).run()
+
+
+def test_a_plan_with_nan_ends_the_episode_as_a_crash_of_planning(nan_run):
+    """A NaN plan used to be tracked as full throttle and full lock until the run timed out
+    (outcome timeout, 40 s): it is a crash of planning, reason non-finite output, at the time it
+    was published, in the result and the log, and the log holds the offending plan."""
+    from extract.logs import read_log
+
+    s = nan_run.summary()
+    assert s["outcome"] == "crash" and not s["task_completed"] and nan_run.sim_time < 5
+    f = s["failure"]
+    assert (f["kind"], f["module"], f["reason"]) == ("crash", "planning", "non-finite output")
+    assert f["exception"] == "NonFiniteOutput: trajectory.x.0 is not finite on /apollo/planning" and 0 < f["time"] < 5
+    rec = log_outcome(nan_run.log_path)
+    assert rec["outcome"] == "crash" and rec["failure"] == f
+    plans = read_log(Path(nan_run.log_path), ["/apollo/planning"]).topics["/apollo/planning"]
+    assert plans.payload(len(plans) - 1)["trajectory"]["x"][0] != plans.payload(len(plans) - 1)["trajectory"]["x"][0]
+
+
+def test_non_finite_fields_are_found_wherever_they_are():
+    from deft_gym.bus.messages import non_finite_field
+
+    nan, inf = float("nan"), float("inf")
+    assert non_finite_field({"header": {"seq": 1, "stamp": 0.5, "module": "m"}, "a": [1.0, 2], "b": [],
+                             "c": ["x", 3], "d": {}, "e": None, "f": True, "g": 10**400}) is None
+    assert non_finite_field({"trajectory": {"t": [0.0, 0.1], "x": [1.0, nan]}}) == "trajectory.x.1"
+    assert non_finite_field({"obstacles": [{"id": "a", "v": 1.0}, {"id": "b", "v": -inf}]}) == "obstacles.1.v"
+    assert non_finite_field({"xs": [1e308, 1e308]}) is None  # a sum that overflows is not a NaN
+    assert non_finite_field({"xs": [1.0, "x", inf]}) == "xs.2" and non_finite_field(nan) == ""
+
+
+def test_nan_outputs_are_reproduced_and_reported_as_findings(nan_run, tmp_path):
     from extract import extract_episode
 
-    r = Simulation(LANE_FOLLOW, faulty_ads("nan"), jitter_seed=7, out_dir=tmp_path / "run").run()
-    s = extract_episode(r.log_path, tmp_path / "x", emit_tests=False).summary
-    assert s["findings"]["nan_outputs"] > 100
+    s = extract_episode(nan_run.log_path, tmp_path / "x", emit_tests=False).summary
+    assert s["findings"]["nan_outputs"] == 1 and s["findings"]["run_failure"]["reason"] == "non-finite output"
     assert s["reproduced"]["0"] == s["frames"]  # NaN == NaN: the replay gives the recorded NaN
     assert any("NaN or inf" in w for w in s["warnings"])
 
@@ -239,6 +329,40 @@ def test_planner_exceptions_during_extraction_are_counted_and_shown(lane_follow_
     f = s["findings"]
     assert f["planner_exceptions"] > 0 and f["outputs_without_replay"] == s["frames"]
     assert s["reproduced"]["7"] == 0 and any("the planner raised in" in w for w in s["warnings"])
+
+
+@pytest.mark.parametrize("after", [0, 40])
+def test_a_planner_that_blocks_during_extraction_is_a_hang_finding(after, lane_follow_log, tmp_path):
+    """plan() sleeping a minute per call used to hang extract (no watchdog on the replays): now
+    the first call past the wall-clock watchdog is the finding planner_hang (message, frame time,
+    output), no plan() is called after it, and the extraction finishes with its summary."""
+    import time
+
+    from extract import extract_episode
+    from extract.logs import read_log
+    from extract.mapping import load_mapping
+
+    meta = read_log(Path(lane_follow_log.log_path), []).episode_meta()
+    mapping = load_mapping(ROOT / "configs" / "mappings" / "deft_gym.yaml").model_dump(by_alias=True)
+    mapping["planner"] = {"class": FAULTY, "params": {"fault": "sleep", "after": after, "sleep_s": 60.0},
+                          "map": meta["map"]}
+    t0 = time.perf_counter()
+    s = extract_episode(lane_follow_log.log_path, tmp_path, mapping=mapping, emit_tests=False,
+                        watchdog_s=0.5).summary
+    assert time.perf_counter() - t0 < 30
+    hang = s["findings"]["planner_hang"]
+    assert hang["kind"] == "hang" and hang["module"] == "planning" and "0.5 s wall-clock watchdog" in hang["exception"]
+    assert hang["time"] >= 0 and hang["output"] >= 0
+    assert s["findings"]["outputs_without_replay"] > 0 and s["frames"] > 0
+    assert any("the planner hung" in w for w in s["warnings"])
+    assert json.loads((tmp_path / "summary.json").read_text())["findings"]["planner_hang"] == hang
+
+
+def test_extraction_of_a_valid_log_has_no_hang_finding(lane_follow_log, tmp_path):
+    from extract import extract_episode
+
+    s = extract_episode(lane_follow_log.log_path, tmp_path, emit_tests=False, watchdog_s=5.0).summary
+    assert s["findings"]["planner_hang"] is None and s["reproduced"]["0"] == s["frames"]
 
 
 def test_a_mapping_field_missing_from_the_log_is_one_line_up_front(lane_follow_log, tmp_path):
@@ -308,6 +432,54 @@ def test_bad_scenarios_are_one_line_errors_naming_file_and_field(fault, tmp_path
     assert "\n" not in msg and msg.startswith(f"{path}: ") and field in msg, msg
 
 
+def _scenario_with(tmp_path, participants: list, pad: int = 0) -> Path:
+    import yaml
+
+    data = yaml.safe_load(LANE_FOLLOW.read_text())
+    data["participants"] = participants
+    path = tmp_path / "many.yaml"
+    path.write_text(yaml.safe_dump(data) + "#" * pad)
+    return path
+
+
+def _cones(n: int, s0: float = 30.0) -> list:
+    return [{"id": f"c{i}", "type": "static", "obstacle": "CONE", "lane": ["a", "b", 1], "s": s0 + (i % 1000) * 0.1,
+             "d": 1.0 + (i // 1000) * 0.01} for i in range(n)]
+
+
+def test_oversized_scenarios_are_one_line_before_parsing(tmp_path, capsys):
+    """A 10 MB scenario of 120k participants took about a minute to parse and validate and its
+    run could not finish (5000 participants run at a third of real time): a file over
+    MAX_SCENARIO_BYTES is refused before it is parsed, more than MAX_PARTICIPANTS participants
+    before each is validated, one line, exit 2."""
+    import time
+
+    from deft_gym.cli import run
+    from deft_gym.scenarios.scenario import MAX_PARTICIPANTS, MAX_SCENARIO_BYTES
+
+    big = _scenario_with(tmp_path, _cones(3), pad=MAX_SCENARIO_BYTES)
+    t0 = time.perf_counter()
+    assert run.main([str(big), "--reruns", "1", "--out", str(tmp_path / "out")]) == 2
+    msg = " ".join(capsys.readouterr().out.split())
+    assert msg.startswith(f"error: {big}: 2.0 MB; expected a scenario file of at most 2 MB"), msg
+    many = _scenario_with(tmp_path, _cones(MAX_PARTICIPANTS + 1))
+    assert run.main([str(many), "--reruns", "1", "--out", str(tmp_path / "out")]) == 2
+    msg = " ".join(capsys.readouterr().out.split())
+    assert msg.startswith(f"error: {many}: participants: ") and f"{MAX_PARTICIPANTS + 1} participants; expected at most" in msg
+    assert time.perf_counter() - t0 < 30 and not (tmp_path / "out").exists()
+
+
+def test_a_scenario_with_thousands_of_problems_lists_ten_and_counts_the_rest(tmp_path):
+    from deft_gym.config import ConfigError
+    from deft_gym.scenarios.scenario import MAX_PROBLEMS, load_scenario
+
+    path = _scenario_with(tmp_path, _cones(600, s0=200.0))  # lane a-b-1 is 156 m long
+    with pytest.raises(ConfigError) as err:
+        load_scenario(path)
+    lines = str(err.value).splitlines()
+    assert len(lines) == MAX_PROBLEMS + 1 and lines[-1] == f"{path}: ... and {600 - MAX_PROBLEMS} more problem(s)"
+
+
 ADS_FAULTS = {
     "world_hz 1e9": ("world_hz: 1.0e9\n", "world_hz"),
     "control rate 1e7": ("control:\n  rate_hz: 1.0e7\n", "control.rate_hz"),
@@ -315,6 +487,12 @@ ADS_FAULTS = {
     "unknown trigger role": ("planning:\n  trigger: nosuchrole\n", "planning.trigger"),
     "unknown planner class": ("planning:\n  planner:\n    class: nosuch.module:Planner\n", "planning.planner"),
     "unknown planner params": ("planning:\n  planner:\n    params: {bogus_param: 3}\n", "bogus_param"),
+    "two roles on one topic": ("topics:\n  prediction: /apollo/planning\n",
+                               "topics.prediction and topics.planning are both '/apollo/planning'"),
+    "control on the chassis topic": ("topics:\n  control: /apollo/canbus/chassis\n",
+                                     "topics.chassis and topics.control are both"),
+    "empty topic name": ("topics:\n  planning: ''\n", "topics.planning: '' is not a topic name"),
+    "viewer topic": ("topics:\n  planning: /deft_gym/scene\n", "topics.planning: '/deft_gym/scene' is reserved"),
 }
 
 
@@ -330,6 +508,26 @@ def test_bad_ads_configs_are_one_line_errors_and_exit_2_before_any_run(fault, tm
     msg = " ".join(capsys.readouterr().out.split())  # the console may wrap
     assert msg.startswith(f"error: {path}: ") and field in msg and "Traceback" not in msg, msg
     assert not out.exists()
+
+
+def test_a_topic_clash_in_an_ads_overlay_or_a_calibration_config_is_one_line(tmp_path, capsys):
+    """Two roles on one topic used to be a KeyError traceback (run), a traceback from a worker
+    with exit 1 (calibrate), or a run that 'completed' with control on the chassis topic; now one
+    line naming the file (the overlay, for stress) and the field, exit 2, nothing written."""
+    from agents import stress
+    from deft_gym.cli import calibrate
+
+    clash = tmp_path / "clash.yaml"
+    clash.write_text("topics:\n  prediction: /apollo/planning\n")
+    assert stress.main(["--ads-overlay", str(clash), "--budget", "1", "--out", str(tmp_path / "s"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {clash} (--ads-overlay): topics: ")
+    assert "topics.prediction and topics.planning" in err
+    assert calibrate.main(["--scenarios", "lane_follow_static", "--ads-config", str(clash), "--reruns", "1",
+                           "--variants", "1", "--out", str(tmp_path / "c"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {clash}: topics: ")
+    assert not (tmp_path / "s").exists() and not (tmp_path / "c").exists()
 
 
 def test_stress_campaign_with_a_missing_invariants_file_is_a_setup_error(tmp_path, capsys):

@@ -125,3 +125,71 @@ def test_extraction_of_a_damaged_log_says_what_was_lost(log, tmp_path) -> None:
     assert integ["messages_written"] - integ["messages_found"] == sum(integ["lost"].values()) > 0
     assert any("intact messages" in w and "lost:" in w for w in s["warnings"])
     assert read_log(bad, ["/apollo/planning"]).topics["/apollo/planning"].raw  # the rest is there
+
+
+# -- campaign-side readers: a damaged log is reported as damaged, never summarised as good -----------
+def _flipped(log: Path, tmp_path: Path, name: str = "episode.mcap") -> Path:
+    """A copy of ``log`` with one bit flipped inside a middle chunk's records."""
+    buf = bytearray(log.read_bytes())
+    table = chunk_table(bytes(buf))
+    ch = table[len(table) // 2]
+    buf[ch["offset"] + ch["length"] // 2] ^= 0x01
+    out = tmp_path / name
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_bytes(bytes(buf))
+    return out
+
+
+def test_the_offline_invariant_checker_refuses_a_log_with_a_flipped_bit(log, tmp_path, capsys) -> None:
+    """``stress check`` read logs with the mcap library, which does not check CRCs: a flipped bit
+    gave 'no invariant violated', exit 0. Now: one line saying what is damaged, exit 2."""
+    from agents import stress
+    from deft_gym.robustness.offline import LogDamaged, check_log
+
+    bad = _flipped(log, tmp_path)
+    with pytest.raises(LogDamaged, match=r"damaged: 1 problem\(s\) \(crc\); \d+ message\(s\) lost"):
+        check_log(bad)
+    assert stress.main(["check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {bad}: damaged") and "deft-gym verify" in err
+    assert stress.main(["check", str(log)]) in (0, 1)  # the intact log is judged
+
+
+def test_extracting_a_folder_with_a_damaged_log_marks_it_and_exits_1(log, tmp_path, capsys) -> None:
+    import json
+
+    from extract.__main__ import main as extract_main
+
+    root = tmp_path / "runs"
+    (root / "good").mkdir(parents=True)
+    (root / "good" / "episode.mcap").write_bytes(log.read_bytes())
+    bad = _flipped(log, root / "bad")
+    out = tmp_path / "out"
+    assert extract_main([str(root), "--out", str(out), "--workers", "1", "--no-tests", "--no-progress"]) == 1
+    printed = " ".join(capsys.readouterr().out.split())
+    assert f"damaged log: {bad}: damaged" in printed and "damaged log: " + str(root / "good") not in printed
+    s = json.loads((out / "summary.json").read_text())
+    assert [d["log"] for d in s["damaged_logs"]] == [str(bad)] and s["failed"] == 0
+    status = {e["log"]: e["log_status"] for e in s["episodes_list"]}
+    assert status[str(root / "good" / "episode.mcap")] == "complete" and status[str(bad)].startswith("damaged")
+    # resumed (the extractions are up to date): still reported
+    assert extract_main([str(root), "--out", str(out), "--workers", "1", "--no-tests", "--no-progress"]) == 1
+
+
+def test_the_extraction_evaluation_names_a_damaged_s0_log_in_its_headline(log, tmp_path) -> None:
+    from types import SimpleNamespace
+
+    from agents.extract_report import _markdown, collect
+    from extract import extract_episode
+
+    out = tmp_path / "eval"
+    extract_episode(_flipped(log, tmp_path), out / "deft" / "heuristic" / "lfs" / "S0", truth=False, emit_tests=False)
+    rows = lambda r: SimpleNamespace(rows=r)  # noqa: E731
+    ev = SimpleNamespace(args=SimpleNamespace(modes=["heuristic"], reruns=2, test_runs=1), out=out,
+                         s0=rows([{"name": "lfs", "outputs": 234, "collision": None, "group": "seed", "wall": 1.0}]),
+                         reruns=rows([]), rounds=rows([]), full=rows([]), replays=rows([]),
+                         deft_dir=lambda m, n: out / "deft" / m / n / "S0")
+    res = collect(ev, {"lfs"}, 0.0)
+    assert list(res["damaged_logs"]) == ["heuristic/lfs"] and res["damaged_logs"]["heuristic/lfs"].startswith("damaged")
+    _, headline = _markdown({**res, "elapsed_s": 0.0, "provenance": {}, "plots": {}})
+    assert headline.startswith("- **1 extraction(s) read a damaged S0 log**")

@@ -12,7 +12,7 @@ from typing import Any
 
 from pydantic import ConfigDict, Field, PrivateAttr, field_validator
 
-from deft_gym.bus.messages import DEFAULT_TOPICS, ROLES
+from deft_gym.bus.messages import DEFAULT_TOPICS, ROLES, VIEWER_TOPICS
 from deft_gym.config import CONFIG_DIR, Strict, deep_merge, load_mapping, validate
 
 DEFAULT_ADS_CONFIG = CONFIG_DIR / "ads" / "default.yaml"
@@ -116,19 +116,34 @@ class AdsConfig(Strict):
         unknown = sorted(set(v) - set(ROLES))
         if unknown:
             raise ValueError(f"unknown topic role(s) {unknown}; expected {list(ROLES)}")
-        return {**DEFAULT_TOPICS, **v}
+        topics = {**DEFAULT_TOPICS, **v}
+        owner: dict[str, str] = {}
+        for role, name in topics.items():
+            if not isinstance(name, str) or not name.strip() or name != name.strip():
+                raise ValueError(f"topics.{role}: {name!r} is not a topic name; expected a non-empty name such as "
+                                 f"{DEFAULT_TOPICS[role]!r}")
+            if name in VIEWER_TOPICS:
+                raise ValueError(f"topics.{role}: {name!r} is reserved for the viewer channels of the log; "
+                                 "expected another name")
+            if name in owner:
+                raise ValueError(f"topics.{owner[name]} and topics.{role} are both {name!r}; expected one topic per "
+                                 "role (two modules publishing one topic would read each other's messages)")
+            owner[name] = role
+        return topics
 
     def topic(self, role: str) -> str:
         """Bus topic name of a role."""
         return self.topics[role]
 
 
-def load_ads_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None) -> AdsConfig:
-    """Load and validate an ADS config; ``overrides`` is deep-merged on top of the file."""
+def load_ads_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None,
+                    source: str | None = None) -> AdsConfig:
+    """Load and validate an ADS config; ``overrides`` is deep-merged on top of the file.
+    ``source``: what errors name (default: the file), e.g. the overlay that ``overrides`` came from."""
     path = Path(path) if path else DEFAULT_ADS_CONFIG
     data = load_mapping(path)
     if overrides:
         data = deep_merge(data, overrides)
-    ads = validate(AdsConfig, data, path)
+    ads = validate(AdsConfig, data, source or path)
     ads._source = str(path)  # names the file in errors found later (the planner)
     return ads

@@ -51,6 +51,46 @@ def log_start_ns(episode_metadata: dict[str, Any] | None) -> int:
         return 0
 
 
+def non_finite_field(value: Any) -> str | None:
+    """The dotted path (``trajectory.x.3``) of the first NaN or infinity in a payload of plain
+    values, or None when every number is finite (a list of numbers is checked in one C loop)."""
+    path = _non_finite(value)
+    return None if path is None else ".".join(map(str, path))
+
+
+_SCALARS = (str, int, bool, type(None))  # no float in them (an int is finite)
+
+
+def _non_finite(v: Any) -> tuple[Any, ...] | None:
+    if isinstance(v, dict):
+        for k, x in v.items():
+            t = type(x)
+            if t is float:
+                if x - x != 0.0:  # inf - inf and nan - nan are nan
+                    return (k,)
+            elif t not in _SCALARS and (r := _non_finite(x)) is not None:
+                return (k, *r)
+        return None
+    if isinstance(v, list | tuple):
+        if not v:
+            return None
+        t = type(v[0])
+        if t is float or t is int:
+            try:  # a sum of finite floats is finite (unless it overflows: then element by element)
+                total = sum(v)
+                if total - total == 0.0:
+                    return None
+            except (TypeError, OverflowError):  # not all numbers (or an int beyond floats)
+                pass
+        for i, x in enumerate(v):
+            if type(x) not in _SCALARS and (r := _non_finite(x)) is not None:
+                return (i, *r)
+        return None
+    if isinstance(v, float) and v - v != 0.0:
+        return ()
+    return None
+
+
 @dataclass(slots=True)
 class Message:
     """One message on the bus."""

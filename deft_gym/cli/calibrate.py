@@ -22,6 +22,7 @@ Variants and runs are work items of :mod:`deft_gym.execution`: local processes, 
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import sys
@@ -84,24 +85,38 @@ def build_parser() -> common.Parser:
     common.add_out(ap, common.RUNS / "calibration")
     common.add_output_flags(ap)
     add_backend_arguments(ap)
+    common.add_watchdog(ap)
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    with common.watchdog_env(args):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     console = common.console(args)
     try:
         backend = backend_from_args(args, args.workers)
     except ConfigError as err:
+        return common.cli_error(str(err))
+    from deft_gym.bus.ads import load_ads_config
+    from deft_gym.scenarios.scenario import list_scenarios, load_scenario
+    from deft_gym.sim.simulation import build_planner
+
+    paths = args.scenarios or [str(p) for p in list_scenarios() if not p.name.startswith("bench")]
+    try:  # a bad ADS config or scenario: one line, before any run (not a worker's traceback)
+        ads = load_ads_config(args.ads_config)
+        scenarios = [load_scenario(p) for p in paths]
+        build_planner(ads, scenarios[0])
+    except (ConfigError, ValueError) as err:
         return common.cli_error(str(err))
     if args.jitter_seed is None:  # resuming: the seeds of the runs already there; else fresh ones
         prior = read_jsonl(Path(args.out) / "runs.jsonl")
         args.jitter_seed = min((r["seed"] for r in prior), default=None)
         args.jitter_seed = common.fresh_seed() if args.jitter_seed is None else args.jitter_seed
         console.print(f"jitter seeds {args.jitter_seed}..{args.jitter_seed + args.reruns - 1}")
-    from deft_gym.scenarios.scenario import list_scenarios
-
-    paths = args.scenarios or [str(p) for p in list_scenarios() if not p.name.startswith("bench")]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ads_name = args.ads_config or "configs/ads/default.yaml"

@@ -15,6 +15,9 @@ flag means one thing everywhere:
 ``--no-progress``         no progress bar (rich, one style everywhere)
 ``--quiet``               print only errors and the final line (implies ``--no-progress``)
 ``--render WHAT``         pictures of episodes: ``failures`` (default), ``all`` or ``none``
+``--watchdog-s SECONDS``  wall-clock seconds one module call (a module computation, a planner's
+                          ``plan()``) may take before it is reported as a hang; default the
+                          ``DEFT_GYM_WATCHDOG_S`` environment variable, else 10 s
 ``--ray``                 (execution layer) run jobs on Ray instead of local processes
 ``--ray-address ADDR``    (execution layer) the Ray cluster to join
 ``--version``             the package version
@@ -171,6 +174,56 @@ def add_render(p: argparse.ArgumentParser, default: str = "failures") -> None:
     """``--render failures|all|none`` (pictures of episodes: plot and video)."""
     p.add_argument("--render", choices=RENDER_CHOICES, default=default,
                    help="draw a plot and a video of these episodes (deft-gym render)")
+
+
+WATCHDOG_ENV = "DEFT_GYM_WATCHDOG_S"  # deft_gym.execution.watchdog.ENV (not imported: --help stays fast)
+
+
+def positive_seconds(text: str) -> float:
+    """argparse type: finite seconds > 0."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds (a number > 0), got {text!r}") from None
+    if not (x > 0 and x < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected finite seconds > 0, got {text!r}")
+    return x
+
+
+def add_watchdog(p: argparse.ArgumentParser) -> None:
+    """``--watchdog-s SECONDS`` (read by :func:`watchdog_env`)."""
+    p.add_argument("--watchdog-s", type=positive_seconds, default=None, metavar="SECONDS",
+                   help="wall-clock seconds one module call (a module computation, a planner's plan()) may take "
+                        f"before it is reported as a hang instead of hanging the program (default: {WATCHDOG_ENV} "
+                        "from the environment, else 10)")
+
+
+@contextmanager
+def watchdog_env(args: argparse.Namespace) -> Iterator[None]:
+    """While the block runs, ``--watchdog-s`` (when given) is ``DEFT_GYM_WATCHDOG_S`` of this
+    process, and of the worker processes it starts (the execution layer carries it); restored
+    after. A ``DEFT_GYM_WATCHDOG_S`` that is not seconds >= 0 is one line, exit 2, before any work."""
+    value = getattr(args, "watchdog_s", None)
+    old = os.environ.get(WATCHDOG_ENV)
+    if value is None:
+        env = (old or "").strip()
+        try:
+            ok = not env or (float(env) >= 0 and float(env) < float("inf"))
+        except ValueError:
+            ok = False
+        if not ok:
+            raise SystemExit(cli_error(f"{WATCHDOG_ENV}={old!r}: expected finite seconds >= 0 (0 = off); "
+                                       "or give --watchdog-s SECONDS"))
+        yield
+        return
+    os.environ[WATCHDOG_ENV] = repr(float(value))
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(WATCHDOG_ENV, None)
+        else:
+            os.environ[WATCHDOG_ENV] = old
 
 
 def positive_int(text: str) -> int:

@@ -44,7 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     common.add_render(ap)
     args = parse_args(argv, ap)
-    code, results = run(args)
+    with common.watchdog_env(args):
+        code, results = run(args)
     if code != 2:
         for plot in render(results, args.render):
             common.console(args).print(f"picture of the failure: {plot}", soft_wrap=True)

@@ -146,6 +146,7 @@ def build_parser() -> common.Parser:
     common.add_jitter_seed(ap, "jitter seed of the --check runs (every scenario runs with it)")
     ap.add_argument("--config", type=Path, default=None,
                     help="generator config YAML (GeneratorConfig fields; default: the built-in defaults)")
+    common.add_watchdog(ap)
     common.add_output_flags(ap)
     return ap
 
@@ -158,6 +159,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    with common.watchdog_env(args):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     console = common.console(args, stderr=True)
     out = common.console(args, width=140)
     if args.jitter_seed is None:

@@ -34,6 +34,7 @@ def build_parser() -> common.Parser:
     p.add_argument("--headers", action="store_true",
                    help="planner publishes the sequence numbers of its inputs (debug.input_seqs)")
     p.add_argument("--compress", action="store_true", help="zstd-compressed MCAP chunks (slower, smaller)")
+    common.add_watchdog(p)
     common.add_output_flags(p)
     return p
 
@@ -57,6 +58,11 @@ def divergence_stats(ref: list[dict[str, Any]], other: list[dict[str, Any]]) -> 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    with common.watchdog_env(args):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     console = common.console(args)
     from deft_gym.bus.ads import DEFAULT_ADS_CONFIG, load_ads_config
     from deft_gym.config import ConfigError

@@ -17,13 +17,16 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 from deft_gym.execution import Progress, WorkerLost
+from deft_gym.execution.watchdog import apply_env, carried_env
 
 _QUEUE: Any = None  # this worker's progress queue (set by _init)
 
 
-def _init(q: Any, initializer: Callable[..., None] | None, initargs: tuple[Any, ...]) -> None:
+def _init(q: Any, initializer: Callable[..., None] | None, initargs: tuple[Any, ...],
+          env: dict[str, str | None] | None = None) -> None:
     global _QUEUE
     _QUEUE = q
+    apply_env(env)  # the forkserver may be older than the setting (e.g. --watchdog-s)
     if initializer is not None:
         initializer(*initargs)
 
@@ -46,7 +49,7 @@ class LocalPool:
         self.concurrency = workers
         self.queue = ctx.Queue()
         self.pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init,
-                                        initargs=(self.queue, initializer, initargs))
+                                        initargs=(self.queue, initializer, initargs, carried_env()))
 
     def submit(self, fn: Callable[..., Any], item: Any, with_progress: bool, artifacts: Sequence[str],
                inputs: Sequence[str]) -> Future[Any]:

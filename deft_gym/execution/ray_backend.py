@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from deft_gym.execution import RAY_MISSING, Backend, BackendError, Progress, WorkerLost, transfer
+from deft_gym.execution.watchdog import apply_env, carried_env
 
 LOCAL_OBJECT_STORE = 256 * 2**20  # [bytes] a local instance's object store: items and results are small
 
@@ -78,10 +79,12 @@ def warm_worker() -> None:
 _READY: set[int] = set()  # ids of the initializers this worker process has run
 
 
-def _task(fn: Callable[..., Any], item: Any, with_progress: bool, queue: Any, init: tuple[Any, tuple[Any, ...]],
+def _task(fn: Callable[..., Any], item: Any, with_progress: bool, queue: Any,
+          init: tuple[Any, tuple[Any, ...], dict[str, str | None]],
           artifacts: Sequence[str], token: str | None, mode: str, inputs: list[Any], cwd: str) -> tuple[Any, bytes | None]:
     """One item in a Ray worker process: ``(result, artifacts archive or None)``."""
-    initializer, initargs = init
+    initializer, initargs, env = init
+    apply_env(env)  # settings of the driver (e.g. --watchdog-s) that a worker must follow
     if os.getcwd() != cwd:
         transfer.enter_working_dir(cwd)
     if initializer is not None and id(initializer) not in _READY:
@@ -115,7 +118,7 @@ class RayPool:
                                                 retry_exceptions=False)
         self.concurrency = max(int(ray.cluster_resources().get("CPU", 1)), 1) if backend.address \
             else backend.workers
-        self.init = (initializer, initargs)
+        self.init = (initializer, initargs, carried_env())
         self.retries = backend.max_retries
         self.token = None
         if run_dir is not None and self.mode == "auto":

@@ -24,14 +24,16 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices,
 from stable_baselines3.common.vec_env.subproc_vec_env import _stack_obs
 
 from deft_gym.execution import transfer
+from deft_gym.execution.watchdog import apply_env, carried_env
 
 
 class EnvActor:
     """One environment in a Ray actor (the loop of SB3's ``SubprocVecEnv`` worker, as methods)."""
 
-    def __init__(self, env_fn: Callable[[], Any], cwd: str) -> None:
+    def __init__(self, env_fn: Callable[[], Any], cwd: str, env: dict[str, str | None] | None = None) -> None:
         from stable_baselines3.common.vec_env.patch_gym import _patch_env
 
+        apply_env(env)  # the driver's settings (e.g. --watchdog-s)
         if os.getcwd() != cwd:
             transfer.enter_working_dir(cwd)
         self.env = _patch_env(env_fn())
@@ -96,7 +98,7 @@ class RayVecEnv(VecEnv):
 
         self.ray = ray
         actor = ray.remote(num_cpus=num_cpus)(EnvActor)
-        self.actors = [actor.remote(fn, os.getcwd()) for fn in env_fns]
+        self.actors = [actor.remote(fn, os.getcwd(), carried_env()) for fn in env_fns]
         self.run_dir = Path(run_dir).resolve() if run_dir is not None else None
         self.token = transfer.write_token(self.run_dir) if self.run_dir is not None else None
         self.waiting: list[Any] = []

@@ -5,7 +5,7 @@
   a *hang* finding (a SIGPROF watchdog interrupts it - runs are single-threaded and own the main
   thread); a computation that blocks without burning CPU (sleeps, waits on a lock or a socket) is
   a hang after ``wall_s`` seconds of wall clock (a SIGALRM watchdog, default
-  :func:`wall_budget` of the CPU deadline), checks the shape of what the node returns, and marks the failed node dead, as a
+  :func:`wall_budget` of the CPU deadline, or ``--watchdog-s``), checks the shape of what the node returns, and marks the failed node dead, as a
   process that died would be. Failures never propagate into the harness.
 - :class:`SilenceMonitor` (an ``on_step`` callback) reports a node that stopped publishing for
   ``k`` of its periods - the paper's other kind of hang, a module that ceases communication -
@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from deft_gym.bus.messages import NS_PER_S
+from deft_gym.execution.watchdog import ENV, watchdog_seconds
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -59,7 +60,10 @@ def _raise_wall_deadline(signum: int, frame: Any) -> None:
 
 def wall_budget(deadline_s: float) -> float:
     """The default wall-clock budget of a computation with a CPU deadline of ``deadline_s``: three
-    times it, at least 2 s (a loaded machine slows computations, it does not triple them)."""
+    times it, at least 2 s (a loaded machine slows computations, it does not triple them) - unless
+    the watchdog is set (``--watchdog-s``, ``DEFT_GYM_WATCHDOG_S``; 0 = no wall-clock limit)."""
+    if os.environ.get(ENV, "").strip():
+        return watchdog_seconds()
     return max(3.0 * deadline_s, 2.0)
 
 

@@ -5,6 +5,10 @@ the original of every intercepted message (channel ``/astaa/original<topic>``) r
 injected messages (listed on ``/astaa/events``) are skipped - exactly the original messages the
 online monitor observed, in publish order. The map comes from the log's episode record and the
 ``outcome`` from its outcome record.
+
+Only an intact log is judged: its chunks' CRCs, message counts and footer are verified first
+(:func:`extract.verify.verify`); a damaged or truncated one is :class:`LogDamaged` (one line: what
+is damaged and how many messages are lost), never "no invariant violated" on what is left.
 """
 
 from __future__ import annotations
@@ -40,10 +44,30 @@ def _metadata(reader: Any) -> dict[str, dict[str, Any]]:
     return out
 
 
+class LogDamaged(ValueError):
+    """The log is not intact (or not an episode log): its invariants are not judged."""
+
+
+def require_intact(path: Path) -> None:
+    """:class:`LogDamaged` unless every chunk of the log passes its CRC, the counts match its
+    summary and it ends with its footer."""
+    from extract.logs import LogError
+    from extract.verify import verify
+
+    try:
+        log = verify(path)
+    except LogError as err:
+        raise LogDamaged(str(err)) from None
+    if log.status != "complete":
+        raise LogDamaged(f"{path}: {log.status}; a damaged log is not judged (deft-gym verify {path} says where)")
+
+
 def check_log(path: Path | str, invariants: InvariantSet | Path | str | None = None) -> list[Violation]:
-    """Evaluate ``invariants`` (a set or a YAML path; default the project's) on a log."""
+    """Evaluate ``invariants`` (a set or a YAML path; default the project's) on an intact log
+    (:class:`LogDamaged` otherwise)."""
     inv = invariants if isinstance(invariants, InvariantSet) else load_invariants(invariants)
     path = Path(path)
+    require_intact(path)
     with open(path, "rb") as f:
         reader = make_reader(f)
         meta = _metadata(reader)

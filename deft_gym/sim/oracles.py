@@ -1,5 +1,6 @@
 """System-level oracles: collision, task completion, timeout and stuck; and the outcomes of a
-run that did not get that far: ``crash`` (a module raised), ``hang`` (a module call ran past the
+run that did not get that far: ``crash`` (a module raised, or published a NaN or an infinity on
+the planning or control topic: reason ``non-finite output``), ``hang`` (a module call ran past the
 wall-clock watchdog), ``no_plan`` (the ego reached its destination without ever receiving a plan).
 
 The collision check itself runs in the world at every step (ego polygon against every

@@ -9,7 +9,8 @@ perception, traffic-light perception, prediction, planning and control. Hooks le
 attach without touching the core: ``bus.taps``/``bus.interceptors``/``bus.supervisor`` (see
 :mod:`deft_gym.bus.bus`) and ``on_step`` callbacks called after every world step.
 
-The default supervisor (:class:`WatchedSupervisor`) turns a module that raises into the outcome
+The default supervisor (:class:`WatchedSupervisor`) turns a module that raises, or publishes a NaN
+or an infinity on the planning or control topic (reason ``non-finite output``), into the outcome
 ``crash`` and a module call that runs past ``watchdog_s`` seconds of wall clock (default
 :data:`DEFAULT_WATCHDOG_S`, or the ``DEFT_GYM_WATCHDOG_S`` environment variable; 0 switches it
 off) into ``hang``: module, exception and sim time go into the log's outcome record and the
@@ -18,9 +19,6 @@ result's summary, and the episode ends there.
 
 from __future__ import annotations
 
-import os
-import signal
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -32,8 +30,9 @@ import numpy as np
 from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.bus.bus import Bus, Node, header
 from deft_gym.bus.jitter import JitterModel
-from deft_gym.bus.messages import LOG_START_KEY, NS_PER_S, to_ns
+from deft_gym.bus.messages import LOG_START_KEY, NS_PER_S, non_finite_field, to_ns
 from deft_gym.config import ConfigError
+from deft_gym.execution.watchdog import DEFAULT_WATCHDOG_S, ModuleHang, Watchdog, watchdog_seconds
 from deft_gym.files import write_atomic
 from deft_gym.modules.control import ControlNode
 from deft_gym.modules.planning import PlanningNode
@@ -55,76 +54,57 @@ from deft_gym.world.roadmap import shared_roadmap
 from deft_gym.world.world import World
 
 PACKAGE_VERSION = "0.1.0"
-DEFAULT_WATCHDOG_S = 10.0  #: wall-clock seconds one module call may take before the run is a hang
-
-
-class ModuleHang(BaseException):
-    """Raised in a module call by the wall-clock watchdog (a BaseException, so that a module's
-    own ``except Exception`` cannot swallow it)."""
 
 
 class WatchedSupervisor:
     """The simulation's default bus supervisor: a module call that raises ends the episode as a
-    ``crash``, one that runs ``seconds`` of wall clock past its start as a ``hang`` (a SIGALRM
-    heartbeat every ``seconds / 4``, at most 1 s, checks the call in progress; main thread only).
-    Per call it only notes the start time, so valid runs cost nothing measurable and behave
-    exactly as before."""
+    ``crash``, one that runs ``seconds`` of wall clock past its start as a ``hang`` (the
+    wall-clock :class:`~deft_gym.execution.watchdog.Watchdog`, armed while the bus runs; main
+    thread only). Per call it only notes the start time, so valid runs cost nothing measurable
+    and behave exactly as before. A module that publishes a NaN or an infinity on one of
+    ``finite_topics`` (the simulation's: planning and control, what drives the vehicle) ends it
+    as a ``crash`` too, reason ``non-finite output``, once the message is out (so the log holds
+    it); otherwise a NaN plan was tracked as full throttle and full lock, and the run timed out."""
 
-    def __init__(self, bus: Bus, seconds: float) -> None:
+    def __init__(self, bus: Bus, seconds: float, finite_topics: frozenset[str] = frozenset()) -> None:
         self.bus = bus
-        self.seconds = seconds
+        self.dog = Watchdog(seconds)
         self.failure: dict[str, Any] | None = None
-        self._node: Node | None = None
-        self._t0 = 0.0
+        self.finite_topics = finite_topics
+
+    @property
+    def seconds(self) -> float:
+        return self.dog.seconds
 
     def run(self, node: Node, fn: Callable[..., Any], *args: Any) -> Any:
-        outer, t0 = self._node, self._t0
-        self._node, self._t0 = node, time.perf_counter()
         try:
-            return fn(*args)
+            out = self.dog.call(fn, *args)
         except ModuleHang:
-            self._fail("hang", node, f"ModuleHang: no return within the {self.seconds:g} s wall-clock watchdog")
+            self._fail("hang", node, self.dog.message())
+            return None
         except Exception as exc:
             msg = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
             self._fail("crash", node, f"{type(exc).__name__}: {msg}"[:300])
-        finally:
-            self._node, self._t0 = outer, t0
-        return None
+            return None
+        if self.finite_topics and getattr(fn, "__name__", "") == "_publish":
+            for topic, payload in args[0]:
+                if topic in self.finite_topics and (path := non_finite_field(payload)) is not None:
+                    self._fail("crash", node, f"NonFiniteOutput: {path} is not finite on {topic}",
+                               "non-finite output")
+                    break
+        return out
 
-    def _fail(self, kind: str, node: Node, what: str) -> None:
+    def _fail(self, kind: str, node: Node, what: str, reason: str | None = None) -> None:
         if self.failure is None:
-            self.failure = {"kind": kind, "module": node.name, "exception": what, "time": self.bus.now}
+            self.failure = {"kind": kind, "module": node.name, "exception": what, "time": self.bus.now,
+                            **({"reason": reason} if reason else {})}
         node.alive = False
         self.bus.stop()
 
-    def _beat(self, signum: int, frame: Any) -> None:
-        if self._node is not None and time.perf_counter() - self._t0 >= self.seconds:
-            self._t0 = float("inf")  # one interruption per call
-            raise ModuleHang()
-
     def armed(self) -> Any:
-        """A context manager running the heartbeat while the bus runs (no-op when off, or off
-        the main thread)."""
-        return _Heartbeat(self)
-
-
-class _Heartbeat:
-    def __init__(self, sup: WatchedSupervisor) -> None:
-        self.sup = sup
-        self.on = sup.seconds > 0 and threading.current_thread() is threading.main_thread()
-
-    def __enter__(self) -> None:
-        if self.on:
-            tick = min(self.sup.seconds / 4, 1.0)
-            self.old = signal.signal(signal.SIGALRM, self.sup._beat)
-            self.old_timer = signal.setitimer(signal.ITIMER_REAL, tick, tick)
-
-    def __exit__(self, *exc: Any) -> None:
-        if self.on:
-            signal.setitimer(signal.ITIMER_REAL, 0)
-            signal.signal(signal.SIGALRM, self.old if self.old is not None else signal.SIG_DFL)
-            if self.old_timer[0] > 0:
-                signal.setitimer(signal.ITIMER_REAL, *self.old_timer)
+        """A context manager running the watchdog's heartbeat while the bus runs (no-op when
+        off, or off the main thread)."""
+        return self.dog.armed()
 
 
 def build_planner(ads: AdsConfig, sc: Scenario) -> Any:
@@ -142,19 +122,6 @@ def build_planner(ads: AdsConfig, sc: Scenario) -> Any:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ConfigError(f"{getattr(ads, '_source', 'ADS config')}: planning.planner: cannot build "
                           f"{spec.cls!r} with params {dict(spec.params)}: {first}") from None
-
-
-def watchdog_seconds(value: float | None = None) -> float:
-    """The watchdog of a simulation: ``value``, else ``DEFT_GYM_WATCHDOG_S``, else the default."""
-    if value is None:
-        env = os.environ.get("DEFT_GYM_WATCHDOG_S", "")
-        try:
-            value = float(env) if env.strip() else DEFAULT_WATCHDOG_S
-        except ValueError:
-            raise ValueError(f"DEFT_GYM_WATCHDOG_S: expected seconds >= 0, got {env!r}") from None
-    if not (value >= 0 and value < float("inf")):
-        raise ValueError(f"watchdog_s: expected finite seconds >= 0 (0 = off), got {value}")
-    return float(value)
 
 
 class SimulatorNode(Node):
@@ -238,7 +205,8 @@ class Simulation:
         self.world: World = build_world(sc, self.roadmap)
         self.jitter = JitterModel(ads.jitter, jitter_seed)
         self.bus = Bus(self.jitter)
-        self.watch = WatchedSupervisor(self.bus, watchdog_seconds(watchdog_s))
+        self.watch = WatchedSupervisor(self.bus, watchdog_seconds(watchdog_s),
+                                       frozenset({ads.topic("planning"), ads.topic("control")}))
         self.bus.supervisor = self.watch
         self.bus.reliable = {ads.topic(role) for role in ads.jitter.reliable}
         self.on_step: list[Callable[[Simulation], None]] = []
