@@ -100,22 +100,31 @@ def make_vec_env(cfg: TrainConfig, out: Path | None, backend: Backend | None = N
     return DummyVecEnv([make_env(cfg, i, out, step0=step0) for i in range(cfg.n_envs)])
 
 
-def checkpoint_callback(save_freq: int, path: Path, prefix: str) -> Any:
-    """SB3's checkpoint callback, but every checkpoint is written to a temporary file and renamed,
-    so a kill never leaves a truncated ``<prefix>_<steps>_steps.zip``."""
-    from stable_baselines3.common.callbacks import CheckpointCallback
+def checkpoint_callback(every: int, path: Path, prefix: str) -> Any:
+    """``<prefix>_<steps>_steps.zip`` in ``path`` at the first rollout boundary after every
+    ``every`` env steps (all envs), written to a temporary file and renamed, so a kill never
+    leaves a truncated one. Between rollouts, after the update: SB3's CheckpointCallback saves in
+    the middle of a rollout, before the update, and a run resumed from it lost that rollout's
+    learning while its episodes were counted."""
+    from stable_baselines3.common.callbacks import BaseCallback
 
-    class AtomicCheckpoint(CheckpointCallback):
-        def _on_step(self) -> bool:
-            if self.n_calls % self.save_freq == 0:
-                final = Path(self._checkpoint_path(extension="zip"))
-                final.parent.mkdir(parents=True, exist_ok=True)
+    class AtomicCheckpoint(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.saved = self.num_timesteps
+
+        def _on_rollout_start(self) -> None:
+            if self.num_timesteps // every > self.saved // every:
+                final = path / f"{prefix}_{self.num_timesteps}_steps.zip"
+                path.mkdir(parents=True, exist_ok=True)
                 tmp = final.with_name(final.stem + ".tmp.zip")
                 self.model.save(tmp)
                 os.replace(tmp, final)
+                self.saved = self.num_timesteps
+
+        def _on_step(self) -> bool:
             return True
 
-    return AtomicCheckpoint(save_freq=save_freq, save_path=str(path), name_prefix=prefix)
+    return AtomicCheckpoint()
 
 
 def checkpoint_steps(path: Path) -> int:
@@ -291,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     remaining = max(cfg.timesteps - (model.num_timesteps if args.resume else 0), 0)
     stats = failure_callback(out)
     callbacks = CallbackList([
-        checkpoint_callback(max(cfg.checkpoint_every // cfg.n_envs, 1), out / "checkpoints", cfg.algo),
+        checkpoint_callback(cfg.checkpoint_every, out / "checkpoints", cfg.algo),
         stats,
     ])
     signal.signal(signal.SIGTERM, _interrupt)  # `kill PID` stops training like Ctrl-C: model saved
