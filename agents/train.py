@@ -56,6 +56,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 # -- environments --------------------------------------------------------------------------------
+def resume_seed(seed: int, timesteps0: int) -> int:
+    """The seed of a session resumed at ``timesteps0`` steps (learner and envs): SB3 seeds a
+    loaded model with the run's own seed, so every resumed session simulated the scenarios and
+    jitter seeds of the run's start again."""
+    import numpy as np
+
+    return int(np.random.SeedSequence([seed, timesteps0]).generate_state(1)[0] >> 1)
+
+
 def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1, step0: int = 0) -> Any:
     """A thunk building env ``rank`` (own worker id, own episode journal, Monitor-wrapped) in one
     of ``workers`` env processes (:func:`deft_gym.record.recorder.init_pool_worker`; 1 when the envs
@@ -265,10 +274,11 @@ def main(argv: list[str] | None = None) -> int:
                                      "generated": 0})
         con.print(f"training on {len(cfg.env.scenarios)} scenarios ({len(names)} generated)")
     out = args.out or Path("runs/adversary") / cfg.name
-    step0 = 0
+    step0 = timesteps0 = 0
     if args.resume is not None:
         try:
-            step0 = checkpoint_steps(args.resume) // cfg.n_envs
+            timesteps0 = checkpoint_steps(args.resume)
+            step0 = timesteps0 // cfg.n_envs
         except ConfigError as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
@@ -293,6 +303,7 @@ def main(argv: list[str] | None = None) -> int:
     vec_env = make_vec_env(cfg, out, backend, step0)
     if args.resume is not None:
         model = algo_cls.load(args.resume, env=vec_env, tensorboard_log=str(out / "tb"), device="cpu")
+        model.set_random_seed(resume_seed(cfg.seed, timesteps0))
         con.print(f"resumed from {args.resume} at {model.num_timesteps} steps")
     else:
         model = algo_cls(cfg.policy, vec_env, seed=cfg.seed, tensorboard_log=str(out / "tb"), device="cpu",
