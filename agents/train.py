@@ -10,12 +10,24 @@ The run folder holds ``config.yaml`` (the resolved configuration), ``tb/`` (Tens
 log), ``episodes/`` (the logs of failing episodes with their extracted tests, plus a sample of
 passing ones), ``progress.jsonl`` (failure counts as training goes) and, at the end, ``model.zip``
 and ``summary.json``.
+
+A run resumed from a checkpoint (after a crash or ``kill -9``) continues the model as it was
+then, so what the envs did after that checkpoint is no part of the resumed model's history: it is
+set aside, never deleted, under ``rolled_back/`` - the Monitor rows of those episodes
+(``rolled_back/monitor/``), their kept logs and any log an unfinished episode left
+(``rolled_back/episodes/``) and the ``progress.jsonl`` lines after the checkpoint. The journals
+keep every line (a resume marker says where the rollback starts); ``summary.json`` counts the
+episodes the model saw and reports ``rolled_back_episodes``. Checkpoints are taken between
+rollouts, after the update, so a checkpoint's model has learned from every step before it.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import json
 import os
+import re
 import signal
 import sys
 import time
@@ -28,6 +40,7 @@ import yaml
 from agents.config import ALGOS, TrainConfig, check_train_settings, load_train_config
 from deft_gym.cli import common
 from deft_gym.config import ConfigError
+from deft_gym.envs.sink import ROLLED_BACK
 from deft_gym.execution import Backend, add_backend_arguments, backend_from_args
 from deft_gym.execution.watchdog import apply_env, carried_env
 from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
@@ -58,12 +71,40 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 # -- environments --------------------------------------------------------------------------------
+MONITOR_KEYS = ("failure", "scenario", "valid", "iou", "outcome", "env_steps")  # info columns of a Monitor CSV
+
+
+def monitor_path(out: Path, rank: int) -> Path:
+    return out / "monitor" / f"env{rank}.monitor.csv"
+
+
+def monitor_keys(path: Path) -> tuple[str, ...]:
+    """The info columns of an existing Monitor CSV (a resumed run appends rows of the same
+    columns, even to a file an older version wrote), else :data:`MONITOR_KEYS`."""
+    try:
+        with path.open() as f:
+            f.readline()
+            cols = next(csv.reader([f.readline()]))
+    except (OSError, StopIteration):
+        return MONITOR_KEYS
+    return tuple(cols[3:]) if cols[:3] == ["r", "l", "t"] else MONITOR_KEYS
+
+
+def resume_seed(seed: int, timesteps0: int) -> int:
+    """The seed of a session resumed at ``timesteps0`` steps (learner and envs): SB3 seeds a
+    loaded model with the run's own seed, so every resumed session simulated the scenarios and
+    jitter seeds of the run's start again."""
+    import numpy as np
+
+    return int(np.random.SeedSequence([seed, timesteps0]).generate_state(1)[0] >> 1)
+
+
 def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1, step0: int = 0) -> Any:
     """A thunk building env ``rank`` (own worker id, own episode journal, Monitor-wrapped) in one
     of ``workers`` env processes (:func:`deft_gym.record.recorder.init_pool_worker`; 1 when the envs
     share this process). ``step0``: the env's steps before this session (a resumed run: its
-    episode numbers and journal continue, its Monitor file is appended to). The env process
-    follows this one's watchdog setting (``--watchdog-s``)."""
+    episode numbers, step count and journal continue, its Monitor file is appended to). The env
+    process follows this one's watchdog setting (``--watchdog-s``)."""
     settings = carried_env()
 
     def thunk() -> Any:
@@ -79,15 +120,18 @@ def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1, st
             "worker": rank,
             "log_dir": str(out) if (out is not None and cfg.log_episodes) else cfg.env.log_dir})
         env = AdversaryEnv(config=env_cfg)
+        env.env_steps = step0
         if env.sink is not None:
             env.sink.steps = step0
         env.reset(seed=cfg.seed * 1000 + rank)
-        monitor, fresh = None, True
+        monitor, keys, fresh = None, MONITOR_KEYS, True
         if out is not None:
-            (out / "monitor").mkdir(parents=True, exist_ok=True)
-            monitor = str(out / "monitor" / f"env{rank}")
-            fresh = not (Path(monitor + ".monitor.csv").exists() and step0 > 0)  # resumed: append
-        return Monitor(env, monitor, info_keywords=("failure", "scenario", "valid", "iou"), override_existing=fresh)
+            path = monitor_path(out, rank)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            monitor = str(path)
+            fresh = not (path.exists() and step0 > 0)  # resumed: append
+            keys = MONITOR_KEYS if fresh else monitor_keys(path)
+        return Monitor(env, monitor, info_keywords=keys, override_existing=fresh)
 
     return thunk
 
@@ -105,22 +149,31 @@ def make_vec_env(cfg: TrainConfig, out: Path | None, backend: Backend | None = N
     return DummyVecEnv([make_env(cfg, i, out, step0=step0) for i in range(cfg.n_envs)])
 
 
-def checkpoint_callback(save_freq: int, path: Path, prefix: str) -> Any:
-    """SB3's checkpoint callback, but every checkpoint is written to a temporary file and renamed,
-    so a kill never leaves a truncated ``<prefix>_<steps>_steps.zip``."""
-    from stable_baselines3.common.callbacks import CheckpointCallback
+def checkpoint_callback(every: int, path: Path, prefix: str) -> Any:
+    """``<prefix>_<steps>_steps.zip`` in ``path`` at the first rollout boundary after every
+    ``every`` env steps (all envs), written to a temporary file and renamed, so a kill never
+    leaves a truncated one. Between rollouts, after the update: SB3's CheckpointCallback saves in
+    the middle of a rollout, before the update, and a run resumed from it lost that rollout's
+    learning while its episodes were counted."""
+    from stable_baselines3.common.callbacks import BaseCallback
 
-    class AtomicCheckpoint(CheckpointCallback):
-        def _on_step(self) -> bool:
-            if self.n_calls % self.save_freq == 0:
-                final = Path(self._checkpoint_path(extension="zip"))
-                final.parent.mkdir(parents=True, exist_ok=True)
+    class AtomicCheckpoint(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.saved = self.num_timesteps
+
+        def _on_rollout_start(self) -> None:
+            if self.num_timesteps // every > self.saved // every:
+                final = path / f"{prefix}_{self.num_timesteps}_steps.zip"
+                path.mkdir(parents=True, exist_ok=True)
                 tmp = final.with_name(final.stem + ".tmp.zip")
                 self.model.save(tmp)
                 os.replace(tmp, final)
+                self.saved = self.num_timesteps
+
+        def _on_step(self) -> bool:
             return True
 
-    return AtomicCheckpoint(save_freq=save_freq, save_path=str(path), name_prefix=prefix)
+    return AtomicCheckpoint()
 
 
 def checkpoint_steps(path: Path) -> int:
@@ -145,30 +198,140 @@ def mark_resume(out: Path, n_envs: int, step0: int, checkpoint: Path) -> None:
         append_jsonl(out / f"episodes-{rank}.jsonl", {"resume_at_env_steps": step0, "checkpoint": str(checkpoint)})
 
 
-def journal_records(path: Path) -> tuple[list[dict[str, Any]], int]:
-    """The episode records of one env's journal that count (those rolled back by a later resume
-    excluded) and how many were rolled back."""
+def journal_records(path: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The episode records of one env's journal that count and those rolled back by a later
+    resume."""
     recs: list[dict[str, Any]] = []
-    rolled = 0
+    rolled: list[dict[str, Any]] = []
     for r in read_jsonl(path):
         if "resume_at_env_steps" in r:
-            keep = [x for x in recs if x.get("env_steps") is None or x["env_steps"] <= r["resume_at_env_steps"]]
-            rolled += len(recs) - len(keep)
+            keep: list[dict[str, Any]] = []
+            for x in recs:
+                (keep if x.get("env_steps") is None or x["env_steps"] <= r["resume_at_env_steps"] else rolled).append(x)
             recs = keep
         else:
             recs.append(r)
     return recs, rolled
 
 
+def roll_back(out: Path, n_envs: int, step0: int, timesteps0: int, checkpoint: Path) -> None:
+    """Resuming from ``checkpoint`` (``step0`` steps per env, ``timesteps0`` in all): set aside
+    under ``out/rolled_back/`` what came after it (module docstring) - Monitor rows of episodes
+    that ended later or were cut by a kill, the kept logs of rolled-back or unfinished episodes,
+    later ``progress.jsonl`` lines - and mark the journals. Nothing is deleted; a rollback cut
+    short by another kill is completed by the next resume without duplicating anything."""
+    mark_resume(out, n_envs, step0, checkpoint)
+    aside = out / ROLLED_BACK
+    for rank in range(n_envs):
+        src = monitor_path(out, rank)
+        _move_lines(src, aside / "monitor" / src.name, 2, lambda rows: _monitor_counts(rows, step0))
+        _move_logs(out, rank)
+    _move_lines(out / "progress.jsonl", aside / "progress.jsonl", 0,
+                lambda rows: [_progress_counts(r, timesteps0) for r in rows])
+
+
+def _monitor_counts(rows: list[str], step0: int) -> list[bool]:
+    """Which Monitor CSV rows (lines with their header: the columns) stay: episodes that ended by
+    ``step0`` env steps (column ``env_steps``; the sum of ``l`` in a file without it)."""
+    cols = next(csv.reader([rows[0]]), [])
+    keep, end = [True], 0
+    for line in rows[1:]:
+        try:
+            row = dict(zip(cols, next(csv.reader([line]))))
+            end = int(float(row["env_steps"])) if "env_steps" in cols else end + int(row["l"])
+            keep.append(line.endswith("\n") and end <= step0)
+        except (KeyError, ValueError, StopIteration):  # a row cut by the kill
+            keep.append(False)
+    return keep
+
+
+def _progress_counts(line: str, timesteps0: int) -> bool:
+    try:
+        return line.endswith("\n") and int(json.loads(line)["timesteps"]) <= timesteps0
+    except (ValueError, KeyError, TypeError):
+        return False
+
+
+def _move_lines(path: Path, dest: Path, head: int, counts: Any) -> int:
+    """Move the lines of ``path`` that ``counts`` rejects (it gets the lines from the last of
+    the ``head`` header lines on; one flag each) to the end of ``dest`` (created with the same
+    header lines), then rewrite ``path`` without them, atomically. A line already in ``dest``
+    (a move cut short by a kill) is not appended again. The number of lines moved."""
+    if not path.exists():
+        return 0
+    lines = path.read_text().splitlines(keepends=True)
+    if len(lines) <= head:
+        return 0
+    start = max(head - 1, 0)  # counts sees the last header line (a CSV's columns) first
+    flags = [True] * start + counts(lines[start:])
+    moved = [x if x.endswith("\n") else x + "\n" for x, ok in zip(lines, flags) if not ok]
+    if not moved:
+        return 0
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    have = set(dest.read_text().splitlines(keepends=True)) if dest.exists() else set()
+    with dest.open("a") as f:
+        if not have:
+            f.writelines(lines[:head])
+        f.writelines(x for x in moved if x not in have)
+        f.flush()
+        os.fsync(f.fileno())
+    write_atomic(path, "".join(x for x, ok in zip(lines, flags) if ok))
+    return len(moved)
+
+
+def _move_logs(out: Path, rank: int) -> int:
+    """Move env ``rank``'s episode folders that no longer count - kept logs of rolled-back
+    episodes, and what an episode cut by the kill left (no journal line; numbered after the last
+    counted one) - from ``episodes/`` to ``rolled_back/episodes/``. The number moved."""
+    folder = out / "episodes"
+    if not folder.is_dir():
+        return 0
+    kept, rolled = journal_records(out / f"episodes-{rank}.jsonl")
+    counted = {Path(r["dir"]).name for r in kept if r.get("dir")}
+    aside = {Path(r["dir"]).name for r in rolled if r.get("dir")}
+    pat = re.compile(rf"w{rank}-(\d+)-")
+    last = max((int(m.group(1)) for name in counted if (m := pat.match(name))), default=0)
+    moved = 0
+    for d in sorted(folder.iterdir()):
+        m = pat.match(d.name)
+        if not m or d.name in counted or (d.name not in aside and int(m.group(1)) <= last):
+            continue
+        dest = out / ROLLED_BACK / "episodes" / d.name
+        if dest.exists():  # numbers are never reused: not ours to merge
+            continue
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(d, dest)
+        moved += 1
+    return moved
+
+
+def monitor_totals(out: Path) -> Counter[str]:
+    """Episodes, outcomes, valid mutations and failures in a run's Monitor CSVs (where a resumed
+    session's ``progress.jsonl`` counts continue from)."""
+    c: Counter[str] = Counter()
+    for path in sorted((out / "monitor").glob("*.monitor.csv")):
+        lines = path.read_text().splitlines()[1:]
+        for row in csv.DictReader(lines):
+            c["episodes"] += 1
+            if row.get("outcome"):
+                c[f"outcome_{row['outcome']}"] += 1
+            c["valid"] += int(row.get("valid") == "True")
+            if row.get("failure"):
+                c[row["failure"]] += 1
+    return c
+
+
 # -- callbacks ------------------------------------------------------------------------------------
-def failure_callback(out: Path | None) -> Any:
-    """Logs failures per episode to TensorBoard and appends ``progress.jsonl``."""
+def failure_callback(out: Path | None, counts: Counter[str] | None = None) -> Any:
+    """Logs failures per episode to TensorBoard and appends ``progress.jsonl`` (its counts
+    continue from ``counts``: a resumed run's episodes so far)."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     class FailureStats(BaseCallback):
         def __init__(self) -> None:
             super().__init__()
-            self.counts: Counter[str] = Counter()
+            self.counts: Counter[str] = Counter(counts or {})
+            self.session = 0  # episodes of this session
             self.t0 = time.time()
             self.cpu0 = time.process_time()
             self.worker_cpu: dict[int, float] = {}  # env process id -> its CPU seconds so far
@@ -186,6 +349,7 @@ def failure_callback(out: Path | None) -> Any:
                     self.worker_cpu[int(info["pid"])] = float(info["process_cpu"])
                 c = self.counts
                 c["episodes"] += 1
+                self.session += 1
                 c[f"outcome_{info['outcome']}"] += 1
                 c["valid"] += int(bool(info.get("valid")))
                 fail = info.get("failure")
@@ -233,7 +397,7 @@ def summarize_run(out: Path) -> dict[str, Any]:
                "per_scenario": {k: dict(v) for k, v in sorted(by_scn.items())},
                "extraction": dict(extraction), "extracted_tests": tests,
                "kept_logs": sum(1 for r in recs if r.get("kept")),
-               "rolled_back_episodes": sum(n for _, n in parts)}
+               "rolled_back_episodes": sum(len(rolled) for _, rolled in parts)}
     return summary
 
 
@@ -266,10 +430,11 @@ def _main(args: argparse.Namespace) -> int:
                                      "generated": 0})
         con.print(f"training on {len(cfg.env.scenarios)} scenarios ({len(names)} generated)")
     out = args.out or Path("runs/adversary") / cfg.name
-    step0 = 0
+    step0 = timesteps0 = 0
     if args.resume is not None:
         try:
-            step0 = checkpoint_steps(args.resume) // cfg.n_envs
+            timesteps0 = checkpoint_steps(args.resume)
+            step0 = timesteps0 // cfg.n_envs
         except ConfigError as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
@@ -290,18 +455,19 @@ def _main(args: argparse.Namespace) -> int:
     torch.set_num_threads(1)  # the cores belong to the simulation workers
     algo_cls = {"ppo": PPO, "a2c": A2C}[cfg.algo]
     if args.resume is not None:
-        mark_resume(out, cfg.n_envs, step0, args.resume)
+        roll_back(out, cfg.n_envs, step0, timesteps0, args.resume)
     vec_env = make_vec_env(cfg, out, backend, step0)
     if args.resume is not None:
         model = algo_cls.load(args.resume, env=vec_env, tensorboard_log=str(out / "tb"), device="cpu")
+        model.set_random_seed(resume_seed(cfg.seed, timesteps0))
         con.print(f"resumed from {args.resume} at {model.num_timesteps} steps")
     else:
         model = algo_cls(cfg.policy, vec_env, seed=cfg.seed, tensorboard_log=str(out / "tb"), device="cpu",
                          policy_kwargs=cfg.policy_kwargs, verbose=0, **cfg.algo_kwargs)
     remaining = max(cfg.timesteps - (model.num_timesteps if args.resume else 0), 0)
-    stats = failure_callback(out)
+    stats = failure_callback(out, monitor_totals(out) if args.resume is not None else None)
     callbacks = CallbackList([
-        checkpoint_callback(max(cfg.checkpoint_every // cfg.n_envs, 1), out / "checkpoints", cfg.algo),
+        checkpoint_callback(cfg.checkpoint_every, out / "checkpoints", cfg.algo),
         stats,
     ])
     signal.signal(signal.SIGTERM, _interrupt)  # `kill PID` stops training like Ctrl-C: model saved
@@ -329,7 +495,7 @@ def _main(args: argparse.Namespace) -> int:
                     "episodes_this_session": summary["episodes"] - episodes0,
                     "episodes_per_hour": round((summary["episodes"] - episodes0) / max(seconds, 1e-9) * 3600, 1),
                     "cpu_seconds": round(stats.cpu_seconds(), 1),
-                    "scenarios_per_cpu_hour": round(stats.counts["episodes"] / max(stats.cpu_seconds(), 1e-9) * 3600, 1)})
+                    "scenarios_per_cpu_hour": round(stats.session / max(stats.cpu_seconds(), 1e-9) * 3600, 1)})
     write_json_atomic(out / "summary.json", summary)
     pictures = render_failures(out, args) if args.render != "none" else []
     print_summary(con, summary, out, len(pictures))
@@ -378,6 +544,8 @@ def print_summary(con: Any, s: dict[str, Any], out: Path, pictures: int) -> None
             ("collisions (ego at fault)", str(s["collisions"])), ("non-optimal decisions (NoDS)", str(s["nods"])),
             ("valid mutations", f"{100 * s['validity']:.1f} %"), ("failure rate", f"{100 * s['failure_rate']:.1f} %"),
             ("extracted test modules", str(len(s.get("extracted_tests") or []))),
+            *([("rolled back by resuming (in rolled_back/)", str(s["rolled_back_episodes"]))]
+              if s.get("rolled_back_episodes") else []),
             ("training time", f"{s['train_seconds']:.0f} s ({s['episodes_per_hour']:.0f} episodes/h)"),
             ("scenarios per CPU-hour", f"{s['scenarios_per_cpu_hour']:.0f}")]
     for k, v in rows:

@@ -24,12 +24,16 @@ def write_atomic(path: Path | str, data: str | bytes) -> Path:
 
 def append_jsonl(path: Path | str, record: Any, fsync: bool = False) -> None:
     """Append one JSON line to ``path`` in a single write of the whole line (no torn lines on
-    a crash); ``fsync`` also forces it to disk."""
+    a crash); ``fsync`` also forces it to disk. A last line cut by an earlier crash (no newline
+    at its end) is ended first, so it cannot swallow this record."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     line = json.dumps(record, sort_keys=True) + "\n"
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
     try:
+        size = os.fstat(fd).st_size
+        if size and os.pread(fd, 1, size - 1) != b"\n":
+            line = "\n" + line
         os.write(fd, line.encode())
         if fsync:
             os.fsync(fd)

@@ -55,6 +55,102 @@ def test_resume_rolls_back_the_episodes_after_its_checkpoint_once(tmp_path):
     assert len(read_jsonl(tmp_path / "episodes-0.jsonl")) == 7  # nothing deleted
 
 
+def test_an_append_after_a_line_cut_by_a_crash_keeps_its_record(tmp_path):
+    """A record appended to a journal whose last line a crash cut (no newline) is not glued onto
+    that fragment (it was, and the record - a resume marker, a finished test - was lost)."""
+    path = tmp_path / "runs.jsonl"
+    path.write_text('{"index": 0}\n{"index": 1, "outc')
+    append_jsonl(path, {"index": 1})
+    append_jsonl(path, {"index": 2})
+    assert read_jsonl(path) == [{"index": 0}, {"index": 1}, {"index": 2}]
+
+
+class Killed(BaseException):
+    """A kill at a chosen point of a command run in-process (nothing after it runs)."""
+
+
+def test_a_stress_campaign_killed_after_a_row_keeps_its_case_file(tmp_path, monkeypatch):
+    """Killed right after a test's row reached runs.jsonl, a campaign resumed does not run that
+    test again - so its case file must already be on disk (it was written after the row, and
+    lost)."""
+    from deft_gym.execution import Record
+    from deft_gym.robustness.campaign import Campaign, load_campaign_config, run_campaign
+
+    cfg = tmp_path / "stress.yaml"
+    cfg.write_text(json.dumps({"scenarios": ["configs/scenarios/lane_follow_static.yaml"], "seeds_per_scenario": 1,
+                               "generation": {"start_s": {"min": 2.0, "max": 6.0}}}))
+    campaign, out = Campaign(load_campaign_config(cfg), seed=7), tmp_path / "c"
+    add = Record.add
+
+    def add_then_die(self, row):
+        add(self, row)
+        if row.get("findings"):
+            raise Killed
+
+    monkeypatch.setattr(Record, "add", add_then_die)
+    with pytest.raises(Killed):
+        run_campaign(campaign, out, budget=3, minimise_findings="none")
+    monkeypatch.undo()
+    s = run_campaign(campaign, out, budget=3, minimise_findings="none")
+    rows = read_jsonl(out / "runs.jsonl")
+    assert sorted(r["index"] for r in rows) == [0, 1, 2] and s["runs_with_findings"] > 0
+    assert {p.name for p in (out / "cases").iterdir()} == {f"run_{r['index']:05d}.json" for r in rows if r["findings"]}
+
+
+def test_resume_sets_aside_what_came_after_its_checkpoint_and_deletes_nothing(tmp_path):
+    """The rollback of a resume (agents.train.roll_back), on the files a killed run leaves: the
+    Monitor rows, kept logs, unfinished logs and progress lines after the checkpoint go to
+    rolled_back/, the rest stays as it was; a second rollback (a resume killed and resumed
+    again) duplicates nothing; a Monitor CSV without env_steps (an older run) is cut by lengths."""
+    from agents.train import monitor_totals, roll_back, summarize_run
+
+    head = '#{"t_start": 1.0, "env_id": "None"}\nr,l,t,failure,scenario,valid,iou,outcome,env_steps\n'
+    rows = ["1.0,10,1.0,,s,True,1.0,completed,10\n", "2.0,12,2.0,collision,s,True,1.0,collision,22\n",
+            "3.0,8,3.0,,s,False,1.0,stuck,30\n", "4.0,5,4.0,nods,s,True,0.1,completed,35\n"]
+    (tmp_path / "monitor").mkdir()
+    monitor = tmp_path / "monitor" / "env0.monitor.csv"
+    monitor.write_text(head + "".join(rows) + "5.0,3,5.0,,s")  # the last row cut by the kill
+    old = tmp_path / "monitor" / "env1.monitor.csv"  # an older run's columns: the sums of l say where
+    old.write_text('#{}\nr,l,t,failure,scenario,valid,iou\n1.0,10,1.0,,s,True,1.0\n2.0,20,2.0,,s,True,1.0\n')
+    for i, (steps, fail) in enumerate([(10, None), (22, "collision"), (30, None), (35, "nods")], 1):
+        d = tmp_path / "episodes" / f"w0-{i:06d}-s"
+        d.mkdir(parents=True)
+        (d / "episode.mcap").write_bytes(b"log")
+        append_jsonl(tmp_path / "episodes-0.jsonl", {"scenario": "s", "valid": True, "failure": fail,
+                                                     "env_steps": steps, "kept": True, "dir": str(d)})
+    (tmp_path / "episodes" / "w0-000005-s").mkdir()  # the episode the kill cut: no journal line
+    (tmp_path / "episodes" / "w1-000001-s").mkdir()  # another env's, before the checkpoint
+    append_jsonl(tmp_path / "episodes-1.jsonl", {"scenario": "s", "valid": True, "failure": None, "env_steps": 20,
+                                                 "kept": True, "dir": str(tmp_path / "episodes" / "w1-000001-s")})
+    progress = tmp_path / "progress.jsonl"
+    for t in (20, 40, 60, 80):
+        append_jsonl(progress, {"timesteps": t, "episodes": t // 10})
+    before = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "episodes").iterdir()}
+
+    for _ in range(2):
+        roll_back(tmp_path, 1, 24, 48, tmp_path / "checkpoints" / "ppo_48_steps.zip")
+        roll_back(tmp_path, 2, 24, 48, tmp_path / "checkpoints" / "ppo_48_steps.zip")  # env1 too
+    aside = tmp_path / "rolled_back"
+    assert monitor.read_text() == head + "".join(rows[:2])
+    assert (aside / "monitor" / "env0.monitor.csv").read_text() == head + "".join(rows[2:]) + "5.0,3,5.0,,s\n"
+    assert old.read_text().splitlines()[2:] == ["1.0,10,1.0,,s,True,1.0"]
+    assert (aside / "monitor" / "env1.monitor.csv").read_text().splitlines()[2:] == ["2.0,20,2.0,,s,True,1.0"]
+    assert sorted(p.name for p in (tmp_path / "episodes").iterdir()) == ["w0-000001-s", "w0-000002-s",
+                                                                        "w1-000001-s"]
+    assert sorted(p.name for p in (aside / "episodes").iterdir()) == ["w0-000003-s", "w0-000004-s", "w0-000005-s"]
+    assert all(p.stat().st_mtime_ns == before[p.name] for p in (tmp_path / "episodes").iterdir())
+    assert (aside / "episodes" / "w0-000004-s" / "episode.mcap").read_bytes() == b"log"
+    assert [r["timesteps"] for r in read_jsonl(progress)] == [20, 40]
+    assert [r["timesteps"] for r in read_jsonl(aside / "progress.jsonl")] == [60, 80]
+    s = summarize_run(tmp_path)
+    assert (s["episodes"], s["collisions"], s["nods"], s["rolled_back_episodes"]) == (3, 1, 0, 2)
+    assert monitor_totals(tmp_path) == {"episodes": 3, "valid": 3, "collision": 1, "outcome_completed": 1,
+                                        "outcome_collision": 1}
+    (aside / "episodes" / "w0-000020-s").mkdir()
+    sink = EpisodeSink(tmp_path, worker=0, extract=False)
+    assert sink.episode_dir("s").name == "w0-000021-s"  # a number set aside is not used again
+
+
 def test_train_resume_from_a_missing_or_truncated_checkpoint_is_one_line(tmp_path, capsys):
     from agents import train
 
@@ -74,8 +170,8 @@ def test_train_resume_from_a_missing_or_truncated_checkpoint_is_one_line(tmp_pat
 
 @pytest.mark.slow
 def test_train_resume_appends_monitor_and_journal_and_keeps_kept_logs(tmp_path):
-    """Train, then resume from the last checkpoint: the Monitor CSV and the journal only grow,
-    every kept episode folder of the first session is still there, numbering continues."""
+    """Train, then go on from the final model: the Monitor CSV and the journal only grow, every
+    kept episode folder of the first session is still there, numbering continues."""
     from agents import train
 
     cfg = tmp_path / "tiny.yaml"
@@ -90,10 +186,9 @@ def test_train_resume_appends_monitor_and_journal_and_keeps_kept_logs(tmp_path):
     kept0 = {p.name: p.stat().st_mtime_ns for p in (out / "episodes").iterdir()}
     journal0 = read_jsonl(out / "episodes-0.jsonl")
     assert kept0 and journal0
-    ckpt = sorted((out / "checkpoints").glob("ppo_*_steps.zip"))[0]
     assert not list((out / "checkpoints").glob("*.tmp*"))
-    assert train.main(["--config", str(cfg), "--out", str(out), "--resume", str(ckpt), "--timesteps", "72",
-                       "--no-progress"]) == 0
+    assert train.main(["--config", str(cfg), "--out", str(out), "--resume", str(out / "model.zip"), "--timesteps",
+                       "72", "--no-progress"]) == 0
     rows1 = monitor.read_text().splitlines()
     assert rows1[:len(rows0)] == rows0 and len(rows1) > len(rows0)  # appended, one header
     assert sum(1 for r in rows1 if r.startswith("r,l,t")) == 1
@@ -102,7 +197,8 @@ def test_train_resume_appends_monitor_and_journal_and_keeps_kept_logs(tmp_path):
     journal1 = read_jsonl(out / "episodes-0.jsonl")
     assert journal1[:len(journal0)] == journal0
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["episodes"] + summary["rolled_back_episodes"] == len(journal1) - 1  # one resume marker
+    assert summary["episodes"] == len(journal1) - 1 == len(rows1) - 2  # one resume marker; two header lines
+    assert summary["rolled_back_episodes"] == 0 and not (out / "rolled_back").exists()  # it went on from the end
 
 
 def test_extract_folder_gives_colliding_logs_distinct_outputs(tmp_path, lane_follow_log):
@@ -118,6 +214,32 @@ def test_extract_folder_gives_colliding_logs_distinct_outputs(tmp_path, lane_fol
     assert {d.name for d in dirs} == {"lfs", "lfs.mcap"}
     for d in dirs:
         assert json.loads((d / "summary.json").read_text())["frames"] == results[0].summary["frames"]
+
+
+@pytest.mark.slow
+def test_pictures_cut_by_a_kill_are_drawn_again(tmp_path, lane_follow_log, monkeypatch):
+    """A kill while a failure's video is written leaves no picture under its final name, so the
+    next render draws both (the plot came first and said "done": the video stayed broken)."""
+    import imageio.v2 as imageio
+
+    from deft_gym.viz.episode import render_failures
+
+    d = tmp_path / "episodes" / "w0-000001-lane_follow_static"
+    d.mkdir(parents=True)
+    shutil.copy(lane_follow_log.log_path, d / "episode.mcap")
+    (d / "episode.json").write_text('{"failure": "nods"}')
+
+    def half_then_die(path, *args, **kwargs):
+        Path(path).write_bytes(b"\x00\x00\x00\x18ftypmp42")  # the start of a video
+        raise Killed
+
+    monkeypatch.setattr(imageio, "mimsave", half_then_die)
+    with pytest.raises(Killed):
+        render_failures(tmp_path / "episodes")
+    monkeypatch.undo()
+    assert sorted(p.name for p in d.iterdir()) == ["episode.json", "episode.mcap"]
+    assert len(render_failures(tmp_path / "episodes")) == 1
+    assert imageio.get_reader(d / "video.mp4").count_frames() > 10 and (d / "plot.png").stat().st_size > 0
 
 
 def test_demo_never_deletes_folders_it_did_not_write(tmp_path, capsys):
@@ -544,20 +666,51 @@ def test_stress_campaign_with_a_missing_invariants_file_is_a_setup_error(tmp_pat
 
 
 # -- kill -9 and resume ------------------------------------------------------------------------------
-@pytest.mark.slow
-@pytest.mark.parametrize("program", ["evaluate", "calibrate"])
-def test_kill_9_then_resume_loses_nothing_and_duplicates_nothing(program, tmp_path):
-    """A campaign killed with SIGKILL (its whole process group, workers included) mid-run and run
-    again with the same command ends with the records of an uninterrupted run: no finished work
-    lost, nothing counted twice."""
+def run_module(args: list[str], out: Path) -> None:
+    """``python -m ARGS --out OUT`` to its end; it must succeed."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", *args, "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+
+
+def kill_9_when(args: list[str], out: Path, ready, timeout: float = 300) -> None:
+    """Start ``python -m ARGS --out OUT`` in its own process group, wait until ``ready()`` says
+    enough finished work is on disk, then SIGKILL the whole group (workers included)."""
     import os
     import signal
     import subprocess
     import sys
     import time
 
+    proc = subprocess.Popen([sys.executable, "-m", *args, "--out", str(out)], cwd=ROOT, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + timeout
+        while time.time() < deadline and proc.poll() is None and not ready():
+            time.sleep(0.05)
+        assert proc.poll() is None, "the run ended before it could be killed; give it more work"
+        assert ready(), f"no finished work to kill after within {timeout} s"
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=60)
+
+
+def lines_at_least(path: Path, n: int):
+    """A ``ready`` for :func:`kill_9_when`: ``path`` holds at least ``n`` complete records."""
+    return lambda: len(read_jsonl(path)) >= n
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("program", ["evaluate", "calibrate"])
+def test_kill_9_then_resume_loses_nothing_and_duplicates_nothing(program, tmp_path):
+    """A campaign killed with SIGKILL (its whole process group, workers included) mid-run and run
+    again with the same command ends with the records of an uninterrupted run: no finished work
+    lost, nothing counted twice."""
     from deft_gym.execution import without_timings
-    from deft_gym.files import read_jsonl
 
     if program == "evaluate":
         args = ["agents.evaluate", "--methods", "random,random_delta", "--budget", "4", "--scenarios",
@@ -569,25 +722,13 @@ def test_kill_9_then_resume_loses_nothing_and_duplicates_nothing(program, tmp_pa
                 "--cut-ins", "1", "--brakes", "0", "--reruns", "3", "--jitter-seed", "1000", "--workers", "2",
                 "--no-progress"]
         record, key = "runs.jsonl", (lambda r: (r["key"], r["seed"]))
-    root = Path(__file__).resolve().parent.parent
     full, cut = tmp_path / "full", tmp_path / "cut"
-    assert subprocess.run([sys.executable, "-m", *args, "--out", str(full)], cwd=root, capture_output=True,
-                          timeout=600).returncode == 0
+    run_module(args, full)
     expected = read_jsonl(full / record)
-    proc = subprocess.Popen([sys.executable, "-m", *args, "--out", str(cut)], cwd=root, start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 300
-    while time.time() < deadline and proc.poll() is None:
-        if (cut / record).exists() and len((cut / record).read_text().splitlines()) >= len(expected) // 3:
-            break
-        time.sleep(0.05)
-    assert proc.poll() is None, "the run ended before it could be killed; give it more work"
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=60)
+    kill_9_when(args, cut, lines_at_least(cut / record, max(len(expected) // 3, 1)))
     killed_at = len(read_jsonl(cut / record))
     assert 0 < killed_at < len(expected)
-    assert subprocess.run([sys.executable, "-m", *args, "--out", str(cut)], cwd=root, capture_output=True,
-                          timeout=600).returncode == 0
+    run_module(args, cut)
     resumed = read_jsonl(cut / record)
     if key is None:  # evaluation records: in job order, identical to the uninterrupted run
         assert without_timings(resumed) == without_timings(expected)
@@ -595,6 +736,156 @@ def test_kill_9_then_resume_loses_nothing_and_duplicates_nothing(program, tmp_pa
         assert sorted(map(key, resumed)) == sorted(map(key, expected))  # none lost, none twice
         strip = lambda rows: sorted((key(r), r["outcome"], r["collision"]) for r in rows)  # noqa: E731
         assert strip(resumed) == strip(expected)
+
+
+@pytest.mark.slow
+def test_kill_9_of_a_stress_campaign_in_its_tests_then_in_its_minimisation(tmp_path):
+    """A robustness campaign killed while it runs its tests, resumed, killed again while it
+    minimises its findings and resumed again ends with the rows, case files, minimised cases and
+    summary of an uninterrupted campaign; no test row twice, no finished minimisation redone."""
+    from deft_gym.execution import without_timings
+
+    cfg = tmp_path / "stress.yaml"
+    cfg.write_text(json.dumps({"scenarios": ["configs/scenarios/lane_follow_static.yaml"], "seeds_per_scenario": 1,
+                               "generation": {"start_s": {"min": 2.0, "max": 6.0}},
+                               "minimise": {"max_signatures": 7, "max_replays": 6}}))
+    args = ["agents.stress", "--config", str(cfg), "--budget", "16", "--seed", "7", "--workers", "2",
+            "--render", "none", "--quiet"]
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    run_module(args, full)
+    expected = read_jsonl(full / "runs.jsonl")
+    kill_9_when(args, cut, lines_at_least(cut / "runs.jsonl", 6))
+    assert 6 <= len(read_jsonl(cut / "runs.jsonl")) < len(expected)
+    infos = lambda out: sorted((out / "minimised").glob("*.info.json"))  # noqa: E731
+    kill_9_when(args, cut, lambda: len(infos(cut)) >= 1)
+    assert 1 <= len(infos(cut)) < len(infos(full))
+    first = {p.name: p.stat().st_mtime_ns for p in infos(cut)}
+    run_module(args, cut)
+    rows = read_jsonl(cut / "runs.jsonl")
+    assert sorted(r["index"] for r in rows) == list(range(16))  # none lost, none twice
+    by_index = lambda rs: without_timings(sorted(rs, key=lambda r: r["index"]))  # noqa: E731
+    assert by_index(rows) == by_index(expected)
+    assert without_timings(read_jsonl(cut / "baseline.jsonl")) == without_timings(read_jsonl(full / "baseline.jsonl"))
+    files = lambda out, d: {p.name: p.read_text() for p in sorted((out / d).glob("*.json"))}  # noqa: E731
+    assert files(cut, "cases") == files(full, "cases")
+    assert {p.name for p in infos(cut)} == {p.name for p in infos(full)}
+    assert all((cut / "minimised" / n).stat().st_mtime_ns == t for n, t in first.items())  # not redone
+    summary = lambda out: without_timings({k: v for k, v in json.loads((out / "summary.json").read_text()).items()  # noqa: E731
+                                           if k not in ("wall_time_s", "test_wall_time_s")})
+    assert summary(cut) == summary(full)
+
+
+@pytest.mark.slow
+def test_kill_9_of_a_folder_extraction_then_resume_redoes_nothing_finished(tmp_path, lane_follow_log):
+    """``deft-gym extract DIR`` killed after some episodes are extracted and run again: the
+    finished episodes are skipped (their files untouched), the others extracted, the batch summary
+    lists every log once, as an uninterrupted extraction does."""
+    logs = tmp_path / "logs"
+    for i in range(12):
+        (logs / f"run{i:02d}").mkdir(parents=True)
+        shutil.copy(lane_follow_log.log_path, logs / f"run{i:02d}" / "episode.mcap")
+    args = ["deft_gym.cli.extract", str(logs), "--workers", "2", "--no-progress", "--render", "none", "--quiet"]
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    run_module(args, full)
+    done = lambda: sorted(cut.glob("run*/summary.json"))  # noqa: E731
+    kill_9_when(args, cut, lambda: len(done()) >= 4)
+    finished = {p.parent.name: {f.name: f.stat().st_mtime_ns for f in p.parent.iterdir()} for p in done()}
+    assert 4 <= len(finished) < 12 and not (cut / "summary.json").exists()
+    run_module(args, cut)
+    for name, files in finished.items():  # not redone
+        assert {f.name: f.stat().st_mtime_ns for f in (cut / name).iterdir()} == files
+    keys = ("log", "scenario", "frames", "reproduced", "faulty_trajectory", "error")
+    batch = lambda out: json.loads((out / "summary.json").read_text())  # noqa: E731
+    listed = lambda out: [{k: e[k] for k in keys} for e in batch(out)["episodes_list"]]  # noqa: E731
+    assert listed(cut) == listed(full) and len(listed(cut)) == 12  # every log once, the same results
+    assert sorted(e["log"] for e in batch(cut)["episodes_list"] if e.get("skipped")) == \
+        sorted(str(logs / n / "episode.mcap") for n in finished)
+    for k in ("episodes", "failed", "frames", "reproduced", "collisions"):
+        assert batch(cut)[k] == batch(full)[k]
+
+
+TINY_TRAIN = ("name: tiny\nalgo: ppo\ntimesteps: 128\nseed: 0\nn_envs: 2\nvec_env: dummy\ncheckpoint_every: 32\n"
+              "algo_kwargs: {n_steps: 8, batch_size: 16, n_epochs: 1}\nlog_episodes: true\n"
+              "env: {scenarios: [lane_follow_static], record: all, keep_passing: 1.0, extract: false}\n")
+
+
+def monitor_rows(path: Path) -> list[tuple[str, dict[str, str]]]:
+    """The rows of a Monitor CSV: (line, fields)."""
+    import csv
+
+    if not path.exists():
+        return []
+    lines = path.read_text().splitlines()
+    cols = next(csv.reader([lines[1]]))
+    return [(line, dict(zip(cols, next(csv.reader([line]))))) for line in lines[2:]]
+
+
+@pytest.mark.slow
+def test_kill_9_of_training_then_resume_from_the_last_checkpoint(tmp_path):
+    """Training killed with SIGKILL after a checkpoint, some episodes later, and resumed from that
+    checkpoint: the Monitor CSVs, journals, summary and ``episodes/`` hold exactly the episodes of
+    the final model's history - everything before the checkpoint untouched, the episodes after it
+    (and the logs of those cut by the kill) set aside under ``rolled_back/``, nothing deleted."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    from agents.train import journal_records
+
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY_TRAIN)
+    out = tmp_path / "run"
+    args = ["agents.train", "--config", str(cfg), "--no-progress"]
+
+    def checkpoint() -> tuple[int, Path | None]:
+        found = [(int(p.name.split("_")[1]), p) for p in (out / "checkpoints").glob("ppo_*_steps.zip")]
+        return max(found, default=(0, None))
+
+    def ready() -> bool:  # a checkpoint, and an episode ended after it
+        steps, _ = checkpoint()
+        return steps > 0 and any(int(f.get("env_steps") or 0) > steps // 2 for rank in (0, 1)
+                                 for _, f in monitor_rows(out / "monitor" / f"env{rank}.monitor.csv"))
+
+    kill_9_when(args, out, ready)
+    steps, ckpt = checkpoint()
+    step0 = steps // 2
+    data, _, _ = load_from_zip_file(ckpt, device="cpu")
+    assert data["num_timesteps"] == steps and data["_n_updates"] == steps // 16  # learned from every step before it
+    at_kill = {rank: monitor_rows(out / "monitor" / f"env{rank}.monitor.csv") for rank in (0, 1)}
+    journal_at_kill = {rank: read_jsonl(out / f"episodes-{rank}.jsonl") for rank in (0, 1)}
+    folders_at_kill = {p.name: p.stat().st_mtime_ns for p in (out / "episodes").iterdir()}
+    assert not (out / "model.zip").exists()
+
+    run_module([*args, "--resume", str(ckpt)], out)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["timesteps"] == 128
+    counted, rolled, kept_logs = 0, 0, set()
+    for rank in (0, 1):
+        rows = monitor_rows(out / "monitor" / f"env{rank}.monitor.csv")
+        aside = monitor_rows(out / "rolled_back" / "monitor" / f"env{rank}.monitor.csv")
+        before = [r for r in at_kill[rank] if int(r[1]["env_steps"]) <= step0]
+        assert rows[:len(before)] == before  # nothing of the model's history lost, nothing moved
+        assert aside == [r for r in at_kill[rank] if int(r[1]["env_steps"]) > step0]  # the rest kept aside
+        ends = [int(f["env_steps"]) for _, f in rows]
+        starts = [e - int(f["l"]) for e, (_, f) in zip(ends, rows)]
+        assert all(s >= e for s, e in zip(starts[1:], ends)) and ends[-1] <= 64  # one history, no overlap
+        assert all(s >= step0 for s, e in zip(starts, ends) if e > step0)  # nothing straddles the rollback
+        recs, gone = journal_records(out / f"episodes-{rank}.jsonl")
+        assert [(r["env_steps"], r["scenario"]) for r in recs] == [(e, f["scenario"]) for e, (_, f) in zip(ends, rows)]
+        journal = read_jsonl(out / f"episodes-{rank}.jsonl")
+        assert journal[:len(journal_at_kill[rank])] == journal_at_kill[rank]  # append-only
+        seeds = lambda rs: {r["jitter_seed"] for r in rs if "jitter_seed" in r}  # noqa: E731
+        assert not seeds(journal_at_kill[rank]) & seeds(journal[len(journal_at_kill[rank]):])  # not the start again
+        assert len(aside) <= len(gone) <= len(aside) + 1  # + an episode killed between journal and Monitor
+        counted += len(rows)
+        rolled += len(gone)
+        kept_logs |= {Path(r["dir"]).name for r in recs}
+    assert (summary["episodes"], summary["rolled_back_episodes"]) == (counted, rolled) and rolled > 0
+    assert summary["episodes_this_session"] == counted - sum(
+        1 for rank in (0, 1) for r in journal_at_kill[rank] if r.get("env_steps", 0) <= step0)
+    folders = {p.name: p.stat().st_mtime_ns for p in (out / "episodes").iterdir()}
+    aside_logs = {p.name for p in (out / "rolled_back" / "episodes").iterdir()}
+    assert set(folders) == kept_logs and not set(folders) & aside_logs  # every counted episode's log, no other
+    assert set(folders_at_kill) == (set(folders_at_kill) & set(folders)) | aside_logs  # none lost
+    assert all(folders[n] == t for n, t in folders_at_kill.items() if n in folders)  # untouched
 
 
 @pytest.mark.parametrize("body, field", [

@@ -31,8 +31,8 @@ def render(results: list[Any], what: str) -> list[str]:
             continue
         try:
             ep = load_episode(s["log"])
+            save_video(ep, folder / "video.mp4")  # the plot last: it says both are done
             done.append(str(save_plot(ep, folder / "plot.png")))
-            save_video(ep, folder / "video.mp4")
         except ValueError:
             continue
     return done

@@ -161,8 +161,8 @@ def card(page: Page, title: str, log: Path | None, replay: list[str] | None, tes
                 from deft_gym.viz.episode import load_episode, save_plot, save_video
 
                 ep = load_episode(log)
+                video = save_video(ep, video)  # the plot last: it says both are done
                 save_plot(ep, plot)
-                video = save_video(ep, video)
             except ValueError as err:
                 parts.append(f'<p class="note">no picture: {esc(err)}</p>')
     if plot is not None and plot.exists():

@@ -32,7 +32,7 @@ the ego (not the ego's fault), and shaping by 1 - IoU.
 
 **info** (final step): ``collision``, ``ego_at_fault``, ``nods``, ``failure``, ``iou``, ``f_p``, ``f_b``,
 ``valid``, ``invasive``, ``outcome``, ``signature``, ``scenario``, ``jitter_seed``, ``added``,
-and the log / extraction results when logging.
+``env_steps`` (the env's steps so far, all episodes), and the log / extraction results when logging.
 """
 
 from __future__ import annotations
@@ -180,6 +180,7 @@ class AdversaryEnv(gym.Env):
         self._finished = False
         self.ctx: SeedContext | None = None
         self.episodes = 0
+        self.env_steps = 0  # steps over all episodes (a resumed training run sets where it starts)
         self._cpu0 = time.process_time()
 
     # -- episode ------------------------------------------------------------------------------
@@ -243,8 +244,9 @@ class AdversaryEnv(gym.Env):
         sim, dt = self.sim, self.ctx.feasible.dt
         op_info = self._apply(np.asarray(action, dtype=np.int64))
         self.k += 1
+        self.env_steps += 1
         if self.sink is not None:
-            self.sink.steps += 1  # the env's steps so far, in the journal (a resumed run's rollback)
+            self.sink.steps = self.env_steps  # in the journal (a resumed run's rollback)
         self._until = self.k * dt + 1e-6
         done = sim.advance(self._until)
         reward = self._shaping() + (self.cfg.reward.placement_cost if op_info.get("placed") else 0.0)
@@ -252,7 +254,7 @@ class AdversaryEnv(gym.Env):
         if done:
             r_end, end_info = self._finish()
             reward += r_end
-            info.update(end_info)
+            info.update(end_info, env_steps=self.env_steps)  # where the episode ended (Monitor CSV)
         obs = self._obs()
         return obs, float(reward), bool(done), False, info
 

@@ -13,7 +13,8 @@ one file per worker process, so parallel workers never interleave) and then:
 
 A sink on a folder that already holds episodes (a resumed run) continues their numbering and
 never deletes a folder it did not create itself: :meth:`EpisodeSink.episode_dir` skips names
-that exist, and :meth:`EpisodeSink.finish` removes only folders this sink made.
+that exist, and :meth:`EpisodeSink.finish` removes only folders this sink made (numbers of
+folders a resumed run set aside under ``<root>/rolled_back/episodes`` are not reused either).
 Each journal line carries ``env_steps`` (the env's steps so far, :attr:`EpisodeSink.steps`), so
 a resumed training run can tell which episodes came after its checkpoint.
 """
@@ -28,6 +29,8 @@ from typing import Any
 import numpy as np
 
 from deft_gym.files import append_jsonl, read_jsonl, write_json_atomic
+
+ROLLED_BACK = "rolled_back"  # where a resumed training run sets aside what came after its checkpoint
 
 
 def extractor() -> Any | None:
@@ -56,16 +59,16 @@ class EpisodeSink:
         self._made: set[Path] = set()
 
     def _last_number(self) -> int:
-        """The highest episode number this worker already used in ``root`` (its folders and its
-        journal lines), so a resumed run continues after it."""
+        """The highest episode number this worker already used in ``root`` (its folders, those
+        set aside by a resume, and its journal lines), so a resumed run continues after it."""
         n = len(read_jsonl(self.journal)) if self.journal.exists() else 0
         pat = re.compile(rf"w{self.worker}-(\d+)-")
-        folder = self.root / "episodes"
-        if folder.is_dir():
-            for d in folder.iterdir():
-                m = pat.match(d.name)
-                if m:
-                    n = max(n, int(m.group(1)))
+        for folder in (self.root / "episodes", self.root / ROLLED_BACK / "episodes"):
+            if folder.is_dir():
+                for d in folder.iterdir():
+                    m = pat.match(d.name)
+                    if m:
+                        n = max(n, int(m.group(1)))
         return n
 
     def episode_dir(self, tag: str) -> Path:

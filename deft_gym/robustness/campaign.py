@@ -215,14 +215,14 @@ def _run_campaign(campaign: Campaign, out: Path, budget: int, ex: Executor, mini
     if not (until_found and attribution.done):
         for res in ex.map(_run_one, [(campaign, i) for i in todo]):
             row = _row(res, nominal)
-            runs.add(row)
-            rows[row["index"]] = row
-            if row["findings"]:
+            if row["findings"]:  # the case file first: a kill after the row must not lose it
                 case = TestCase.model_validate(res["case"])
                 r = res["result"]
                 save_case(case.model_copy(update={"expect": Expect(
                     signature=row["findings"][0], fingerprint=r["fingerprint"], foundation=foundation)}),
                           out / "cases" / f"{case.id}.json")
+            runs.add(row)
+            rows[row["index"]] = row
             attribution.check(row)
             report("tests", len(rows), budget, _counts(rows.values()))
             if until_found and attribution.done:

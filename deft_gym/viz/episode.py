@@ -16,6 +16,8 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -357,9 +359,23 @@ def save_plot(ep: Episode, path: Path | str, title: str | None = None, n_plans: 
     ax.legend(loc="upper left", bbox_to_anchor=(1.12, 1.0), fontsize=8, frameon=False, borderaxespad=0.0)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    with _atomic(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
+
+
+@contextlib.contextmanager
+def _atomic(path: Path) -> Iterator[Path]:
+    """A temporary name beside ``path`` (same suffix: the writer picks the format from it),
+    renamed to ``path`` when the block succeeds: a kill never leaves half a picture under the
+    name that says it is done."""
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def save_video(ep: Episode, path: Path | str, fps: int = 5, span: float = 70.0, max_seconds: float | None = None) -> Path:
@@ -431,11 +447,13 @@ def save_video(ep: Episode, path: Path | str, fps: int = 5, span: float = 70.0, 
         frames.append(np.asarray(fig.canvas.buffer_rgba())[:, :, :3].copy())
     plt.close(fig)
     try:
-        imageio.mimsave(path, frames, fps=fps, macro_block_size=1)
+        with _atomic(path) as tmp:
+            imageio.mimsave(tmp, frames, fps=fps, macro_block_size=1)
         return path
     except Exception:  # no ffmpeg: a GIF
         gif = path.with_suffix(".gif")
-        imageio.mimsave(gif, frames, duration=1.0 / fps)
+        with _atomic(gif) as tmp:
+            imageio.mimsave(tmp, frames, duration=1.0 / fps)
         return gif
 
 
@@ -481,9 +499,9 @@ def render_log(log: Path, out: Path | None = None, root: Path | None = None, vid
     if only_failures and not ep.failure:
         return None
     plot, vid = picture_paths(log, out, root)
-    done: dict[str, Any] = {"log": str(log), "failure": ep.failure, "title": ep.title(),
-                            "plot": str(save_plot(ep, plot))}
-    done["video"] = str(save_video(ep, vid)) if video else None
+    done: dict[str, Any] = {"log": str(log), "failure": ep.failure, "title": ep.title()}
+    done["video"] = str(save_video(ep, vid)) if video else None  # the plot last: it says both are done
+    done["plot"] = str(save_plot(ep, plot))
     return done
 
 
