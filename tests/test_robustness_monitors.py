@@ -85,3 +85,26 @@ def test_deadline_context_manager() -> None:
         pass
     with deadline(0.5):
         sum(range(1000))
+
+
+def test_a_computing_module_is_left_to_the_cpu_deadline_when_the_wall_budget_runs_out(monkeypatch) -> None:
+    """A loaded machine makes a spinning computation run past its wall budget before it has used
+    its CPU deadline; it is still the CPU deadline's hang (reason deadline), not a blocked one,
+    whatever the load."""
+    monkeypatch.setenv("DEFT_GYM_WATCHDOG_S", "0.05")  # the wall budget, far below the 0.3 s CPU deadline
+    r = _run("planning", "SpinningPlanning")
+    assert "hang:planning:deadline" in r.signatures, r.signatures
+    assert not any("wall_deadline" in s for s in r.signatures) and r.harness_errors == []
+
+
+def test_deadline_block_tells_blocking_from_computing() -> None:
+    import pytest
+
+    from deft_gym.robustness.monitors import WallDeadlineExceeded
+
+    with pytest.raises(WallDeadlineExceeded), deadline(0.05):  # wall budget 2 s: a sleep burns no CPU
+        time.sleep(5.0)
+    with pytest.raises(DeadlineExceeded) as err, deadline(0.3):
+        while True:
+            pass
+    assert type(err.value) is DeadlineExceeded
