@@ -13,7 +13,9 @@ jobs run in parallel worker processes, or as Ray tasks with ``--ray`` / ``--ray-
 Outputs in ``--out``:
 
 - ``records.jsonl`` - one line per simulated scenario (append-only; a rerun with the same
-  ``--out`` skips the jobs already complete, so an interrupted evaluation resumes);
+  ``--out`` skips the jobs already complete, so an interrupted evaluation resumes; records of
+  other simulation code, of an edited scenario or of an unfinished job move to
+  ``records.set_aside.jsonl``, never deleted);
 - ``summary.json``, ``table.md``, ``cumulative_failures.png``, ``per_scenario.png`` - the
   comparison (:mod:`agents.eval_report` through :mod:`agents.stats`): per method, placement and
   scenario and per group (seeds, held-out, all) mean +- sd over repeats of counted failures (valid,
@@ -341,12 +343,14 @@ def _main(args: argparse.Namespace) -> int:
     rec_path = out / "records.jsonl"
     done: dict[tuple[str, str, str, int], int] = defaultdict(int)
     records: list[dict[str, Any]] = []
+    earlier: list[dict[str, Any]] = []  # what the journal held before this run
     if rec_path.exists():  # resume: keep what earlier runs simulated with the same simulation code
         from deft_gym.search.trace import code_fingerprint
 
         code = code_fingerprint()
         keys = {name: scenario_key(name) for name in seeds + held_out}
         records = read_jsonl(rec_path)
+        earlier = list(records)
         stale = sum(1 for r in records if r.get("code") != code
                     or (r["scenario"] in keys and r.get("scenario_key") != keys[r["scenario"]]))
         records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code
@@ -372,7 +376,13 @@ def _main(args: argparse.Namespace) -> int:
                                  "model": cfg.model, "deterministic": cfg.deterministic, "out": str(out),
                                  "log_failures": cfg.log_failures, "max_added": cfg.max_added})
     write_json_atomic(out / "eval_config.json", {**cfg.model_dump(), "held_out": held_out})
-    # rewrite the journal without partial jobs, then append as jobs finish
+    # rewrite the journal without partial jobs and stale records (set aside, never deleted), then
+    # append as jobs finish
+    kept, aside = {id(r) for r in records}, out / "records.set_aside.jsonl"
+    already = {json.dumps(r, sort_keys=True) for r in read_jsonl(aside)} if aside.exists() else set()
+    for r in earlier:  # (a kill between the two steps must not set a record aside twice)
+        if id(r) not in kept and json.dumps(r, sort_keys=True) not in already:
+            append_jsonl(aside, r)
     write_atomic(rec_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
     total = sum(j["budget"] for j in jobs)
     con.print(f"{len(jobs)} jobs, {total} simulated scenarios, {backend.describe()} -> {out}")

@@ -155,3 +155,4 @@ def test_evaluation_resume_simulates_again_what_an_edited_scenario_file_made(
     assert "1 earlier record(s) ran other simulation code or another version of their scenario" in out
     after = read_jsonl(tmp_path / "ev" / "records.jsonl")
     assert len(after) == 1 and after[0]["scenario_key"] != before[0]["scenario_key"]
+    assert read_jsonl(tmp_path / "ev" / "records.set_aside.jsonl") == before  # set aside, not deleted
