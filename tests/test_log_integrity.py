@@ -193,3 +193,16 @@ def test_the_extraction_evaluation_names_a_damaged_s0_log_in_its_headline(log, t
     assert list(res["damaged_logs"]) == ["heuristic/lfs"] and res["damaged_logs"]["heuristic/lfs"].startswith("damaged")
     _, headline = _markdown({**res, "elapsed_s": 0.0, "provenance": {}, "plots": {}})
     assert headline.startswith("- **1 extraction(s) read a damaged S0 log**")
+
+
+def test_pictures_of_a_log_with_a_flipped_bit_are_refused_in_one_line(log, tmp_path) -> None:
+    """render and the HTML report read logs with the mcap library: a chunk failing its CRC is a
+    one-line error naming the file (the report shows it as 'no picture: ...'), not a drawing of
+    whatever the damaged bytes decode to."""
+    from deft_gym.viz.episode import load_episode
+
+    assert load_episode(log).ego.rows  # the intact log is drawn
+    bad = _flipped(log, tmp_path)
+    with pytest.raises(ValueError, match=r"damaged log \(crc validation failed") as err:
+        load_episode(bad)
+    assert str(bad) in str(err.value) and "\n" not in str(err.value)

@@ -128,8 +128,11 @@ def load_episode(log: Path | str) -> Episode:
     lanes: list[tuple[np.ndarray, float]] = []
     stops: list[tuple[float, float, float, float]] = []
     scene_ego: list[tuple[float, float, float, float, float]] = []
+    from mcap.stream_reader import CRCValidationError
+
     with open(log, "rb") as f:
-        for _, channel, msg in make_reader(f).iter_messages():
+        messages = make_reader(f, validate_crcs=True).iter_messages()  # a flipped bit is not drawn as good
+        for _, channel, msg in _crc_checked(messages, log, CRCValidationError):
             topic = channel.topic
             if topic not in (SCENE_TOPIC, t_loc, t_obs, t_plan, t_map):
                 continue
@@ -162,6 +165,14 @@ def load_episode(log: Path | str) -> Episode:
     return Episode(log, str(ep.get("scenario_name") or log.parent.name), seed if isinstance(seed, int) else None,
                    str(oc.get("outcome", "unknown")), _f(oc.get("sim_time", ego.rows[-1][0] if ego.rows else 0.0)),
                    coll, lanes, stops, ego, scene_parts if source == "scene" else seen_parts, plans, source)
+
+
+def _crc_checked(messages: Any, log: Path, crc_error: type[Exception]) -> Any:
+    """The log's messages; a chunk that fails its CRC is a one-line ValueError naming the file."""
+    try:
+        yield from messages
+    except crc_error as exc:
+        raise ValueError(f"{log}: damaged log ({exc}); deft-gym verify {log} says where") from None
 
 
 def _json(v: str) -> Any:
