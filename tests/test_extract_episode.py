@@ -32,7 +32,7 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """Short real episodes of one scenario (same jitter seed): plain, with input headers, with
     renamed topics, and with a differently configured planner."""
     root = tmp_path_factory.mktemp("logs")
-    sc = short_scenario("left_turn", 9.0)
+    sc = short_scenario("u_turn", 9.0)  # where planner parameters matter from the start
     topics = dict(yaml.safe_load(RENAMED.read_text())["topics"])
     return {"plain": record(root / "plain", sc, SEED),
             "headers": record(root / "headers", sc, SEED, headers=True),

@@ -11,20 +11,16 @@ lane decisions (deft_gym/planner/decision.py) or of prediction, not of a planted
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import pytest
+from nods_helpers import assert_no_nods, assert_nods, cone, parked, vehicle
 
-from deft_gym.scenarios.scenario import scenario_from_dict, with_participants
+from deft_gym.scenarios.scenario import scenario_from_dict
 from deft_gym.search.context import SeedContext, seed_context
-from deft_gym.search.nods import Verdict
-from deft_gym.search.trace import TraceRecorder
-from deft_gym.sim.simulation import Simulation
 
 LANE_W = 3.5
-SEEDS = (0, 1)
 
 
 def three_lanes(ego_lane: int, dest_lane: int) -> dict[str, Any]:
@@ -39,70 +35,6 @@ def three_lanes(ego_lane: int, dest_lane: int) -> dict[str, Any]:
 
 KEEP = three_lanes(1, 1)  # optimal path: stay in the middle lane
 CHANGE = three_lanes(0, 1)  # optimal path: change to the middle lane at once
-
-
-@dataclass
-class Run:
-    verdict: Verdict
-    decisions: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
-    predictions: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
-    perceptions: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
-
-    def reasons(self) -> set[str]:
-        return {d["reason"] for _, d in self.decisions}
-
-
-def run(ctx: SeedContext, added: list[dict[str, Any]], jitter_seed: int) -> Run:
-    """Simulate the seed plus ``added`` (as the search baselines do) and judge it, keeping what
-    planning, prediction and perception published."""
-    sc = scenario_from_dict(with_participants(ctx.scenario, "mutated", added))
-    sim = Simulation(sc, ctx.ads, jitter_seed=jitter_seed, keep_planning=False)
-    rec = TraceRecorder(sim, {a["id"] for a in added})
-    out = Run(verdict=None)  # type: ignore[arg-type]
-    topics = {ctx.ads.topic("planning"): out.decisions, ctx.ads.topic("prediction"): out.predictions,
-              ctx.ads.topic("perception_obstacles"): out.perceptions}
-
-    def tap(m: Any) -> None:
-        if m.topic in topics:
-            body = m.payload["decision"] if m.topic == ctx.ads.topic("planning") else m.payload
-            topics[m.topic].append((m.payload["header"]["stamp"], body))
-
-    sim.bus.taps.append(tap)
-    res = sim.run()
-    o = res.outcome
-    out.verdict = ctx.oracle.judge(rec.trace(o.outcome, o.sim_time), o.collision.as_dict() if o.collision else None)
-    return out
-
-
-def assert_nods(ctx: SeedContext, added: list[dict[str, Any]]) -> list[Run]:
-    runs = [run(ctx, added, js) for js in SEEDS]
-    for js, r in zip(SEEDS, runs):
-        v = r.verdict
-        assert v.valid, f"jitter seed {js}: mutation invades the optimal path: {v.invasive}"
-        assert v.outcome == "completed", f"jitter seed {js}: {v.outcome}"
-        assert v.iou <= ctx.oracle.threshold and v.failure == "nods", f"jitter seed {js}: IoU {v.iou:.2f}"
-    return runs
-
-
-def assert_no_nods(ctx: SeedContext, added: list[dict[str, Any]]) -> Run:
-    r = run(ctx, added, SEEDS[0])
-    assert r.verdict.valid and r.verdict.outcome == "completed", r.verdict
-    assert not r.verdict.nods, f"control: IoU {r.verdict.iou:.2f}"
-    return r
-
-
-# -- building blocks ------------------------------------------------------------------------------
-def cone(pid: str, x: float, y: float) -> dict[str, Any]:
-    return {"id": pid, "type": "static", "obstacle": "CONE", "x": x, "y": y, "heading": 0.0}
-
-
-def parked(pid: str, x: float, y: float) -> dict[str, Any]:
-    return {"id": pid, "type": "static", "obstacle": "STATIC_VEHICLE", "x": x, "y": y, "heading": 0.0}
-
-
-def vehicle(pid: str, t: np.ndarray, x: np.ndarray, y: np.ndarray) -> dict[str, Any]:
-    return {"id": pid, "type": "scripted",
-            "waypoints": [{"t": float(a), "x": float(b), "y": float(c)} for a, b, c in zip(t, x, y)]}
 
 
 def along_reference(ctx: SeedContext, dx: Callable[[np.ndarray], np.ndarray],

@@ -49,10 +49,11 @@ def test_wrong_type_names_the_field(tmp_path: Path) -> None:
 
 def test_lane_that_does_not_exist(tmp_path: Path) -> None:
     data = _data()
-    data["participants"][2]["lane"] = ["il1", "o9", 0]
+    last = len(data["participants"]) - 1
+    data["participants"][last]["lane"] = ["il1", "o9", 0]
     msg = _error(data, tmp_path)
     assert msg.count("\n") == 0
-    assert "participants.2.lane" in msg and "does not exist" in msg and "intersection" in msg
+    assert f"participants.{last}.lane" in msg and "does not exist" in msg and "intersection" in msg
 
 
 def test_position_outside_the_lane(tmp_path: Path) -> None:
@@ -82,7 +83,8 @@ def test_invalid_yaml_and_missing_file(tmp_path: Path) -> None:
 def test_participant_form_checks() -> None:
     data = copy.deepcopy(_data())
     data["participants"].append({"id": "c", "type": "static", "lane": ["o0", "ir0", 0]})
-    with pytest.raises(ConfigError, match=r"participants.3.static: Value error, a lane position needs both"):
+    new = len(data["participants"]) - 1
+    with pytest.raises(ConfigError, match=rf"participants.{new}.static: Value error, a lane position needs both"):
         scenario_from_dict(data, source="inline")
     data["participants"][-1] = {"id": "oncoming", "type": "static", "x": 1.0, "y": 2.0}
     with pytest.raises(ConfigError, match="participant ids must be unique"):

@@ -14,7 +14,7 @@ from deft_gym.scenarios.scenario import (
     scenario_to_dict,
 )
 from deft_gym.sim.simulation import run_episode
-from deft_gym.world.roadmap import shared_roadmap
+from deft_gym.world.roadmap import MapSpec, shared_roadmap
 from tests.conftest import SCENARIOS
 
 
@@ -66,6 +66,27 @@ def test_vectorised_lane_geometry_matches_highway_env(kind: str) -> None:
         ref_sd = np.array([lane.local_coordinates(p) for p in ref])
         assert np.allclose(np.c_[back_s, back_d], ref_sd, atol=1e-9)
         assert np.allclose(g.heading(s), [lane.heading_at(a) for a in s], atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["intersection", "uturn"])
+def test_turn_lanes_add_turns_from_the_next_lanes_only(kind: str) -> None:
+    """``turn_lanes: 2``: the left turn (intersection) or the U-turn also leaves from lane 1, into
+    lane 1 of the road turned onto; every other lane is the default map's, exactly."""
+    approach, turn, after = ((("o0", "ir0"), ("ir0", "il1"), ("il1", "o1")) if kind == "intersection"
+                             else (("a", "b"), ("b", "c"), ("c", "d")))
+    one, two = shared_roadmap({"type": kind}), shared_roadmap({"type": kind, "turn_lanes": 2})
+    assert len(one.road_lanes(turn)) == 1 and len(two.road_lanes(turn)) == 2
+    assert not any(s[:2] == turn for s in one.successors[(*approach, 1)])
+    for k in (0, 1):
+        assert (*turn, k) in two.successors[(*approach, k)] and (*after, k) in two.successors[(*turn, k)]
+    extra = set(two.lane_ids) - set(one.lane_ids)
+    assert (*turn, 1) in extra and set(one.lane_ids) <= set(two.lane_ids)
+    assert len(extra) == (4 if kind == "intersection" else 1)  # one per approach
+    s = np.linspace(0.0, 30.0, 7)
+    for lane_id in one.lane_ids:
+        assert np.array_equal(one.geoms[lane_id].xy(s, 0.5), two.geoms[lane_id].xy(s, 0.5))
+    with pytest.raises(ValueError, match="turn_lanes"):
+        MapSpec(type=kind, lanes=2, turn_lanes=3)
 
 
 def test_fast_idm_follows_highway_envs_idm() -> None:

@@ -8,6 +8,11 @@ Three map families cover Decictor's six seed scenarios and the DeFT Figure 1 pat
 - ``highway``: a straight multi-lane road with an exit ramp leaving from the rightmost lane;
 - ``uturn``: a divided road with a U-turn bay from the inner lane at its end.
 
+``turn_lanes`` (default 1) makes the left turns of an intersection, or the U-turn, leave from
+that many inner lanes, lane k into lane k of the road it turns onto (double left-turn lanes, a
+two-lane U-turn): a vehicle that is in the second lane when it reaches the junction turns from
+there. With the default the maps are exactly the single-turn-lane ones.
+
 Lane ids follow highway-env: id 0 is the leftmost lane of a road, ids grow to the right.
 Node names: ``o<c>`` outer end and ``ir<c>`` inner end of approach ``c`` (0 south, 1 west,
 2 north, 3 east), ``il<c>`` the start of the exit road towards ``c``, as in highway-env's
@@ -26,7 +31,14 @@ import numpy as np
 import shapely
 from highway_env.road.lane import CircularLane, LineType, StraightLane
 from highway_env.road.road import RoadNetwork
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    model_serializer,
+    model_validator,
+)
 
 from deft_gym.world.geometry import LaneGeom, ReferenceLine, wrap_angle
 
@@ -48,6 +60,23 @@ class MapSpec(BaseModel):
     junction_margin: float = Field(default=5.0, ge=0.0, le=20.0)
     exit_at: float = Field(default=0.6, gt=0.1, lt=0.95, description="highway: exit position as a share of length")
     median: float = Field(default=12.0, ge=2.0, le=40.0, description="uturn: median width")
+    turn_lanes: int = Field(default=1, ge=1, le=5, description="intersection: left turns, uturn: U-turns, from "
+                            "this many inner lanes (lane k into lane k of the road turned onto)")
+
+    @model_validator(mode="after")
+    def _turn_lanes_exist(self) -> MapSpec:
+        if self.turn_lanes > self.lanes:
+            raise ValueError(f"turn_lanes: {self.turn_lanes} turning lanes but only {self.lanes} lanes")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _without_default_turn_lanes(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        """``turn_lanes`` is written only when it is not 1, so a map without the option dumps as
+        before it existed (logs, generated tests, cache keys)."""
+        data = handler(self)
+        if self.turn_lanes == 1:
+            data.pop("turn_lanes", None)
+        return data
 
 
 @dataclass
@@ -106,11 +135,12 @@ def build_intersection(spec: MapSpec) -> MapInfo:
                      CircularLane(rotate([outer, outer]), outer - xo, np.pi / 2 * c + np.pi,
                                   np.pi / 2 * c + 1.5 * np.pi, clockwise=True,
                                   line_types=[N, N], speed_limit=v, width=w))
-        # left turn from the inner lane into the inner exit lane
-        net.add_lane(f"ir{c}", f"il{(c + 1) % 4}",
-                     CircularLane(rotate([-outer, outer]), outer + w / 2, np.pi / 2 * c,
-                                  np.pi / 2 * c - np.pi / 2, clockwise=False,
-                                  line_types=[N, N], speed_limit=v, width=w))
+        # left turns from the inner lane(s) into the exit lane(s) of the same index
+        for k in range(spec.turn_lanes):
+            net.add_lane(f"ir{c}", f"il{(c + 1) % 4}",
+                         CircularLane(rotate([-outer, outer]), outer + w / 2 + k * w, np.pi / 2 * c,
+                                      np.pi / 2 * c - np.pi / 2, clockwise=False,
+                                      line_types=[N, N], speed_limit=v, width=w))
         for k in range(n_l):
             info.stop_lines.append(StopLine((f"o{c}", f"ir{c}", k), L, f"tl{c}"))
         info.light_groups[f"tl{c}"] = c % 2
@@ -145,7 +175,7 @@ def build_highway(spec: MapSpec) -> MapInfo:
 
 
 def build_uturn(spec: MapSpec) -> MapInfo:
-    """Divided road a->b heading +x, U-turn bay b->c from the inner lane, return road c->d."""
+    """Divided road a->b heading +x, U-turn bay b->c from the inner lane(s), return road c->d."""
     w, n_l, L, v = spec.lane_width, spec.lanes, spec.length, spec.speed_limit
     m = spec.median / 2
     net = RoadNetwork()
@@ -156,9 +186,10 @@ def build_uturn(spec: MapSpec) -> MapInfo:
         y = m + w / 2 + k * w
         net.add_lane("a", "b", StraightLane([0.0, y], [L, y], line_types=[left, right], speed_limit=v, width=w))
         net.add_lane("c", "d", StraightLane([L, -y], [0.0, -y], line_types=[left, right], speed_limit=v, width=w))
-    r = m + w / 2
-    net.add_lane("b", "c", CircularLane([L, 0.0], r, np.pi / 2, -np.pi / 2, clockwise=False,
-                                        line_types=[N, N], speed_limit=min(v, 6.0), width=w))
+    for k in range(spec.turn_lanes):  # lane k of a-b into lane k of c-d
+        r = m + w / 2 + k * w
+        net.add_lane("b", "c", CircularLane([L, 0.0], r, np.pi / 2, -np.pi / 2, clockwise=False,
+                                            line_types=[N, N], speed_limit=min(v, 6.0), width=w))
     info.junction_roads.add(("b", "c"))
     return info
 
