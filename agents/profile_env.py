@@ -7,7 +7,8 @@ settings; failing episodes are replayed into MCAP logs and extracted as in train
 and ``--generated`` robust generated scenarios, with random actions, under cProfile, and prints
 the share of each part: the simulation (and its modules), the episode's end (oracles, recording,
 extraction), the observation and the placement. Scenarios per CPU-hour are measured on a second,
-unprofiled set of episodes.
+unprofiled set of episodes, in which the same parts are also timed around each call (cProfile
+inflates the many small Python calls and hides the C parts).
 """
 
 from __future__ import annotations
@@ -36,6 +37,55 @@ PARTS: list[tuple[str, str, str]] = [
     ("observation", "envs/adversary.py", "_obs"),
     ("placement", "envs/adversary.py", "_apply"),
 ]
+
+
+# (label, module, class, method): timed with process_time around each call in the unprofiled
+# episodes - cProfile inflates the many small Python calls and hides the C parts; a part's time
+# includes the parts nested in it (a replay simulates too)
+TIMED: list[tuple[str, str, str, str]] = [
+    ("simulation (bus + modules + world)", "deft_gym.sim.simulation", "Simulation", "advance"),
+    ("  planning", "deft_gym.modules.planning", "PlanningNode", "compute"),
+    ("  world step", "deft_gym.world.world", "World", "step"),
+    ("oracles (NoDS, collision)", "deft_gym.search.nods", "DecisionOracle", "judge"),
+    ("failing episodes replayed into logs and extracted", "deft_gym.envs.adversary", "AdversaryEnv",
+     "_replay_into_sink"),
+    ("observation", "deft_gym.envs.adversary", "AdversaryEnv", "_obs"),
+    ("  closest-cone probe", "deft_gym.envs.adversary", "AdversaryEnv", "_closest_static"),
+    ("placement", "deft_gym.envs.adversary", "AdversaryEnv", "_apply"),
+]
+
+
+class _Timers:
+    """Process CPU time [s] spent in each :data:`TIMED` method while active (restored on exit)."""
+
+    def __init__(self) -> None:
+        self.spent = {label: 0.0 for label, *_ in TIMED}
+        self._saved: list[tuple[Any, str, Any]] = []
+
+    def __enter__(self) -> _Timers:
+        import importlib
+
+        for label, module, cls_name, name in TIMED:
+            cls = getattr(importlib.import_module(module), cls_name)
+            fn = cls.__dict__[name]
+            self._saved.append((cls, name, fn))
+            setattr(cls, name, self._timed(fn, label))
+        return self
+
+    def _timed(self, fn: Any, label: str) -> Any:
+        spent = self.spent
+
+        def timed(*args: Any, **kwargs: Any) -> Any:
+            t0 = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[label] += time.process_time() - t0
+        return timed
+
+    def __exit__(self, *exc: Any) -> None:
+        for cls, name, fn in reversed(self._saved):
+            setattr(cls, name, fn)
 
 
 def build_parser() -> common.Parser:
@@ -76,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
             env.reset(seed=0, options={"scenario": name})
         env.action_space.seed(args.seed)
         t0 = time.process_time()
-        _episodes(env, args.episodes, args.seed + 10_000)
+        with _Timers() as timers:
+            _episodes(env, args.episodes, args.seed + 10_000)
         cpu = time.process_time() - t0
         prof = cProfile.Profile(timer=time.process_time)
         prof.enable()
@@ -97,6 +148,13 @@ def main(argv: list[str] | None = None) -> int:
     t.add_column("share", justify="right")
     for label, suffix, name in PARTS:
         t.add_row(label, f"{100 * cum.get((suffix, name), 0.0) / max(total, 1e-9):.1f} %")
+    con.print(t)
+    t = Table(title=f"the same parts timed around each call, without cProfile ({args.episodes} other episodes)",
+              title_justify="left")
+    t.add_column("part")
+    t.add_column("share", justify="right")
+    for label, *_ in TIMED:
+        t.add_row(label, f"{100 * timers.spent[label] / max(cpu, 1e-9):.1f} %")
     con.print(t)
     con.print(f"unprofiled: {args.episodes} episodes in {cpu:.1f} CPU s -> "
               f"{args.episodes / max(cpu, 1e-9) * 3600:,.0f} scenarios per CPU-hour (one env process, no learner)")
