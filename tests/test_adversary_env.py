@@ -128,3 +128,18 @@ def test_evaluation_config_errors_name_the_file_and_field(tmp_path):
     with pytest.raises(ConfigError, match=r"eval\.yaml: methods: unknown \['genetic'\]"):
         load_eval_config(parse_args(["--config", str(cfg), "--out", str(tmp_path)]))
     assert load_eval_config(parse_args(["--methods", "random", "--budget", "3", "--out", str(tmp_path)])).budget == 3
+
+
+def test_profile_env_prints_both_profiles_and_restores_the_timed_methods(capsys) -> None:
+    """deft-gym profile-env: the cProfile shares, the shares timed around each call, the
+    throughput; the timed methods are the originals again afterwards."""
+    from agents import profile_env
+    from deft_gym.envs.adversary import AdversaryEnv
+
+    before = AdversaryEnv.__dict__["_obs"]
+    assert profile_env.main(["--config", "configs/train/demo.yaml", "--episodes", "2", "--generated", "0",
+                             "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "CPU shares under cProfile" in out and "timed around each call" in out
+    assert "scenarios per CPU-hour" in out and "closest-cone probe" in out
+    assert AdversaryEnv.__dict__["_obs"] is before
