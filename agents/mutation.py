@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import shapely
 
+from deft_gym.scenarios.scenario import MIN_GAP, pose_xyh
 from deft_gym.search.context import SeedContext
 from deft_gym.search.feasible import Layout, Placed
 from deft_gym.search.placement import Placer
@@ -173,8 +174,20 @@ class RandomMutator(NonInvasiveMutator):
         child.history.append("add" if add else "remove")
         return child
 
+    def _off_ego(self, x: float, y: float, t0: float = 0.0) -> bool:
+        """Whether a participant appearing at ``(x, y)`` at ``t0`` [s] is a scenario at all: one
+        that starts on the ego (centres closer than the scenario format's ``MIN_GAP``) is refused
+        by the scenario check, so Random draws again."""
+        exy, _ = pose_xyh(self.ctx.roadmap, self.ctx.scenario.ego)
+        return t0 > 0.0 or float(np.hypot(x - exy[0], y - exy[1])) >= MIN_GAP
+
     def add_static(self, m: Mutant, obstacle: str) -> bool:
-        x, y = self._point()
+        for _ in range(self.max_tries):
+            x, y = self._point()
+            if self._off_ego(x, y):
+                break
+        else:
+            return False
         loc = self.ctx.roadmap.locate(np.array([x, y]))
         h = float(self.ctx.roadmap.geom(loc[0]).heading_point(loc[1])) if loc is not None else 0.0
         pid = m.new_id("cone" if obstacle == "CONE" else "static")
@@ -191,6 +204,8 @@ class RandomMutator(NonInvasiveMutator):
             if st is None:
                 continue
             t0 = float(self.rng.integers(0, max(1, int(self.t_end / dt)))) * dt
+            if not self._off_ego(x, y, t0):
+                continue
             turn = str(self.rng.choice(["straight", "straight", "left", "right"]))
             traj = self._drive(st, t0, turn)
             if traj is None:

@@ -76,3 +76,22 @@ def test_search_records_carry_the_schema_and_recheck_failures(ctx) -> None:
         checked = r["failure"] is not None or r["task_failure"] is not None
         assert (r["confirmed"] is not None) == checked and r["sims"] == 1 + checked
         assert r["cpu_seconds"] > 0.0
+
+
+def test_random_never_starts_a_participant_on_the_ego() -> None:
+    """Random ignores the feasible areas, but a participant that starts on the ego is no scenario
+    (the scenario check refuses it): Random draws again. On gen:1000008 its 30th-odd draw put a
+    cone 0.49 m from the ego's start, and the ConfigError ended the whole evaluation."""
+    from agents.mutation import RandomMutator
+    from deft_gym.scenarios.scenario import MIN_GAP, pose_xyh
+
+    ctx = seed_context("gen:1000008")
+    recs = list(search("random", ctx, 30, 0, 8, lambda i: None, rule="closest"))
+    assert len(recs) == 30
+    mut = RandomMutator(ctx, np.random.default_rng(0), "closest", max_added=8)
+    exy, _ = pose_xyh(ctx.roadmap, ctx.scenario.ego)
+    for _ in range(300):
+        m = Mutant(Layout(ctx.areas))
+        assert mut.add_static(m, "CONE")
+        spec = m.layout.placed[0].spec
+        assert np.hypot(spec["x"] - exy[0], spec["y"] - exy[1]) >= MIN_GAP
