@@ -263,6 +263,7 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
     for i in range(job["budget"]):
         w0, c0 = time.perf_counter(), time.process_time()
         obs, _ = env.reset(seed=job["seed"] * 100_003 + i)
+        torch.manual_seed(job["seed"] * 100_003 + i)  # the policy's sampled actions: the same in any worker
         done = False
         info: dict[str, Any] = {}
         while not done:

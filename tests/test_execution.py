@@ -156,3 +156,25 @@ def test_evaluation_resume_simulates_again_what_an_edited_scenario_file_made(
     after = read_jsonl(tmp_path / "ev" / "records.jsonl")
     assert len(after) == 1 and after[0]["scenario_key"] != before[0]["scenario_key"]
     assert read_jsonl(tmp_path / "ev" / "records.set_aside.jsonl") == before  # set aside, not deleted
+
+
+def test_rl_evaluation_records_do_not_depend_on_what_the_worker_ran_before(tmp_path: Path) -> None:
+    """The policy samples its actions with torch's RNG: each episode seeds it, so an RL job gives
+    the same records whichever jobs its worker process ran before (it did not: the evaluation's RL
+    rows depended on the worker's history)."""
+    import torch
+    from stable_baselines3 import PPO
+
+    from agents import evaluate
+    from deft_gym.envs.adversary import AdversaryEnv
+
+    model = tmp_path / "model.zip"
+    PPO("MlpPolicy", AdversaryEnv(config={"scenarios": ["lane_follow_static"]}), n_steps=64, seed=0).save(model)
+    job = {"method": "rl", "placement": "closest", "scenario": "lane_follow_static", "scenario_kind": "seed",
+           "repeat": 0, "budget": 2, "seed": 5, "env": {"max_added": 8}, "model": str(model),
+           "deterministic": False, "out": str(tmp_path / "ev"), "log_failures": False, "max_added": 8}
+    first = evaluate.run_job(job)
+    torch.rand(1000)  # another job's sampling in between
+    again = evaluate.run_job(job)
+    assert without_timings(first) == without_timings(again)
+    assert any(r["added"] for r in first)  # the policy acted
