@@ -289,12 +289,11 @@ class DecisionOracle:
         """Exact distance [m] of each point of a path to the reference path."""
         return shapely.distance(shapely.points(np.asarray(xy).reshape(-1, 2)), self.ref_line)
 
-    def f_p(self, xy: np.ndarray, dist: np.ndarray | None = None) -> float:
+    @staticmethod
+    def f_p(dist: np.ndarray) -> float:
         """Eq. 7: mean over the path's points of the exact distance to the reference path [m]
-        (``dist``: :meth:`distances` of ``xy``, when already known)."""
-        if len(xy) == 0:
-            return 0.0
-        return float((self.distances(xy) if dist is None else dist).mean())
+        (``dist``: :meth:`distances` of the path)."""
+        return float(dist.mean()) if len(dist) else 0.0
 
     def f_b(self, ego: np.ndarray) -> float:
         """Eq. 8: mean over reference lanes of the Gaussian-kernel MMD (the distance, in [0,
@@ -308,11 +307,12 @@ class DecisionOracle:
                 for j, ref_feats in self.ref_lanes.items()]
         return float(np.mean(vals))
 
-    def off_length(self, xy: np.ndarray, dist: np.ndarray | None = None) -> float:
-        """Longest stretch [m] of the path farther than half a lane from the reference path."""
+    def off_length(self, xy: np.ndarray, dist: np.ndarray) -> float:
+        """Longest stretch [m] of the path ``xy`` farther than half a lane from the reference path
+        (``dist``: :meth:`distances` of ``xy``)."""
         if len(xy) < 2:
             return 0.0
-        far = (self.distances(xy) if dist is None else dist) > self.roadmap.spec.lane_width / 2
+        far = dist > self.roadmap.spec.lane_width / 2
         step = np.hypot(*np.diff(xy, axis=0).T)
         best = run = 0.0
         for i in range(1, len(xy)):
@@ -324,8 +324,8 @@ class DecisionOracle:
         """Task check, consistency check, feedback, validity and a failure signature."""
         outcome = trace.outcome
         xy = trace.xy
-        dist = self.distances(xy) if len(xy) else np.zeros(0)  # computed once: f_p, off_length, signature
-        io, fp, fb = self.iou(xy), self.f_p(xy, dist), self.f_b(trace.ego)
+        dist = self.distances(xy)  # computed once: f_p, off_length, signature
+        io, fp, fb = self.iou(xy), self.f_p(dist), self.f_b(trace.ego)
         bad = invasive_actors(self.ref, trace, clearance=self.clearance)
         is_collision = outcome == "collision"
         nods = outcome == "completed" and io <= self.threshold
@@ -336,12 +336,12 @@ class DecisionOracle:
         v.signature = self.signature(v, trace, collision, dist)
         return v
 
-    def signature(self, v: Verdict, trace: Trace, collision: dict[str, Any] | None,
-                  dist: np.ndarray | None = None) -> str:
+    def signature(self, v: Verdict, trace: Trace, collision: dict[str, Any] | None, dist: np.ndarray) -> str:
         """Root-cause signature of a failure, for counting distinct failures: its kind, where
         along the optimal path it happened (10 m buckets), the participant involved (seed or
         added, kind, type) and the decision change (the planning decisions of the run that the
-        reference run never made, e.g. ``blocked+reason:borrow`` or ``refused:rear_gap``)."""
+        reference run never made, e.g. ``blocked+reason:borrow`` or ``refused:rear_gap``);
+        ``dist``: :meth:`distances` of the run's path."""
         change = "+".join(self.decision_change(trace)) or "-"
         if v.collision and collision:
             who = _actor_key(trace, collision.get("participant", ""))
@@ -349,9 +349,8 @@ class DecisionOracle:
             return f"collision@{where}:{who}:{change}"
         if v.nods or v.nods_local or v.task_failure:
             xy = trace.xy
-            d = self.distances(xy) if dist is None else dist
-            off = np.flatnonzero(d > self.roadmap.spec.lane_width / 2)
-            k = int(off[0]) if len(off) else int(np.argmax(d))
+            off = np.flatnonzero(dist > self.roadmap.spec.lane_width / 2)
+            k = int(off[0]) if len(off) else int(np.argmax(dist))
             side = _side(self.ref.xy, xy[k])
             who = _nearest_added(trace, int(trace.ticks[k]), xy[k])
             kind = "nods" if v.nods else ("local" if v.nods_local else v.task_failure)
