@@ -206,14 +206,12 @@ def watchdog_env(args: argparse.Namespace) -> Iterator[None]:
     value = getattr(args, "watchdog_s", None)
     old = os.environ.get(WATCHDOG_ENV)
     if value is None:
-        env = (old or "").strip()
+        from deft_gym.execution.watchdog import watchdog_seconds
+
         try:
-            ok = not env or (float(env) >= 0 and float(env) < float("inf"))
-        except ValueError:
-            ok = False
-        if not ok:
-            raise SystemExit(cli_error(f"{WATCHDOG_ENV}={old!r}: expected finite seconds >= 0 (0 = off); "
-                                       "or give --watchdog-s SECONDS"))
+            watchdog_seconds()  # the check every watched run makes, here before any work
+        except ValueError as err:
+            raise SystemExit(cli_error(f"{err}; or give --watchdog-s SECONDS")) from None
         yield
         return
     os.environ[WATCHDOG_ENV] = repr(float(value))
