@@ -120,9 +120,7 @@ def make_env(cfg: TrainConfig, rank: int, out: Path | None, workers: int = 1, st
             "worker": rank,
             "log_dir": str(out) if (out is not None and cfg.log_episodes) else cfg.env.log_dir})
         env = AdversaryEnv(config=env_cfg)
-        env.env_steps = step0
-        if env.sink is not None:
-            env.sink.steps = step0
+        env.env_steps = step0  # (each step hands it on to the episode sink's journal)
         env.reset(seed=cfg.seed * 1000 + rank)
         monitor, keys, fresh = None, MONITOR_KEYS, True
         if out is not None:
