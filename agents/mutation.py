@@ -17,6 +17,7 @@ RL env's requests are.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -174,11 +175,15 @@ class RandomMutator(NonInvasiveMutator):
         child.history.append("add" if add else "remove")
         return child
 
+    @cached_property
+    def _ego_start(self) -> np.ndarray:
+        return pose_xyh(self.ctx.roadmap, self.ctx.scenario.ego)[0]
+
     def _off_ego(self, x: float, y: float, t0: float = 0.0) -> bool:
         """Whether a participant appearing at ``(x, y)`` at ``t0`` [s] is a scenario at all: one
         that starts on the ego (centres closer than the scenario format's ``MIN_GAP``) is refused
         by the scenario check, so Random draws again."""
-        exy, _ = pose_xyh(self.ctx.roadmap, self.ctx.scenario.ego)
+        exy = self._ego_start
         return t0 > 0.0 or float(np.hypot(x - exy[0], y - exy[1])) >= MIN_GAP
 
     def add_static(self, m: Mutant, obstacle: str) -> bool:
