@@ -89,6 +89,29 @@ def test_turn_lanes_add_turns_from_the_next_lanes_only(kind: str) -> None:
         MapSpec(type=kind, lanes=2, turn_lanes=3)
 
 
+def test_right_turn_lanes_add_right_turns_from_the_next_outer_lanes_only() -> None:
+    """``right_turn_lanes: 2`` on a 3-lane intersection: the right turn also leaves from lane 1,
+    into lane 1 of the road turned onto (the turn road's lanes ordered left to right, as
+    highway-env's); every other lane is the default map's, exactly."""
+    base = {"type": "intersection", "lanes": 3}
+    one, two = shared_roadmap(base), shared_roadmap({**base, "right_turn_lanes": 2})
+    approach, turn, after = ("o0", "ir0"), ("ir0", "il3"), ("il3", "o3")
+    assert len(one.road_lanes(turn)) == 1 and len(two.road_lanes(turn)) == 2
+    assert (*turn, 0) in one.successors[(*approach, 2)] and (*after, 2) in one.successors[(*turn, 0)]
+    for k, j in ((1, 0), (2, 1)):  # approach lane k, turn lane j
+        assert (*turn, j) in two.successors[(*approach, k)] and (*after, k) in two.successors[(*turn, j)]
+    assert not any(s[:2] == turn for s in two.successors[(*approach, 0)])
+    s = np.linspace(0.0, 30.0, 7)
+    right_turns = {(f"ir{c}", f"il{(c - 1) % 4}") for c in range(4)}
+    for lane_id in one.lane_ids:
+        if lane_id[:2] not in right_turns:
+            assert np.array_equal(one.geoms[lane_id].xy(s, 0.5), two.geoms[lane_id].xy(s, 0.5))
+    assert np.array_equal(one.geoms[(*turn, 0)].xy(s, 0.5), two.geoms[(*turn, 1)].xy(s, 0.5))
+    assert "right_turn_lanes" not in MapSpec(**base).model_dump()
+    with pytest.raises(ValueError, match="right_turn_lanes"):
+        MapSpec(type="intersection", lanes=2, right_turn_lanes=3)
+
+
 def test_fast_idm_follows_highway_envs_idm() -> None:
     """Our reactive vehicles compute highway-env's IDM/MOBIL with faster code: the same
     trajectories as stock IDMVehicle on the same road."""

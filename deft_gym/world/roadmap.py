@@ -11,7 +11,8 @@ Three map families cover Decictor's six seed scenarios and the DeFT Figure 1 pat
 ``turn_lanes`` (default 1) makes the left turns of an intersection, or the U-turn, leave from
 that many inner lanes, lane k into lane k of the road it turns onto (double left-turn lanes, a
 two-lane U-turn): a vehicle that is in the second lane when it reaches the junction turns from
-there. With the default the maps are exactly the single-turn-lane ones.
+there. ``right_turn_lanes`` (default 1) does the same for the right turns of an intersection,
+from that many outer lanes. With the defaults the maps are exactly the single-turn-lane ones.
 
 Lane ids follow highway-env: id 0 is the leftmost lane of a road, ids grow to the right.
 Node names: ``o<c>`` outer end and ``ir<c>`` inner end of approach ``c`` (0 south, 1 west,
@@ -62,20 +63,24 @@ class MapSpec(BaseModel):
     median: float = Field(default=12.0, ge=2.0, le=40.0, description="uturn: median width")
     turn_lanes: int = Field(default=1, ge=1, le=5, description="intersection: left turns, uturn: U-turns, from "
                             "this many inner lanes (lane k into lane k of the road turned onto)")
+    right_turn_lanes: int = Field(default=1, ge=1, le=5, description="intersection: right turns from this many "
+                                  "outer lanes (lane k into lane k of the road turned onto)")
 
     @model_validator(mode="after")
     def _turn_lanes_exist(self) -> MapSpec:
-        if self.turn_lanes > self.lanes:
-            raise ValueError(f"turn_lanes: {self.turn_lanes} turning lanes but only {self.lanes} lanes")
+        for name in ("turn_lanes", "right_turn_lanes"):
+            if getattr(self, name) > self.lanes:
+                raise ValueError(f"{name}: {getattr(self, name)} turning lanes but only {self.lanes} lanes")
         return self
 
     @model_serializer(mode="wrap")
     def _without_default_turn_lanes(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
-        """``turn_lanes`` is written only when it is not 1, so a map without the option dumps as
-        before it existed (logs, generated tests, cache keys)."""
+        """``turn_lanes`` and ``right_turn_lanes`` are written only when they are not 1, so a map
+        without the options dumps as before they existed (logs, generated tests, cache keys)."""
         data = handler(self)
-        if self.turn_lanes == 1:
-            data.pop("turn_lanes", None)
+        for name in ("turn_lanes", "right_turn_lanes"):
+            if getattr(self, name) == 1:
+                data.pop(name, None)
         return data
 
 
@@ -129,12 +134,12 @@ def build_intersection(spec: MapSpec) -> MapInfo:
             x = w / 2 + k * w
             net.add_lane(f"ir{c}", f"il{(c + 2) % 4}", StraightLane(rotate([x, outer]), rotate([x, -outer]),
                                                                     line_types=[N, N], speed_limit=v, width=w))
-        # right turn from the outer lane into the outer exit lane
-        xo = w / 2 + (n_l - 1) * w
-        net.add_lane(f"ir{c}", f"il{(c - 1) % 4}",
-                     CircularLane(rotate([outer, outer]), outer - xo, np.pi / 2 * c + np.pi,
-                                  np.pi / 2 * c + 1.5 * np.pi, clockwise=True,
-                                  line_types=[N, N], speed_limit=v, width=w))
+        # right turns from the outer lane(s) into the exit lane(s) of the same index
+        for k in range(n_l - spec.right_turn_lanes, n_l):
+            net.add_lane(f"ir{c}", f"il{(c - 1) % 4}",
+                         CircularLane(rotate([outer, outer]), outer - (w / 2 + k * w), np.pi / 2 * c + np.pi,
+                                      np.pi / 2 * c + 1.5 * np.pi, clockwise=True,
+                                      line_types=[N, N], speed_limit=v, width=w))
         # left turns from the inner lane(s) into the exit lane(s) of the same index
         for k in range(spec.turn_lanes):
             net.add_lane(f"ir{c}", f"il{(c + 1) % 4}",
