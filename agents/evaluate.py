@@ -10,6 +10,8 @@ actions in the adversary env: the env without learning, an ablation).
 Every (method, placement rule, scenario, repeat) is one job of ``budget`` simulated scenarios;
 jobs run in parallel worker processes, or as Ray tasks with ``--ray`` / ``--ray-address ADDR``
 (:mod:`deft_gym.execution`; the records are the same on every backend and number of workers).
+``random`` places with no feasibility constraint, so no placement rule applies: it runs under
+the first rule of ``--placements`` and its records are copied to the others.
 Outputs in ``--out``:
 
 - ``records.jsonl`` - one line per simulated scenario (append-only; a rerun with the same
@@ -51,6 +53,7 @@ from deft_gym.record.recorder import init_pool_worker
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
 DEFAULT_METHODS = ("rl", "decictor", "random_delta", "random")
+PLACEMENT_FREE = ("random",)  # methods that place with no feasibility constraint: no placement rule
 HELD_OUT_BASE = 1_000_000
 
 
@@ -154,6 +157,29 @@ def model_env_config(model: str | None) -> dict[str, Any]:
         if (d / "config.yaml").exists():
             return dict(load_mapping(d / "config.yaml").get("env") or {})
     return {}
+
+
+def _key(r: dict[str, Any]) -> tuple[str, str, str, int]:
+    """A record's job: (method, placement, scenario, repeat)."""
+    return r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"]
+
+
+def _copy_placement_free(records: list[dict[str, Any]], copies: list[tuple[str, str, str, int]], first: str,
+                         budget: int, rec_path: Path) -> list[dict[str, Any]]:
+    """The records of each pending copy job (a method in :data:`PLACEMENT_FREE` under a placement
+    rule other than ``first``) whose job under ``first`` is complete: the same records with the
+    other rule's name, appended to the journal and taken off ``copies``."""
+    out: list[dict[str, Any]] = []
+    for key in list(copies):
+        m, pl, scn, rep = key
+        src = [r for r in records if _key(r) == (m, first, scn, rep)]
+        if len(src) < budget:
+            continue
+        for r in sorted(src, key=lambda r: r["index"]):
+            out.append({**r, "placement": pl})
+            append_jsonl(rec_path, out[-1])
+        copies.remove(key)
+    return out
 
 
 # -- one job --------------------------------------------------------------------------------------
@@ -362,6 +388,7 @@ def _main(args: argparse.Namespace) -> int:
         for r in records:
             done[(r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"])] += 1
     jobs = []
+    copies: list[tuple[str, str, str, int]] = []
     kinds = {**{s: "seed" for s in seeds}, **{h: "held_out" for h in held_out}}
     for rep in range(cfg.repeats):
         for scn in seeds + held_out:
@@ -370,8 +397,10 @@ def _main(args: argparse.Namespace) -> int:
                     key = (m, pl, scn, rep)
                     if done[key] >= cfg.budget:
                         continue
-                    records = [r for r in records
-                               if (r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"]) != key]
+                    records = [r for r in records if _key(r) != key]
+                    if m in PLACEMENT_FREE and pl != cfg.placements[0]:
+                        copies.append(key)  # the same scenarios as under the first rule: copied, not re-run
+                        continue
                     jobs.append({"method": m, "placement": pl, "scenario": scn, "scenario_kind": kinds[scn],
                                  "repeat": rep, "budget": cfg.budget, "seed": cfg.seed * 1000 + rep, "env": env,
                                  "model": cfg.model, "deterministic": cfg.deterministic, "out": str(out),
@@ -385,6 +414,7 @@ def _main(args: argparse.Namespace) -> int:
         if id(r) not in kept and json.dumps(r, sort_keys=True) not in already:
             append_jsonl(aside, r)
     write_atomic(rec_path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
+    records += _copy_placement_free(records, copies, cfg.placements[0], cfg.budget, rec_path)
     total = sum(j["budget"] for j in jobs)
     con.print(f"{len(jobs)} jobs, {total} simulated scenarios, {backend.describe()} -> {out}")
     t0 = time.time()
@@ -397,6 +427,7 @@ def _main(args: argparse.Namespace) -> int:
                 for r in recs:
                     append_jsonl(rec_path, r)
                 records.extend(recs)
+                records += _copy_placement_free(records, copies, cfg.placements[0], cfg.budget, rec_path)
         bar.close()
     from agents.eval_report import build_summary, headline_markdown, targets_markdown, write_report
     from agents.stats import RecordError

@@ -109,13 +109,16 @@ def test_evaluation_the_same_records_for_one_and_two_workers_and_after_a_resume(
     assert len(one) == 16 and {r["scenario_kind"] for r in one} == {"seed", "held_out"}
     assert [(r["method"], r["placement"]) for r in one[:8:2]] == [
         ("decictor", "closest"), ("decictor", "uniform"), ("random", "closest"), ("random", "uniform")]
+    # Random has no placement rule: it runs once, its records are copied to the other rule
+    assert [{**r, "placement": "uniform"} for r in one[4:6]] == one[6:8]
     cut = tmp_path / "two" / "records.jsonl"
     cut.parent.mkdir()
     lines = (tmp_path / "one" / "records.jsonl").read_text().splitlines(keepends=True)
     cut.write_text("".join(lines[:5]) + lines[5][:40])  # two jobs done, one half done, a line cut by a kill
     capsys.readouterr()
     assert evaluate.main([*EVAL_ARGS, "--workers", "2", "--out", str(tmp_path / "two")]) == 0
-    assert "6 jobs, 12 simulated scenarios, 2 local worker processes" in capsys.readouterr().out
+    # the cut Random job and the second scenario's three jobs (Random's uniform rows are copies)
+    assert "4 jobs, 8 simulated scenarios, 2 local worker processes" in capsys.readouterr().out
     two = read_jsonl(cut)
     assert two[:4] == one[:4]  # the finished jobs were kept as they were
     assert without_timings(two) == without_timings(one)
