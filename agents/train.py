@@ -395,6 +395,7 @@ def summarize_run(out: Path) -> dict[str, Any]:
                "per_scenario": {k: dict(v) for k, v in sorted(by_scn.items())},
                "extraction": dict(extraction), "extracted_tests": tests,
                "kept_logs": sum(1 for r in recs if r.get("kept")),
+               "duplicate_failures": sum(1 for r in recs if r.get("duplicate_of")),
                "rolled_back_episodes": sum(len(rolled) for _, rolled in parts)}
     return summary
 
@@ -541,7 +542,9 @@ def print_summary(con: Any, s: dict[str, Any], out: Path, pictures: int) -> None
             ("episodes (simulated scenarios)", f"{s['episodes']:,}"),
             ("collisions (ego at fault)", str(s["collisions"])), ("non-optimal decisions (NoDS)", str(s["nods"])),
             ("valid mutations", f"{100 * s['validity']:.1f} %"), ("failure rate", f"{100 * s['failure_rate']:.1f} %"),
-            ("extracted test modules", str(len(s.get("extracted_tests") or []))),
+            ("extracted test modules", str(len(s.get("extracted_tests") or []))
+             + (f" (+{s['duplicate_failures']} failures repeating a kept one's signature)"
+                if s.get("duplicate_failures") else "")),
             *([("rolled back by resuming (in rolled_back/)", str(s["rolled_back_episodes"]))]
               if s.get("rolled_back_episodes") else []),
             ("training time", f"{s['train_seconds']:.0f} s ({s['episodes_per_hour']:.0f} episodes/h)"),

@@ -934,3 +934,25 @@ def test_training_settings_check_accepts_every_scenario_spec(tmp_path):
     cfg = tmp_path / "train.yaml"
     cfg.write_text("name: ok\nenv: {scenarios: [left_turn, gen:3, lane_follow_static~v1000000, left_turn]}\n")
     check_train_settings(load_train_config(cfg), cfg)  # no ConfigError
+
+
+def test_sink_keeps_one_log_per_distinct_failure_and_names_it_in_the_duplicates_lines(tmp_path):
+    """With ``distinct``, a failure whose (scenario, signature) the worker already kept - in this
+    session or in the journal of a run it resumes, while that log is in place - is journalled with
+    ``duplicate_of`` and gets no log; a new signature or scenario is kept."""
+    earlier = tmp_path / "episodes" / "w0-000001-s"
+    earlier.mkdir(parents=True)
+    append_jsonl(tmp_path / "episodes-0.jsonl", {"scenario": "s", "failure": "nods", "signature": "old",
+                                                 "kept": True, "dir": str(earlier)})
+    sink = EpisodeSink(tmp_path, worker=0, keep_passing=0.0, extract=False, distinct=True)
+    first = {"scenario": "s", "failure": "nods", "signature": "nods@30m:left"}
+    assert sink.keeps(first)
+    d = sink.episode_dir("s")
+    assert sink.finish(d, first, {}, keep=True)["kept"] and (d / "episode.json").exists()
+    again = sink.finish(None, dict(first), {}, keep=sink.keeps(first))
+    assert not again["kept"] and again["duplicate_of"] == str(d)
+    assert sink.finish(None, {**first, "signature": "old"}, {}, keep=False)["duplicate_of"] == str(earlier)
+    assert sink.keeps({**first, "signature": "collision@10m"}) and sink.keeps({**first, "scenario": "t"})
+    lines = read_jsonl(tmp_path / "episodes-0.jsonl")
+    assert [x.get("duplicate_of") for x in lines[1:]] == [None, str(d), str(earlier)]
+    assert EpisodeSink(tmp_path, worker=0, extract=False).keeps(first)  # keep_duplicates: every failure

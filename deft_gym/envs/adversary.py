@@ -119,6 +119,9 @@ class AdversaryConfig(BaseModel):
                                                "as it runs (all), or only the kept ones (failures and a "
                                                "keep_passing sample) by replaying them exactly afterwards")
     keep_passing: float = Field(0.02, ge=0.0, le=1.0)
+    keep_duplicates: bool = Field(False, description="with log_dir: also keep the log (and extract a test) "
+                                  "of a failure whose (scenario, signature) this worker already kept; off: "
+                                  "its journal line names the kept log (duplicate_of)")
     extract: bool = True
     worker: int = 0
 
@@ -173,7 +176,8 @@ class AdversaryEnv(gym.Env):
         self.action_space = spaces.MultiDiscrete([len(OPS), len(ALONG) + len(AT_LAST), len(LATERAL), len(SPEEDS),
                                                   len(MANOEUVRES)])
         self.observation_space = spaces.Box(-10.0, 10.0, shape=(OBS_DIM,), dtype=np.float32)
-        self.sink = (EpisodeSink(self.cfg.log_dir, self.cfg.worker, self.cfg.keep_passing, self.cfg.extract)
+        self.sink = (EpisodeSink(self.cfg.log_dir, self.cfg.worker, self.cfg.keep_passing, self.cfg.extract,
+                                 distinct=not self.cfg.keep_duplicates)
                      if self.cfg.log_dir else None)
         self._bad: set[str] = set()
         self.sim: Simulation | None = None

@@ -8,6 +8,11 @@ one file per worker process, so parallel workers never interleave) and then:
   ``episode.json`` (verdict, equivalent scenario, seeds) and is passed to the DeFT extractor
   (``extract.extract_episode``), which writes the extracted frames and a pytest module into
   ``<episode>/extracted``;
+- a failing episode whose ``(scenario, signature)`` (the root-cause signature the evaluation
+  counts distinct failures by) this worker already kept is, with ``distinct``, not kept again: its
+  journal line names the kept log (``duplicate_of``), and no log is replayed or test extracted
+  for it (a long training run repeats its favourite failures: a third of the kept logs in the
+  second half of the main run);
 - a passing episode is kept with probability ``keep_passing`` (seeded), otherwise deleted, so a
   long run does not fill the disk.
 
@@ -46,11 +51,14 @@ class EpisodeSink:
     """Decides what happens to each episode's log (see the module docstring)."""
 
     def __init__(self, root: Path | str, worker: int = 0, keep_passing: float = 0.02, extract: bool = True,
-                 seed: int = 0, extract_kwargs: dict[str, Any] | None = None) -> None:
+                 seed: int = 0, extract_kwargs: dict[str, Any] | None = None, distinct: bool = False) -> None:
         self.root = Path(root)
         self.worker = worker
         self.keep_passing = keep_passing
         self.extract = extract
+        self.distinct = distinct
+        # (scenario, signature) -> the kept log of that failure (a resumed run: those still in place)
+        self.kept_failures: dict[tuple[str, str], str] = {}
         self.extract_kwargs = dict(extract_kwargs or {})
         self.rng = np.random.default_rng([seed, worker])
         self.journal = self.root / f"episodes-{worker}.jsonl"
@@ -61,7 +69,11 @@ class EpisodeSink:
     def _last_number(self) -> int:
         """The highest episode number this worker already used in ``root`` (its folders, those
         set aside by a resume, and its journal lines), so a resumed run continues after it."""
-        n = len(read_jsonl(self.journal)) if self.journal.exists() else 0
+        lines = read_jsonl(self.journal) if self.journal.exists() else []
+        for r in lines:
+            if r.get("failure") and r.get("dir") and Path(r["dir"]).is_dir():
+                self.kept_failures.setdefault(_failure_key(r), r["dir"])
+        n = len(lines)
         pat = re.compile(rf"w{self.worker}-(\d+)-")
         for folder in (self.root / "episodes", self.root / ROLLED_BACK / "episodes"):
             if folder.is_dir():
@@ -85,9 +97,12 @@ class EpisodeSink:
             return d
 
     def keeps(self, record: dict[str, Any]) -> bool:
-        """Whether the episode's log is kept: always for a failure, with probability
-        ``keep_passing`` otherwise (one draw of the sink's RNG)."""
-        return bool(record.get("failure")) or bool(self.rng.random() < self.keep_passing)
+        """Whether the episode's log is kept: for a failure, always (with ``distinct``: unless
+        it duplicates a kept one); with probability ``keep_passing`` otherwise (one draw of the
+        sink's RNG)."""
+        if record.get("failure"):
+            return not (self.distinct and _failure_key(record) in self.kept_failures)
+        return bool(self.rng.random() < self.keep_passing)
 
     def finish(self, episode_dir: Path | None, record: dict[str, Any], details: dict[str, Any],
                keep: bool | None = None) -> dict[str, Any]:
@@ -101,18 +116,26 @@ class EpisodeSink:
         if keep and episode_dir is not None:
             done["kept"] = True
             write_json_atomic(episode_dir / "episode.json", {**record, **details})
-            if failing and self.extract:
-                done["extraction"] = self._extract(episode_dir)
+            if failing:
+                self.kept_failures.setdefault(_failure_key(record), str(episode_dir))
+                if self.extract:
+                    done["extraction"] = self._extract(episode_dir)
         elif episode_dir is not None and Path(episode_dir) in self._made:  # only what this sink made
             shutil.rmtree(episode_dir, ignore_errors=True)
         if episode_dir is not None:
             self._made.discard(Path(episode_dir))
         done["dir"] = str(episode_dir) if done["kept"] else None
+        if failing and not done["kept"] and _failure_key(record) in self.kept_failures:
+            done["duplicate_of"] = self.kept_failures[_failure_key(record)]
         append_jsonl(self.journal, {**record, **done, "env_steps": self.steps})
         return done
 
     def _extract(self, episode_dir: Path) -> dict[str, Any]:
         return extract_log(episode_dir, **{"test_suffix": episode_dir.name, **self.extract_kwargs})
+
+
+def _failure_key(record: dict[str, Any]) -> tuple[str, str]:
+    return str(record.get("scenario")), str(record.get("signature"))
 
 
 def extract_log(episode_dir: Path, **kwargs: Any) -> dict[str, Any]:
