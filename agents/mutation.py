@@ -213,7 +213,8 @@ class RandomMutator(NonInvasiveMutator):
                 continue
             turn = str(self.rng.choice(["straight", "straight", "left", "right"]))
             traj = self._drive(st, t0, turn)
-            if traj is None:
+            # the drawn point may lie off the lane: the vehicle starts where it is clamped onto it
+            if traj is None or not self._off_ego(float(traj.x[0]), float(traj.y[0]), t0):
                 continue
             pid = m.new_id("veh")
             spec = vehicle_spec(pid, traj)

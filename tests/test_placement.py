@@ -95,3 +95,27 @@ def test_random_never_starts_a_participant_on_the_ego() -> None:
         assert mut.add_static(m, "CONE")
         spec = m.layout.placed[0].spec
         assert np.hypot(spec["x"] - exy[0], spec["y"] - exy[1]) >= MIN_GAP
+
+
+def test_random_never_starts_a_vehicle_on_the_ego(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A Random vehicle drawn off the lane starts where it is clamped onto the lane: on
+    left_turn one drawn 2.05 m beside the ego's start, off the road, started 1.75 m from it, and
+    the ConfigError ended a budget-100 evaluation. Its trajectory's first pose is checked."""
+    from agents.mutation import RandomMutator
+    from deft_gym.scenarios.scenario import MIN_GAP, pose_xyh, scenario_from_dict, with_participants
+
+    ctx = seed_context("left_turn")
+    exy, _ = pose_xyh(ctx.roadmap, ctx.scenario.ego)
+    off_road = (float(exy[0]) + 2.05, float(exy[1]))  # beside the ego's start, outside its (edge) lane
+    added = 0
+    for seed in range(20):
+        mut = RandomMutator(ctx, np.random.default_rng(seed), "closest", max_added=8)
+        monkeypatch.setattr(mut, "_point", lambda: off_road)
+        m = Mutant(Layout(ctx.areas))
+        if not mut.add_vehicle(m):
+            continue
+        added += 1
+        w0 = m.layout.placed[0].spec["waypoints"][0]
+        assert w0["t"] > 0 or np.hypot(w0["x"] - exy[0], w0["y"] - exy[1]) >= MIN_GAP
+        scenario_from_dict(with_participants(ctx.scenario, "left_turn+mut", m.specs), source="left_turn (mutated)")
+    assert added  # those appearing later are fine
