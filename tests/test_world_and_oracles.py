@@ -237,3 +237,28 @@ def test_collision_check_is_the_plain_check_bit_for_bit(hit: bool) -> None:
         assert repr(fast.min_distance) == repr(plain.min_distance), k
         assert fast.collision == plain.collision, k
     assert (fast.collision is not None) == hit
+
+
+def _red_wait(offset: float, blocked: bool = False) -> dict:
+    """cross_intersection with a 3 s stuck time and the light plan shifted by ``offset`` [s];
+    ``blocked``: a parked vehicle across the ego's lane before the junction, a wait no light ends."""
+    data = scenario_to_dict(load_scenario(SCENARIOS / "cross_intersection.yaml"))
+    data["stuck_time"] = 3.0
+    data["lights"] = {**data["lights"], "offset": offset}
+    data["participants"] = [p for p in data["participants"] if p["id"] != "lead"]
+    if blocked:
+        data["participants"] += [{"id": f"wall{k}", "type": "static", "obstacle": "STATIC_VEHICLE",
+                                  "lane": ["o0", "ir0", k], "s": 70.0} for k in (0, 1)]
+    return data
+
+
+def test_a_wait_at_a_red_light_is_not_stuck_however_long() -> None:
+    # offset 8 s: the ego reaches its stop line on red and stands there for about 9 s (> 3 s)
+    r = run_episode(scenario_from_dict(_red_wait(8.0), source="red"), jitter_seed=1, keep_planning=False)
+    assert r.outcome.outcome == "completed", r.summary()
+    standing = r.outcome.sim_time - 10.0  # it needs about 10 s without the wait
+    assert standing > 6.0, r.summary()
+    # the same standstill with no light to wait for is stuck after the 3 s
+    r = run_episode(scenario_from_dict(_red_wait(0.0, blocked=True), source="wall"), jitter_seed=1,
+                    keep_planning=False)
+    assert r.outcome.outcome == "stuck", r.summary()

@@ -19,6 +19,7 @@ import numpy as np
 from deft_gym.world.world import Collision, World
 
 OUTCOMES = ("collision", "completed", "timeout", "stuck", "crash", "hang", "no_plan")
+STANDING_SPEED = 0.5  # [m/s] slower than this, the ego may be waiting at a light
 
 
 @dataclass
@@ -49,7 +50,10 @@ class EpisodeOracle:
     """Watches the world after every step and decides when the episode is over.
 
     ``reach_radius`` [m]: the destination counts as reached within this distance;
-    ``stuck_time`` [s]: moving less than ``stuck_distance`` [m] for this long is stuck.
+    ``stuck_time`` [s]: moving less than ``stuck_distance`` [m] for this long is stuck. Time the
+    ego spends held by a light (standing before the stop line of its lane while that light is not
+    green, queued or first in line) never counts: the standstill is measured from when the light
+    turns green, so ``stuck_time`` need not outlast a red phase.
     """
 
     def __init__(self, world: World, destination: np.ndarray, duration: float,
@@ -63,7 +67,24 @@ class EpisodeOracle:
         self.stuck_distance = stuck_distance
         self.stop_on_collision = stop_on_collision
         self._track: deque[tuple[float, float, float]] = deque()
+        self._lane: tuple[float, float, Any] = (math.nan, math.nan, None)  # (x, y, located lane) cache
         self.result: str | None = None
+
+    def held_by_light(self) -> bool:
+        """Whether the ego stands before the stop line of its lane (within 1 m past it) while that
+        light is not green."""
+        w = self.world
+        if w.lights is None or not w.roadmap.stop_line_of:
+            return False
+        ex, ey = w.ego.position
+        cx, cy, loc = self._lane
+        if not math.hypot(ex - cx, ey - cy) <= 0.1:  # locate again once the ego has moved (or never was)
+            loc = w.roadmap.locate(np.array([ex, ey]), w.ego.heading)
+            self._lane = (ex, ey, loc)
+        if loc is None:
+            return False
+        line = w.roadmap.stop_line_of.get(loc[0])
+        return line is not None and loc[1] <= line.s + 1.0 and w.lights.color(line.light_id, w.time) != "GREEN"
 
     def check(self) -> str | None:
         """The outcome if the episode is over now, else None."""
@@ -77,6 +98,8 @@ class EpisodeOracle:
                 self.result = "completed"
             else:
                 tr = self._track
+                if w.ego.speed < STANDING_SPEED and self.held_by_light():
+                    tr.clear()  # waiting for the light: the standstill counts from green on
                 tr.append((t, ex, ey))
                 while tr and tr[0][0] < t - self.stuck_time:
                     tr.popleft()
