@@ -4,8 +4,9 @@
   every generation mutates each individual once with the non-invasive operators (add / remove /
   change, :mod:`agents.mutation`), simulates each child, files its failures, keeps the children
   that passed the task check and the consistency check, and selects the N fittest of parents +
-  children by the feedback D = f_p + f_b (eq. 7-9: mean distance to the optimal path plus the MMD
-  of the behaviour distributions).
+  children by the feedback :func:`feedback` (eq. 7-9: mean distance to the optimal path plus the
+  MMD of the behaviour distributions, plus the consistency check's grid difference 1 - IoU, which
+  the authors' implementation adds for every child that passed the check).
 - ``random_delta``: the same loop and non-invasive mutation, random selection (the paper's
   Random-delta / F-Random: no feedback).
 - ``random``: the same loop with unconstrained add / remove mutations and random selection.
@@ -37,6 +38,16 @@ from deft_gym.search.nods import Verdict
 SEARCH_METHODS = ("decictor", "random_delta", "random")
 POPULATION = 4
 REDRAWS = 10  # near-duplicate or roomless mutations redrawn before giving up on novelty
+
+
+def feedback(v: Verdict) -> float:
+    """The fitness the GA selects by: D = f_p + f_b (paper eq. 9) plus, for a run that passed the
+    consistency check, its grid difference 1 - IoU - as Decictor's public implementation computes
+    it (``fuzzer/decictor/fuzzer_runner.py`` adds the oracle's grid difference to the path and
+    behaviour fitness of every child that is not a NoDS), so that selection also climbs towards the
+    check's own threshold. Only children that passed both checks join the population, so the term
+    is always there where it matters."""
+    return v.f_p + v.f_b + (0.0 if v.nods else 1.0 - v.iou)
 
 
 def confirm(ctx: SeedContext, verdict: Verdict, specs: list[dict[str, Any]], jitter_seed: int,
@@ -106,7 +117,7 @@ def search(method: str, ctx: SeedContext, budget: int, seed: int, max_added: int
             t_mut, c_mut = time.perf_counter() - w0, time.process_time() - c0
             run = run_scenario(ctx, child.specs, int(rng.integers(2**31 - 1)), log_dir(used) if log_dir else None)
             v = run.verdict
-            child.fitness = v.f_p + v.f_b
+            child.fitness = feedback(v)
             yield _run_record(ctx, run, used, t_mut, c_mut, rng,
                               {"mutation": child.history[-1] if child.history else "", "specs": child.specs})
             used += 1
