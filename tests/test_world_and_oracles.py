@@ -262,3 +262,15 @@ def test_a_wait_at_a_red_light_is_not_stuck_however_long() -> None:
     r = run_episode(scenario_from_dict(_red_wait(0.0, blocked=True), source="wall"), jitter_seed=1,
                     keep_planning=False)
     assert r.outcome.outcome == "stuck", r.summary()
+
+
+def test_standing_counts_what_a_shorter_stuck_time_would_end() -> None:
+    from agents.standing import shorter_rule
+
+    rows = [{"outcome": "completed", "failure": "nods", "sim_time": 30.0, "stretches": [(5.0, 6.5)]},
+            {"outcome": "stuck", "failure": None, "sim_time": 40.0, "stretches": [(15.0, 40.0)]},
+            {"outcome": "timeout", "failure": None, "sim_time": 50.0, "stretches": [(10.0, 22.0), (30.0, 50.0)]}]
+    c = shorter_rule(rows, 10.0)  # ends the stuck run at 25 s and the timeout at 20 s; the NoDS stands
+    assert (c["ended"], c["failures"], c["completed"]) == (2, 0, 0)
+    assert c["saved"] == pytest.approx((15.0 + 30.0) / 120.0)
+    assert shorter_rule(rows, 1.0)["failures"] == 1 and shorter_rule(rows, 30.0)["ended"] == 0

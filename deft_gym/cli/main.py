@@ -34,6 +34,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval-report": ("agents.eval_report", "re-render an evaluation's tables and plots"),
     "bench-env": ("agents.bench_env", "adversary env steps/s and scenarios/hour"),
     "profile-env": ("agents.profile_env", "where an adversary env process spends its CPU (cProfile)"),
+    "standing": ("agents.standing", "how long mutated runs stand with no light holding them (the stuck time)"),
     # robustness (ASTAA)
     "stress": ("agents.stress", "robustness campaign: exceptional values on the live bus"),
     # experiments and tools
@@ -47,7 +48,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 GROUPS = (("simulate", ("run", "calibrate", "generate", "bench", "digest")),
           ("look at episodes", ("render", "report")),
           ("DeFT: logs -> planning-module tests", ("extract", "check-planner", "verify")),
-          ("the adversary", ("train", "evaluate", "eval-report", "bench-env", "profile-env")),
+          ("the adversary", ("train", "evaluate", "eval-report", "bench-env", "profile-env", "standing")),
           ("robustness (ASTAA)", ("stress",)),
           ("experiments and tools", ("demo", "record", "extract-eval", "planner-edits", "log-damage", "bench-scale")))
 

@@ -16,10 +16,23 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.world.roadmap import RoadMap
+from deft_gym.world.traffic_lights import TrafficLights
 from deft_gym.world.world import Collision, World
 
 OUTCOMES = ("collision", "completed", "timeout", "stuck", "crash", "hang", "no_plan")
 STANDING_SPEED = 0.5  # [m/s] slower than this, the ego may be waiting at a light
+
+
+def held_by_light(roadmap: RoadMap, lights: TrafficLights | None, loc: tuple[Any, float, float] | None,
+                  t: float) -> bool:
+    """Whether a vehicle at ``loc`` (``roadmap.locate``'s ``(lane, s, d)``) is held by a light at
+    time ``t`` [s]: before the stop line of its lane (or within 1 m past it) while that light is
+    not green."""
+    if lights is None or loc is None:
+        return False
+    line = roadmap.stop_line_of.get(loc[0])
+    return line is not None and loc[1] <= line.s + 1.0 and lights.color(line.light_id, t) != "GREEN"
 
 
 @dataclass
@@ -71,20 +84,16 @@ class EpisodeOracle:
         self.result: str | None = None
 
     def held_by_light(self) -> bool:
-        """Whether the ego stands before the stop line of its lane (within 1 m past it) while that
-        light is not green."""
+        """:func:`held_by_light` for the ego now (its lane located again only once it moved)."""
         w = self.world
         if w.lights is None or not w.roadmap.stop_line_of:
             return False
         ex, ey = w.ego.position
         cx, cy, loc = self._lane
-        if not math.hypot(ex - cx, ey - cy) <= 0.1:  # locate again once the ego has moved (or never was)
+        if not math.hypot(ex - cx, ey - cy) <= 0.1:  # moved (or never located)
             loc = w.roadmap.locate(np.array([ex, ey]), w.ego.heading)
             self._lane = (ex, ey, loc)
-        if loc is None:
-            return False
-        line = w.roadmap.stop_line_of.get(loc[0])
-        return line is not None and loc[1] <= line.s + 1.0 and w.lights.color(line.light_id, w.time) != "GREEN"
+        return held_by_light(w.roadmap, w.lights, loc, w.time)
 
     def check(self) -> str | None:
         """The outcome if the episode is over now, else None."""
