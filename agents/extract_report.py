@@ -15,7 +15,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from deft_gym.files import write_atomic
+from deft_gym.files import atomic_path, write_atomic
 from extract.runtime import read_header
 
 
@@ -407,9 +407,8 @@ def _plots(r: dict[str, Any], out: Path) -> dict[str, str]:
 
 def _save(fig: Any, path: Path) -> str:
     fig.tight_layout()
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     import matplotlib.pyplot as plt
 
     plt.close(fig)

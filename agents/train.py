@@ -43,7 +43,7 @@ from deft_gym.config import ConfigError
 from deft_gym.envs.sink import ROLLED_BACK
 from deft_gym.execution import Backend, add_backend_arguments, backend_from_args
 from deft_gym.execution.watchdog import apply_env, carried_env
-from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
+from deft_gym.files import append_jsonl, atomic_path, read_jsonl, write_atomic, write_json_atomic
 from deft_gym.record.recorder import init_pool_worker
 
 
@@ -161,11 +161,8 @@ def checkpoint_callback(every: int, path: Path, prefix: str) -> Any:
 
         def _on_rollout_start(self) -> None:
             if self.num_timesteps // every > self.saved // every:
-                final = path / f"{prefix}_{self.num_timesteps}_steps.zip"
-                path.mkdir(parents=True, exist_ok=True)
-                tmp = final.with_name(final.stem + ".tmp.zip")
-                self.model.save(tmp)
-                os.replace(tmp, final)
+                with atomic_path(path / f"{prefix}_{self.num_timesteps}_steps.zip") as tmp:
+                    self.model.save(tmp)
                 self.saved = self.num_timesteps
 
         def _on_step(self) -> bool:
@@ -483,8 +480,8 @@ def _main(args: argparse.Namespace) -> int:
         interrupted = True
         print("interrupted: saving the model", file=sys.stderr)
     finally:
-        model.save(out / "model.tmp.zip")
-        os.replace(out / "model.tmp.zip", out / "model.zip")
+        with atomic_path(out / "model.zip") as tmp:
+            model.save(tmp)
         vec_env.close()
     seconds = time.time() - t0
     summary = summarize_run(out)

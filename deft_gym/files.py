@@ -5,8 +5,10 @@ Shared by every package that writes results.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +22,22 @@ def write_atomic(path: Path | str, data: str | bytes) -> Path:
     tmp.write_bytes(data.encode() if isinstance(data, str) else data)
     os.replace(tmp, path)
     return path
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path | str) -> Iterator[Path]:
+    """A temporary name beside ``path`` (``.<stem>.tmp<suffix>``: the same suffix, for writers that
+    pick the format from it) for a writer that needs a file name, renamed to ``path`` when the
+    block succeeds and removed when it fails: a kill never leaves half a file under the name that
+    says it is done."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def append_jsonl(path: Path | str, record: Any, fsync: bool = False) -> None:

@@ -72,10 +72,6 @@ class WatchedSupervisor:
         self.failure: dict[str, Any] | None = None
         self.finite_topics = finite_topics
 
-    @property
-    def seconds(self) -> float:
-        return self.dog.seconds
-
     def run(self, node: Node, fn: Callable[..., Any], *args: Any) -> Any:
         try:
             out = self.dog.call(fn, *args)

@@ -16,8 +16,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +24,7 @@ import numpy as np
 
 from deft_gym.bus.codec import decode
 from deft_gym.bus.messages import NS_PER_S, SCENE_TOPIC, log_start_ns
+from deft_gym.files import atomic_path
 
 EPISODE_META, OUTCOME_META = "deft_gym.episode", "deft_gym.outcome"
 EGO_COLOR, PLAN_COLOR, CRASH_COLOR = "#1f77b4", "#00a0e0", "#d62728"
@@ -370,23 +369,10 @@ def save_plot(ep: Episode, path: Path | str, title: str | None = None, n_plans: 
     ax.legend(loc="upper left", bbox_to_anchor=(1.12, 1.0), fontsize=8, frameon=False, borderaxespad=0.0)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with _atomic(path) as tmp:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
-
-
-@contextlib.contextmanager
-def _atomic(path: Path) -> Iterator[Path]:
-    """A temporary name beside ``path`` (same suffix: the writer picks the format from it),
-    renamed to ``path`` when the block succeeds: a kill never leaves half a picture under the
-    name that says it is done."""
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def save_video(ep: Episode, path: Path | str, fps: int = 5, span: float = 70.0, max_seconds: float | None = None) -> Path:
@@ -458,12 +444,12 @@ def save_video(ep: Episode, path: Path | str, fps: int = 5, span: float = 70.0, 
         frames.append(np.asarray(fig.canvas.buffer_rgba())[:, :, :3].copy())
     plt.close(fig)
     try:
-        with _atomic(path) as tmp:
+        with atomic_path(path) as tmp:
             imageio.mimsave(tmp, frames, fps=fps, macro_block_size=1)
         return path
     except Exception:  # no ffmpeg: a GIF
         gif = path.with_suffix(".gif")
-        with _atomic(gif) as tmp:
+        with atomic_path(gif) as tmp:
             imageio.mimsave(tmp, frames, duration=1.0 / fps)
         return gif
 
