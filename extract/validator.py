@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.bus.messages import non_finite_field
 from deft_gym.planner.trajectory import MEASURES
 
 #: thresholds every summary reports [m]
@@ -65,8 +66,7 @@ def non_finite(payload: Any) -> bool:
     tr = _traj(payload)
     if tr is None:
         return False
-    return any(isinstance(v, float) and not math.isfinite(v)
-               for vals in tr.values() if isinstance(vals, list) for v in vals)
+    return any(non_finite_field(vals) is not None for vals in tr.values() if isinstance(vals, list))
 
 
 def identical(expected: Mapping[str, Any], actual: Mapping[str, Any] | None) -> bool:
