@@ -60,7 +60,7 @@ def unheld_standing(trace: Any, roadmap: Any, lights: Any) -> list[tuple[float, 
     return out
 
 
-def run(args: Any, con: Any) -> list[dict[str, Any]]:
+def run(args: Any) -> list[dict[str, Any]]:
     import numpy as np
 
     import deft_gym.search.context as context
@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     con = common.console(args)
     from rich.table import Table
 
-    rows = run(args, con)
+    rows = run(args)
     by_outcome = Table(title=f"{len(rows)} episodes: longest standing not held by a light (s)")
     for col in ("outcome", "episodes", "longest", "failures"):
         by_outcome.add_column(col, justify="right")
