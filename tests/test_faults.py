@@ -956,3 +956,26 @@ def test_sink_keeps_one_log_per_distinct_failure_and_names_it_in_the_duplicates_
     lines = read_jsonl(tmp_path / "episodes-0.jsonl")
     assert [x.get("duplicate_of") for x in lines[1:]] == [None, str(d), str(earlier)]
     assert EpisodeSink(tmp_path, worker=0, extract=False).keeps(first)  # keep_duplicates: every failure
+
+
+def test_shared_sinks_skip_a_failure_another_worker_kept_at_an_earlier_env_step_only(tmp_path):
+    """With ``shared``, worker 1 does not keep a failure worker 0 kept at an earlier env step, and
+    names worker 0's log; one kept at the same step (which worker 1 could not be sure to see, the
+    workers running concurrently) or later is kept again, and so is everything without ``shared``."""
+    w0 = EpisodeSink(tmp_path, worker=0, keep_passing=0.0, extract=False, distinct=True, shared=True)
+    w1 = EpisodeSink(tmp_path, worker=1, keep_passing=0.0, extract=False, distinct=True, shared=True)
+    fail = {"scenario": "s", "failure": "nods", "signature": "nods@30m:left"}
+    w0.steps = 5
+    d0 = w0.episode_dir("s")
+    assert w0.finish(d0, fail, {}, keep=w0.keeps(fail))["kept"]
+    w1.steps = 5  # the same vec-env step: not visible to worker 1 whatever the timing
+    assert w1.keeps(fail)
+    with open(tmp_path / "episodes-0.jsonl", "ab") as fh:  # worker 0 in the middle of its next line
+        fh.write(b'{"env_steps": 6, "failure": "nods", "kept": tru')
+    w1.steps = 6
+    assert not w1.keeps(fail)
+    assert w1.finish(None, dict(fail), {}, keep=False)["duplicate_of"] == str(d0)
+    assert w1.keeps({**fail, "signature": "collision@10m"})
+    alone = EpisodeSink(tmp_path, worker=2, keep_passing=0.0, extract=False, distinct=True)
+    alone.steps = 9
+    assert alone.keeps(fail)  # not shared: only its own failures count

@@ -122,6 +122,10 @@ class AdversaryConfig(BaseModel):
     keep_duplicates: bool = Field(False, description="with log_dir: also keep the log (and extract a test) "
                                   "of a failure whose (scenario, signature) this worker already kept; off: "
                                   "its journal line names the kept log (duplicate_of)")
+    distinct_across_workers: bool = Field(False, description="without keep_duplicates: also skip a failure "
+                                          "another worker on the same log_dir kept at an earlier env step "
+                                          "(deterministic for workers in lockstep: SB3 vec envs; "
+                                          "deft_gym.envs.sink)")
     extract: bool = True
     worker: int = 0
 
@@ -177,7 +181,7 @@ class AdversaryEnv(gym.Env):
                                                   len(MANOEUVRES)])
         self.observation_space = spaces.Box(-10.0, 10.0, shape=(OBS_DIM,), dtype=np.float32)
         self.sink = (EpisodeSink(self.cfg.log_dir, self.cfg.worker, self.cfg.keep_passing, self.cfg.extract,
-                                 distinct=not self.cfg.keep_duplicates)
+                                 distinct=not self.cfg.keep_duplicates, shared=self.cfg.distinct_across_workers)
                      if self.cfg.log_dir else None)
         self._bad: set[str] = set()
         self.sim: Simulation | None = None

@@ -12,7 +12,11 @@ one file per worker process, so parallel workers never interleave) and then:
   counts distinct failures by) this worker already kept is, with ``distinct``, not kept again: its
   journal line names the kept log (``duplicate_of``), and no log is replayed or test extracted
   for it (a long training run repeats its favourite failures: a third of the kept logs in the
-  second half of the main run);
+  second half of the main run); with ``shared`` as well, a failure another worker of the same
+  run folder kept at an earlier env step (its journal line has a smaller ``env_steps``) is not
+  kept again either - deterministic only when the workers step in lockstep, as SB3's vec envs do
+  (a worker's step ``n`` starts after every worker's step ``n - 1`` has ended, so those lines are
+  written whatever the processes' timing);
 - a passing episode is kept with probability ``keep_passing`` (seeded), otherwise deleted, so a
   long run does not fill the disk.
 
@@ -26,6 +30,7 @@ a resumed training run can tell which episodes came after its checkpoint.
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -51,14 +56,19 @@ class EpisodeSink:
     """Decides what happens to each episode's log (see the module docstring)."""
 
     def __init__(self, root: Path | str, worker: int = 0, keep_passing: float = 0.02, extract: bool = True,
-                 seed: int = 0, extract_kwargs: dict[str, Any] | None = None, distinct: bool = False) -> None:
+                 seed: int = 0, extract_kwargs: dict[str, Any] | None = None, distinct: bool = False,
+                 shared: bool = False) -> None:
         self.root = Path(root)
         self.worker = worker
         self.keep_passing = keep_passing
         self.extract = extract
         self.distinct = distinct
+        self.shared = shared
         # (scenario, signature) -> the kept log of that failure (a resumed run: those still in place)
         self.kept_failures: dict[tuple[str, str], str] = {}
+        # the other workers' kept failures: (scenario, signature) -> (env_steps, log), the earliest
+        self.others_kept: dict[tuple[str, str], tuple[int, str]] = {}
+        self._read_to: dict[Path, int] = {}  # other workers' journals -> bytes read so far
         self.extract_kwargs = dict(extract_kwargs or {})
         self.rng = np.random.default_rng([seed, worker])
         self.journal = self.root / f"episodes-{worker}.jsonl"
@@ -101,8 +111,41 @@ class EpisodeSink:
         it duplicates a kept one); with probability ``keep_passing`` otherwise (one draw of the
         sink's RNG)."""
         if record.get("failure"):
-            return not (self.distinct and _failure_key(record) in self.kept_failures)
+            return not (self.distinct and self.kept_log(record) is not None)
         return bool(self.rng.random() < self.keep_passing)
+
+    def kept_log(self, record: dict[str, Any]) -> str | None:
+        """The kept log of the failure ``record`` repeats: this worker's, else (``shared``) one
+        another worker journalled at an env step before :attr:`steps`; None if there is none."""
+        key = _failure_key(record)
+        if key in self.kept_failures:
+            return self.kept_failures[key]
+        if not self.shared:
+            return None
+        self._read_others()
+        steps, log = self.others_kept.get(key, (self.steps, ""))
+        return log if steps < self.steps else None
+
+    def _read_others(self) -> None:
+        """Read the lines the other workers appended to their journals since the last call
+        (whole lines only: one being written is read next time)."""
+        for journal in self.root.glob("episodes-*.jsonl"):
+            if journal == self.journal:
+                continue
+            start = self._read_to.get(journal, 0)
+            with open(journal, "rb") as fh:
+                fh.seek(start)
+                chunk = fh.read()
+            whole = chunk[:chunk.rfind(b"\n") + 1]
+            self._read_to[journal] = start + len(whole)
+            for line in whole.splitlines():
+                try:
+                    r = json.loads(line)
+                except json.JSONDecodeError:
+                    continue
+                if r.get("failure") and r.get("kept") and r.get("dir") and Path(r["dir"]).is_dir():
+                    key, seen = _failure_key(r), (int(r.get("env_steps", 0)), str(r["dir"]))
+                    self.others_kept[key] = min(self.others_kept.get(key, seen), seen)
 
     def finish(self, episode_dir: Path | None, record: dict[str, Any], details: dict[str, Any],
                keep: bool | None = None) -> dict[str, Any]:
@@ -125,8 +168,8 @@ class EpisodeSink:
         if episode_dir is not None:
             self._made.discard(Path(episode_dir))
         done["dir"] = str(episode_dir) if done["kept"] else None
-        if failing and not done["kept"] and _failure_key(record) in self.kept_failures:
-            done["duplicate_of"] = self.kept_failures[_failure_key(record)]
+        if failing and not done["kept"] and (kept := self.kept_log(record)) is not None:
+            done["duplicate_of"] = kept
         append_jsonl(self.journal, {**record, **done, "env_steps": self.steps})
         return done
 
