@@ -100,35 +100,44 @@ def _star(cell: dict[str, Any] | None) -> str:
     return "" if not cell or cell["complete"] else "*"
 
 
-GROUP_COLUMNS = (("failures", "failures", 1, 1.0), ("nods", "NoDS", 1, 1.0), ("collisions", "collisions", 1, 1.0),
+GROUP_COLUMNS = (("root_causes", "root causes", 1, 1.0), ("root_causes_in_lane", "incl. in-lane", 1, 1.0),
+                 ("failures", "failures", 1, 1.0), ("nods", "NoDS", 1, 1.0), ("collisions", "collisions", 1, 1.0),
                  ("nods_local", "local NoDS", 1, 1.0), ("task_failures", "task failures", 1, 1.0),
                  ("validity", "validity %", 1, 100.0), ("distinct", "distinct", 1, 1.0),
                  ("seconds_per_scenario", "s/scenario", 2, 1.0), ("distinct_per_cpu_hour", "distinct/CPU-h", 1, 1.0))
 
 
 def headline_markdown(summary: dict[str, Any]) -> str:
-    """The headline table (for the README): one row per method x placement; counted failures
-    (NoDS + collisions) on seeds, held-out and all scenarios, then the other measures on all
-    scenarios, mean ± sd over repeats of the per-repeat totals; the budget per scenario and
-    repeat, and training episodes as a second budget column."""
-    cols = ["method", "placement", "budget", "training episodes"] + [f"failures {GROUP_LABELS[g]}" for g in GROUPS]
-    cols += [label for key, label, *_ in GROUP_COLUMNS if key != "failures"]
+    """The headline table (for the README): one row per method x placement; distinct root causes
+    of counted failures over all scenarios (without, then with, triggers inside the ego's lane),
+    counted failures (NoDS + collisions) on seeds, held-out and all scenarios, then the other
+    measures on all scenarios, mean ± sd over repeats of the per-repeat totals; the budget per
+    scenario and repeat, and training episodes as a second budget column."""
+    head = [key for key, *_ in GROUP_COLUMNS[:2]]
+    cols = ["method", "placement", "budget", "training episodes"]
+    cols += [label for key, label, *_ in GROUP_COLUMNS if key in head]
+    cols += [f"failures {GROUP_LABELS[g]}" for g in GROUPS]
+    cols += [label for key, label, *_ in GROUP_COLUMNS if key not in head and key != "failures"]
     reps = sorted({len(c["repeats"]) for ps in summary["groups"].values() for gs in ps.values() for c in gs.values()})
     n_reps = "0" if not reps else str(reps[0]) if len(reps) == 1 else f"{reps[0]}-{reps[-1]}"
     caption = (f"Mean ± sd over {n_reps} repeat(s) of per-repeat "
-               "totals. Failures: valid mutations whose NoDS (grid IoU <= 0.6) or ego-at-fault collision reproduced "
-               "on a second jitter seed, on seed, held-out and all scenarios; the other columns over all scenarios. "
-               "Budget: simulated scenarios per scenario and repeat; training episodes: scenarios simulated to "
-               "train the method beforehand.")
+               "totals. Root causes: distinct (kind, trigger, clearance band, mechanism) of the counted failures over "
+               "all scenarios, leaving out triggers inside the ego's own lane (< 0.75 m from the optimal path; "
+               "'incl. in-lane' counts them). Failures: valid mutations whose NoDS (grid IoU <= 0.6) or ego-at-fault "
+               "collision reproduced with the same root cause on a second jitter seed, on seed, held-out and all "
+               "scenarios; the other columns over all scenarios. Budget: simulated scenarios per scenario and "
+               "repeat; training episodes: scenarios simulated to train the method beforehand.")
     lines = [caption, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     groups = summary["groups"]
     for m, p in _rows(summary):
         g_all = groups.get(m, {}).get(p, {}).get("all")
         cells = [_label(m), p, _budget(summary, m, p), _training(summary, m)]
+        cells += [fmt(g_all and g_all[key], nd, scale) for key, _, nd, scale in GROUP_COLUMNS if key in head]
         for g in GROUPS:
             c = groups.get(m, {}).get(p, {}).get(g)
             cells.append(fmt(c and c["failures"]) + _star(c))
-        cells += [fmt(g_all and g_all[key], nd, scale) for key, _, nd, scale in GROUP_COLUMNS if key != "failures"]
+        cells += [fmt(g_all and g_all[key], nd, scale) for key, _, nd, scale in GROUP_COLUMNS
+                  if key not in head and key != "failures"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -209,6 +218,64 @@ def targets_markdown(t: dict[str, Any]) -> str:
     out.append(f"- A counted failure on every seed scenario: {_met(fs['met'])} - by any method: "
                f"{'all' if fs['any_method']['met'] else 'none on ' + (', '.join(fs['any_method']['without']) or '-')}; "
                f"by RL: {'all' if fs['rl']['met'] else 'none on ' + (', '.join(fs['rl']['without']) or '-')}.")
+    if "rl_root_causes" in t:
+        rc = t["rl_root_causes"]
+        parts = [f"{p}: " + "; ".join(
+            f"vs {_label(y)} {_num(v['mean_rl'], 2)} vs {_num(v['mean_other'], 2)}, ratio "
+            f"{_num(v['ratio'], 2) if v['ratio'] is not None else '- (' + (v['note'] or 'no data') + ')'}, "
+            f"p {_p(v['p'])} {'ok' if v['met'] else 'no'}" for y, v in rows.items())
+            for p, rows in rc["per_placement"].items()]
+        out.append(f"- RL >= {rc['ratio_required']}x Decictor-GA and random actions in distinct root causes, "
+                   f"p < {rc['p_required']}: {_met(rc['met'])} - " + (" | ".join(parts) or "no data") + ".")
+        me = t["mechanisms"]
+        out.append(f"- At least {me['required']} mechanisms found in all: {_met(me['met'])} - {len(me['found'])}: "
+                   + ", ".join(f"{k} ({v})" for k, v in me["found"].items()) + ".")
+        do = t["dominance"]
+        parts = [f"{_label(m)} {p}: {v['mechanism']} {100 * v['share']:.0f} %" for m, ps in do["per_method"].items()
+                 for p, v in ps.items() if v["dominates"]]
+        out.append(f"- No mechanism above {100 * do['limit']:.0f} % of a method's counted failures: {_met(do['met'])}"
+                   + (" - dominated: " + ", ".join(parts) if parts else "") + ".")
+    return "\n".join(out) + "\n"
+
+
+def findings_markdown(summary: dict[str, Any], top: int = 12) -> str:
+    """The root causes each method found (the ``top`` most frequent per method and placement,
+    and over all methods with identical scenarios counted once) and the share of each mechanism
+    in its counted failures."""
+    f = summary.get("findings") or {}
+    causes, mechs = f.get("root_causes", {}), f.get("mechanisms", {})
+    out = ["Root cause: `kind:trigger:band:mechanism` (band: the trigger's clearance to the optimal path; in_lane "
+           "< 0.75 m, near 0.75-1.0 m, far). Failures summed over the repeats; repeats and scenarios it was found in.", ""]
+    order = [m for m in [*summary["methods"], "all"] if m in causes]
+    for m in order:
+        for p in summary["placements"]:
+            cs = causes[m].get(p)
+            if not cs:
+                continue
+            rows = sorted(cs.items(), key=lambda kv: (-kv[1]["failures"], kv[0]))
+            genuine = sum(1 for _, c in rows if c["band"] != stats.IN_LANE)
+            out += [f"**{'All methods' if m == 'all' else _label(m)}, {p}**: {len(rows)} root causes "
+                    f"({genuine} outside the ego's lane)", "",
+                    "| root cause | band | mechanism | failures | repeats | scenarios |", "|---|---|---|---|---|---|"]
+            for sig, c in rows[:top]:
+                scn = ", ".join(c["scenarios"][:3]) + (f" (+{len(c['scenarios']) - 3})" if len(c["scenarios"]) > 3 else "")
+                out.append(f"| `{sig}` | {c['band']} | {c['mechanism']} | {c['failures']} | {c['repeats']} | {scn} |")
+            if len(rows) > top:
+                out.append(f"| ... {len(rows) - top} more | | | {sum(c['failures'] for _, c in rows[top:])} | | |")
+            out.append("")
+    names = sorted({k for ps in mechs.values() for cs in ps.values() for k in cs})
+    if names:
+        out += ["Share of each mechanism in the counted failures:", "",
+                "| method | placement | failures | " + " | ".join(names) + " |", "|" + "---|" * (3 + len(names))]
+        for m in order:
+            for p in summary["placements"]:
+                cs = mechs.get(m, {}).get(p)
+                if not cs:
+                    continue
+                n = sum(cs.values())
+                out.append(f"| {'All methods' if m == 'all' else _label(m)} | {p} | {n} | "
+                           + " | ".join(f"{100 * cs.get(k, 0) / n:.0f} %" if cs.get(k) else "-" for k in names) + " |")
+        out.append("")
     return "\n".join(out) + "\n"
 
 
@@ -230,7 +297,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
     if missing:
         text += ["Fields absent from records (defaults used): "
                  + ", ".join(f"{k} ({v})" for k, v in sorted(missing.items())) + ".", ""]
-    text += ["## Headline", "", headline_markdown(summary)]
+    text += ["## Headline", "", headline_markdown(summary), "## Root causes", "", findings_markdown(summary)]
     for g in GROUPS:
         text += [f"## {GROUP_TITLES[g]}", "", group_markdown(summary, g)]
     text += ["## Failures per scenario", "", per_scenario_markdown(summary),

@@ -52,7 +52,7 @@ from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_at
 from deft_gym.record.recorder import init_pool_worker
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
-DEFAULT_METHODS = ("rl", "decictor", "random_delta", "random")
+DEFAULT_METHODS = ("rl", "random_online", "decictor", "random_delta", "random")
 PLACEMENT_FREE = ("random",)  # methods that place with no feasibility constraint: no placement rule
 HELD_OUT_BASE = 1_000_000
 

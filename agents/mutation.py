@@ -8,10 +8,12 @@ every motion area of that window), *removing* an added participant, and *changin
 then add) - and :class:`RandomMutator` the unconstrained ones of the Random baseline
 (participants anywhere on the road near the ego's path, no feasibility check).
 
-Where an added object goes is asked for as a point of the region of interest (uniform in the
-drivable area within ``roi`` of the optimal path) and granted by the shared
-:class:`~deft_gym.search.placement.Placer` under the evaluation's placement rule, exactly as the
-RL env's requests are.
+What is added and where is drawn from the request grid every adversary shares
+(:func:`~deft_gym.search.placement.draw_request`: kind, distance ahead of the reference ego at a
+window start, lateral offset, a vehicle's speed and first manoeuvre) - what uniform random actions
+of the RL env ask - and granted by the shared :class:`~deft_gym.search.placement.Placer` under the
+evaluation's placement rule, exactly as the RL env's requests are. Random takes the requested
+point as it is.
 """
 
 from __future__ import annotations
@@ -21,16 +23,13 @@ from functools import cached_property
 from typing import Any
 
 import numpy as np
-import shapely
 
 from deft_gym.scenarios.scenario import MIN_GAP, pose_xyh
 from deft_gym.search.context import SeedContext
 from deft_gym.search.feasible import Layout, Placed
-from deft_gym.search.placement import Placer
+from deft_gym.search.placement import Placer, Request, draw_request
 from deft_gym.search.vehicles import Controls, Trajectory, VState, start_state, vehicle_spec
 from deft_gym.world.participants import SIZES
-
-MANOEUVRES = ("keep", "keep", "toward", "away", "left", "right")  # first-window manoeuvres, drawn uniformly
 
 
 @dataclass
@@ -80,8 +79,6 @@ class NonInvasiveMutator:
         self.max_added, self.max_tries, self.p_static = max_added, max_tries, p_static
         self.placer = Placer(ctx, rule, rng)
         self.driver = self.placer.driver
-        self.roi = ctx.areas.roi
-        self.bounds = self.roi.bounds
         self.t_end = float(ctx.ref.t[-1])
 
     # -- Algorithm 2 ------------------------------------------------------------------------
@@ -110,26 +107,23 @@ class NonInvasiveMutator:
         m.layout.remove(placed[int(self.rng.integers(len(placed)))].id)
 
     def add(self, m: Mutant) -> bool:
-        if self.rng.random() < self.p_static:
-            obstacle = "CONE" if self.rng.random() < 0.5 else "STATIC_VEHICLE"
-            return self.add_static(m, obstacle)
-        return self.add_vehicle(m)
+        """Add one object: its kind drawn from the request grid, then up to ``max_tries``
+        requests for it (a third of that for a vehicle, whose trajectory costs more)."""
+        kind = draw_request(self.rng).kind
+        if kind == "vehicle":
+            return self.add_vehicle(m)
+        return self.add_static(m, "CONE" if kind == "cone" else "STATIC_VEHICLE")
 
     # -- requests ---------------------------------------------------------------------------
-    def _point(self) -> tuple[float, float]:
-        """A uniform random point of the region of interest (drivable area near the path)."""
-        x0, y0, x1, y1 = self.bounds
-        for _ in range(200):
-            x, y = self.rng.uniform(x0, x1), self.rng.uniform(y0, y1)
-            if shapely.contains_xy(self.roi, x, y):
-                return float(x), float(y)
-        c = self.roi.representative_point()
-        return float(c.x), float(c.y)
-
-    def _request(self) -> tuple[float, float]:
-        """A requested point in the path frame: ``(sigma, lateral)`` of a uniform ROI point."""
-        sigma, lateral, _ = self.ctx.path.project(np.array(self._point()))
-        return sigma, lateral
+    def _request(self) -> tuple[Request, float, float]:
+        """A request of the shared grid (:func:`~deft_gym.search.placement.draw_request`) made at
+        a window start ``t0`` [s] drawn uniformly over the reference run, relative to where the
+        reference ego is then: ``(request, t0, sigma)`` with ``sigma`` the requested arc length
+        [m] - the same requests uniform random actions of the RL env make."""
+        req = draw_request(self.rng)
+        dt = self.ctx.feasible.dt
+        t0 = float(self.rng.integers(0, max(1, int(self.t_end / dt)))) * dt
+        return req, t0, self.ctx.path.sigma_at_time(t0) + req.along
 
     def _ego_at(self, t: float) -> np.ndarray:
         ref = self.ctx.ref
@@ -139,21 +133,18 @@ class NonInvasiveMutator:
     def add_static(self, m: Mutant, obstacle: str) -> bool:
         start = self._ego_at(0.0)
         for _ in range(self.max_tries):
-            pose = self.placer.static(m.layout, obstacle, *self._request(), ego_xy=start)
+            req, _, sigma = self._request()
+            pose = self.placer.static(m.layout, obstacle, sigma, req.lateral, ego_xy=start)
             if pose is not None:
                 self.placer.add_static(m.layout, m.new_id("cone" if obstacle == "CONE" else "static"), obstacle, pose)
                 return True
         return False
 
     def add_vehicle(self, m: Mutant) -> bool:
-        dt = self.ctx.feasible.dt
-        n_win = max(1, int(self.t_end / dt))
         for _ in range(self.max_tries // 3):
-            t0 = float(self.rng.integers(0, n_win)) * dt
-            speed = float(self.rng.uniform(0.0, self.driver.v_max_factor))
-            man = MANOEUVRES[int(self.rng.integers(len(MANOEUVRES)))]
-            traj = self.placer.vehicle(m.layout, t0, *self._request(), speed, man, ego_xy=self._ego_at(t0),
-                                       rng=self.rng)
+            req, t0, sigma = self._request()
+            traj = self.placer.vehicle(m.layout, t0, sigma, req.lateral, req.speed, req.manoeuvre,
+                                       ego_xy=self._ego_at(t0), rng=self.rng)
             if traj is not None:
                 self.placer.add_vehicle(m.layout, m.new_id("veh"), traj)
                 return True
@@ -186,9 +177,15 @@ class RandomMutator(NonInvasiveMutator):
         exy = self._ego_start
         return t0 > 0.0 or float(np.hypot(x - exy[0], y - exy[1])) >= MIN_GAP
 
+    def _point_at(self) -> tuple[float, float, float]:
+        """A requested point of the shared grid taken as it is (no placement rule): ``(x, y, t0)``."""
+        req, t0, sigma = self._request()
+        xy, _ = self.ctx.path.offset(np.array([sigma]), np.array([req.lateral]))
+        return float(xy[0, 0]), float(xy[0, 1]), t0
+
     def add_static(self, m: Mutant, obstacle: str) -> bool:
         for _ in range(self.max_tries):
-            x, y = self._point()
+            x, y, _ = self._point_at()
             if self._off_ego(x, y):
                 break
         else:
@@ -202,13 +199,11 @@ class RandomMutator(NonInvasiveMutator):
         return True
 
     def add_vehicle(self, m: Mutant) -> bool:
-        dt = self.ctx.feasible.dt
         for _ in range(self.max_tries):
-            x, y = self._point()
+            x, y, t0 = self._point_at()
             st = start_state(self.ctx.roadmap, x, y, 0.0, 0.0) or self._on_lane(x, y)
             if st is None:
                 continue
-            t0 = float(self.rng.integers(0, max(1, int(self.t_end / dt)))) * dt
             if not self._off_ego(x, y, t0):
                 continue
             turn = str(self.rng.choice(["straight", "straight", "left", "right"]))

@@ -15,7 +15,7 @@ Common to all three (and to the RL adversary in :mod:`agents.evaluate`): every p
 simulation is one unit of budget and yields one record (:func:`record_of`); a child that is a
 near-duplicate of one already simulated is redrawn before it costs a simulation; every failure
 (NoDS, ego-at-fault collision) and task failure is re-checked on a second jitter seed
-(:func:`confirm`) and counts only when it reproduces - that run is reported (``sims``, time)
+(:func:`confirm`) and counts only when it reproduces with the same root cause - that run is reported (``sims``, time)
 but is not a unit of budget. Task failures of valid mutations (timeout, stuck) are findings of
 their own column; as in Algorithm 1 they do not join the population.
 """
@@ -53,12 +53,15 @@ def feedback(v: Verdict) -> float:
 def confirm(ctx: SeedContext, verdict: Verdict, specs: list[dict[str, Any]], jitter_seed: int,
             added_at: dict[str, float] | None = None) -> tuple[bool | None, float, float]:
     """Re-run a failing scenario with another jitter seed: ``(reproduced, wall s, cpu s)``;
-    ``reproduced`` is None when there is nothing to confirm (no failure, no task failure)."""
+    ``reproduced`` when the second run fails with the same root cause (the same kind, trigger,
+    clearance band and mechanism: ``signature``), None when there is nothing to confirm (no
+    failure, no task failure)."""
     if verdict.failure is None and verdict.task_failure is None:
         return None, 0.0, 0.0
     w0, c0 = time.perf_counter(), time.process_time()
     again = run_scenario(ctx, specs, jitter_seed, added_at=added_at).verdict
-    same = (again.failure == verdict.failure) if verdict.failure else (again.task_failure is not None)
+    same = again.failure == verdict.failure and again.task_failure == verdict.task_failure \
+        and again.signature == verdict.signature
     return bool(same), time.perf_counter() - w0, time.process_time() - c0
 
 
@@ -94,7 +97,9 @@ def search(method: str, ctx: SeedContext, budget: int, seed: int, max_added: int
     one record per primary simulation. ``log_dir(index)`` may give a directory for its MCAP log."""
     if method not in SEARCH_METHODS:
         raise ValueError(f"unknown search method {method!r}; expected one of {SEARCH_METHODS}")
-    rng = np.random.default_rng([seed, 7919])
+    # each method its own stream: the GA and Random-delta would otherwise draw the same first
+    # generation and both count it
+    rng = np.random.default_rng([seed, 7919, SEARCH_METHODS.index(method)])
     mutator = (RandomMutator if method == "random" else NonInvasiveMutator)(ctx, rng, rule, max_added=max_added)
     population = [Mutant(Layout(ctx.areas), fitness=0.01) for _ in range(POPULATION)]
     seen: set[frozenset[Any]] = {population[0].key()}

@@ -28,15 +28,23 @@ GROUP_LABELS = {"seeds": "seeds", "held_out": "held-out", "all": "all"}
 KINDS = ("seed", "held_out")
 # methods whose mutations are non-invasive by construction (validity target); Random is not
 NON_INVASIVE = ("rl", "decictor", "random_delta", "random_online")
-# (x, y, measure): RL against each baseline on failures; the paper's ordering steps on NoDS
+# (x, y, measure): RL against each baseline in distinct root causes (the headline) and in raw
+# failures; the paper's ordering steps on NoDS
 COMPARISONS: tuple[tuple[str, str, str], ...] = (
+    ("rl", "decictor", "root_causes"), ("rl", "random_online", "root_causes"), ("rl", "random_delta", "root_causes"),
+    ("rl", "random", "root_causes"), ("decictor", "random_online", "root_causes"),
     ("rl", "decictor", "failures"), ("rl", "random_delta", "failures"), ("rl", "random", "failures"),
     ("rl", "random_online", "failures"), ("decictor", "random_delta", "nods"), ("random_delta", "random", "nods"))
 # per-repeat measures, in table order
-MEASURES = ("failures", "nods", "collisions", "nods_local", "task_failures", "unconfirmed", "validity",
-            "distinct", "simulated", "sims", "seconds_per_scenario", "cpu_seconds", "distinct_per_cpu_hour")
+MEASURES = ("root_causes", "root_causes_in_lane", "failures", "nods", "collisions", "nods_local", "task_failures",
+            "unconfirmed", "validity", "distinct", "simulated", "sims", "seconds_per_scenario", "cpu_seconds",
+            "distinct_per_cpu_hour")
+# a root cause whose trigger stood inside the ego's own lane (< 0.75 m from the optimal path): the
+# headline leaves it out (docs/search.md, "What counts"), the in_lane column counts it too
+IN_LANE = "in_lane"
 # targets of issue 17
 TARGET_REPEATS, TARGET_HELD_OUT, TARGET_A12, TARGET_RATIO, TARGET_P, TARGET_VALIDITY = 5, 10, 0.6, 1.5, 0.05, 0.99
+TARGET_MECHANISMS, TARGET_DOMINANCE = 5, 0.5  # issue 31: mechanisms found in all; no mechanism above this share
 
 
 class RecordError(ValueError):
@@ -98,9 +106,13 @@ def normalize(records: Iterable[dict[str, Any]], source: str = "records",
                                     missing),
              "confirmed": _field(rec, "confirmed", where, (bool, type(None)), None, None, missing),
              "signature": _field(rec, "signature", where, (str, type(None)), "", None, missing) or "",
+             "band": _field(rec, "band", where, (str, type(None)), None, None, missing) or "-",
+             "mechanism": _field(rec, "mechanism", where, (str, type(None)), None, None, missing) or "other",
              "seconds": _field(rec, "seconds", where, (int, float), None, None, missing),
              "cpu_seconds": _field(rec, "cpu_seconds", where, (int, float), None, None, missing),
              "sims": _field(rec, "sims", where, (int,), 1, None, missing)}
+        if isinstance(rec.get("scenario_equivalent"), dict):
+            r["scenario_equivalent"] = rec["scenario_equivalent"]
         out.append(r)
     return out, missing
 
@@ -113,12 +125,16 @@ def counted_failure(rec: dict[str, Any]) -> str | None:
 # -- per-repeat tallies ---------------------------------------------------------------------------
 @dataclass
 class Tally:
-    """What one repeat of one cell found: counts, time [s] and distinct (scenario, signature) pairs."""
+    """What one repeat of one cell found: counts, time [s], distinct (scenario, root cause) pairs
+    and the distinct root causes (kind, trigger, band, mechanism) of counted failures, with and
+    without the in-lane band."""
 
     counts: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     seconds: float | None = 0.0
     cpu_seconds: float | None = 0.0
     signatures: set[tuple[str, str]] = field(default_factory=set)
+    causes: set[str] = field(default_factory=set)
+    causes_in_lane: set[str] = field(default_factory=set)
 
     def add(self, r: dict[str, Any]) -> None:
         c = self.counts
@@ -129,7 +145,9 @@ class Tally:
         if kind:
             c["failures"] += 1
             c["nods" if kind == "nods" else "collisions"] += 1
-            self.signatures.add((r["scenario"], r["signature"] or f"<unsigned {kind}>"))
+            sig = r["signature"] or f"<unsigned {kind}>"
+            self.signatures.add((r["scenario"], sig))
+            (self.causes_in_lane if r["band"] == IN_LANE else self.causes).add(sig)
         elif r["failure"] and r["valid"]:
             c["unconfirmed"] += 1
         c["nods_local"] += int(bool(r["nods_local"] and r["valid"]))
@@ -145,6 +163,8 @@ class Tally:
         self.cpu_seconds = (None if self.cpu_seconds is None or other.cpu_seconds is None
                             else self.cpu_seconds + other.cpu_seconds)
         self.signatures |= other.signatures
+        self.causes |= other.causes
+        self.causes_in_lane |= other.causes_in_lane
 
     def measures(self) -> dict[str, float | None]:
         """The per-repeat values of :data:`MEASURES` (validity a share, times in s, rates per CPU-hour)."""
@@ -153,6 +173,8 @@ class Tally:
         cpu = self.cpu_seconds
         return {**{k: float(c[k]) for k in ("failures", "nods", "collisions", "nods_local", "task_failures",
                                               "unconfirmed", "simulated", "sims")},
+                "root_causes": float(len(self.causes)),
+                "root_causes_in_lane": float(len(self.causes | self.causes_in_lane)),
                 "validity": c["valid"] / n if n else None, "distinct": float(distinct),
                 "seconds_per_scenario": self.seconds / n if n and self.seconds is not None else None,
                 "cpu_seconds": cpu, "distinct_per_cpu_hour": distinct / (cpu / 3600.0) if cpu else None}
@@ -267,10 +289,52 @@ def summarize(records: Iterable[dict[str, Any]], methods: Sequence[str] | None =
                     "complete": not missing_scn and everyone == reps, **_cell(total)}
     summary: dict[str, Any] = {"methods": methods, "placements": placements, "seeds": seed_list,
                                "held_out": held_list, "scenario_kinds": kinds, "per_scenario": per,
-                               "groups": groups, "missing_fields": missing, "records": len(rows)}
+                               "groups": groups, "missing_fields": missing, "records": len(rows),
+                               "findings": findings(rows, methods, placements)}
     summary["statistics"] = statistics(summary)
     summary["targets"] = check_targets(summary)
     return summary
+
+
+def findings(rows: list[dict[str, Any]], methods: Sequence[str], placements: Sequence[str]) -> dict[str, Any]:
+    """The counted failures by root cause and by mechanism: ``root_causes[method][placement]`` ->
+    root cause -> ``{failures, repeats, scenarios, band, mechanism}`` (failures summed over the
+    repeats, repeats and scenarios it was found in), ``mechanisms[method][placement]`` ->
+    mechanism -> failures, and the same over ``all`` methods (identical scenarios found by several
+    methods counted once: the same scenario, participants and root cause)."""
+    causes: dict[str, Any] = {}
+    mechs: dict[str, Any] = {}
+    seen: set[tuple[str, str, str]] = set()
+    for r in rows:
+        if not counted_failure(r):
+            continue
+        sig = r["signature"] or "<unsigned>"
+        for m in (r["method"], "all"):
+            if m == "all":
+                key = (r["scenario"], json_key(r.get("scenario_equivalent") or {"method": r["method"], "index": r["index"],
+                                                                               "repeat": r["repeat"]}), sig)
+                if key in seen:
+                    continue
+                seen.add(key)
+            cell = causes.setdefault(m, {}).setdefault(r["placement"], {}).setdefault(
+                sig, {"failures": 0, "repeats": set(), "scenarios": set(), "band": r["band"], "mechanism": r["mechanism"]})
+            cell["failures"] += 1
+            cell["repeats"].add(r["repeat"])
+            cell["scenarios"].add(r["scenario"])
+            mc = mechs.setdefault(m, {}).setdefault(r["placement"], {})
+            mc[r["mechanism"]] = mc.get(r["mechanism"], 0) + 1
+    for ps in causes.values():
+        for cs in ps.values():
+            for c in cs.values():
+                c["repeats"], c["scenarios"] = len(c["repeats"]), sorted(c["scenarios"])
+    return {"root_causes": causes, "mechanisms": mechs}
+
+
+def json_key(x: Any) -> str:
+    """A canonical string of a JSON-like value (for de-duplicating identical scenarios)."""
+    import json
+
+    return json.dumps(x, sort_keys=True, default=str)
 
 
 def _get(tree: dict[str, Any], *keys: str) -> Any:
@@ -301,10 +365,13 @@ def statistics(summary: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
     return out
 
 
-def find_comparison(summary: dict[str, Any], x: str, y: str, placement: str, group: str) -> dict[str, Any] | None:
-    """The group-level statistics row of ``x`` against ``y``, if computed."""
+def find_comparison(summary: dict[str, Any], x: str, y: str, placement: str, group: str,
+                    measure: str | None = None) -> dict[str, Any] | None:
+    """The group-level statistics row of ``x`` against ``y`` (on ``measure``, else the first), if
+    computed."""
     for row in summary["statistics"]["groups"]:
-        if (row["x"], row["y"], row["placement"], row["group"]) == (x, y, placement, group):
+        if (row["x"], row["y"], row["placement"], row["group"]) == (x, y, placement, group) and \
+                measure in (None, row["measure"]):
             return row
     return None
 
@@ -333,7 +400,7 @@ def check_targets(summary: dict[str, Any], group: str = "all") -> dict[str, Any]
     for p in placements:
         steps = []
         for x, y in (("decictor", "random_delta"), ("random_delta", "random")):
-            row = find_comparison(summary, x, y, p, group) or {}
+            row = find_comparison(summary, x, y, p, group, "nods") or {}
             mx, my, a12 = row.get("mean_x"), row.get("mean_y"), row.get("a12")
             met = None not in (mx, my, a12) and mx > my and a12 >= TARGET_A12
             steps.append({"x": x, "y": y, "mean_x": mx, "mean_y": my, "a12": a12, "p": row.get("p"), "met": met})
@@ -343,7 +410,7 @@ def check_targets(summary: dict[str, Any], group: str = "all") -> dict[str, Any]
 
     rl_ga: dict[str, Any] = {}
     for p in placements:
-        row = find_comparison(summary, "rl", "decictor", p, group) or {}
+        row = find_comparison(summary, "rl", "decictor", p, group, "failures") or {}
         mx, my, pv = row.get("mean_x"), row.get("mean_y"), row.get("p")
         met = None not in (mx, my, pv) and mx > my and mx >= TARGET_RATIO * my and pv < TARGET_P
         rl_ga[p] = {"met": met, "mean_rl": mx, "mean_ga": my, "ratio": row.get("ratio"), "p": pv,
@@ -376,7 +443,40 @@ def check_targets(summary: dict[str, Any], group: str = "all") -> dict[str, Any]
                                   "any_method": {"met": bool(found) and not no_any, "without": no_any},
                                   "rl": {"met": bool(found) and not no_rl, "without": no_rl},
                                   "per_seed": found}
-    t["met"] = all(t[k]["met"] for k in ("protocol", "nods_ordering", "rl_vs_ga", "validity", "failure_on_every_seed"))
+    # issue 31: distinct root causes are the headline
+    rc: dict[str, Any] = {}
+    for p in placements:
+        rows = {}
+        for y in ("decictor", "random_online"):
+            row = find_comparison(summary, "rl", y, p, group, "root_causes") or {}
+            mx, my, pv = row.get("mean_x"), row.get("mean_y"), row.get("p")
+            met = None not in (mx, my, pv) and mx > my and mx >= TARGET_RATIO * my and pv < TARGET_P
+            rows[y] = {"met": met, "mean_rl": mx, "mean_other": my, "ratio": row.get("ratio"), "p": pv,
+                       "a12": row.get("a12"), "note": row.get("note", "no data")}
+        rc[p] = rows
+    t["rl_root_causes"] = {"met": bool(rc) and all(v["met"] for r in rc.values() for v in r.values()),
+                           "measure": "root_causes", "ratio_required": TARGET_RATIO, "p_required": TARGET_P,
+                           "per_placement": rc}
+    mech_all: dict[str, int] = {}
+    for ps in summary.get("findings", {}).get("mechanisms", {}).get("all", {}).values():
+        for k, v in ps.items():
+            mech_all[k] = mech_all.get(k, 0) + v
+    t["mechanisms"] = {"met": len(mech_all) >= TARGET_MECHANISMS, "required": TARGET_MECHANISMS,
+                       "found": dict(sorted(mech_all.items(), key=lambda kv: -kv[1]))}
+    dom: dict[str, dict[str, Any]] = {}
+    for m, ps in summary.get("findings", {}).get("mechanisms", {}).items():
+        if m == "all":
+            continue
+        for p, counts in ps.items():
+            total = sum(counts.values())
+            top = max(counts.items(), key=lambda kv: (kv[1], kv[0]))
+            dom.setdefault(m, {})[p] = {"mechanism": top[0], "share": _r(top[1] / total, 4), "failures": total,
+                                        "dominates": top[1] / total > TARGET_DOMINANCE}
+    t["dominance"] = {"met": not any(v["dominates"] for ps in dom.values() for v in ps.values()),
+                      "limit": TARGET_DOMINANCE, "per_method": dom}
+    t["met_17"] = all(t[k]["met"] for k in ("protocol", "nods_ordering", "rl_vs_ga", "validity",
+                                            "failure_on_every_seed"))
+    t["met"] = t["met_17"] and all(t[k]["met"] for k in ("rl_root_causes", "mechanisms", "dominance"))
     return t
 
 

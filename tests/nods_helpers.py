@@ -23,7 +23,7 @@ from deft_gym.search.context import SeedContext
 from deft_gym.search.feasible import Layout, Placed
 from deft_gym.search.nods import Verdict
 from deft_gym.search.placement import Placer
-from deft_gym.search.trace import TraceRecorder
+from deft_gym.search.trace import Trace, TraceRecorder
 from deft_gym.sim.simulation import Simulation
 from deft_gym.world.participants import SIZES
 
@@ -37,6 +37,7 @@ class Run:
     predictions: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
     perceptions: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
     xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # the ego's path [m]
+    trace: Trace | None = None
 
     def reasons(self) -> set[str]:
         return {d["reason"] for _, d in self.decisions}
@@ -63,18 +64,23 @@ def run(ctx: SeedContext, added: list[dict[str, Any]], jitter_seed: int) -> Run:
     trace = rec.trace(o.outcome, o.sim_time)
     out.verdict = ctx.oracle.judge(trace, o.collision.as_dict() if o.collision else None)
     out.xy = trace.xy
+    out.trace = trace
     return out
 
 
-def assert_nods(ctx: SeedContext, added: list[dict[str, Any]]) -> list[Run]:
+def assert_nods(ctx: SeedContext, added: list[dict[str, Any]], mechanism: str | None = None) -> list[Run]:
     """``added`` is valid and gives a NoDS under the paper's oracle for every jitter seed of
-    :data:`SEEDS`; returns the runs."""
+    :data:`SEEDS` - with the root-cause ``mechanism`` the oracle names, when given; returns the
+    runs."""
     runs = [run(ctx, added, js) for js in SEEDS]
     for js, r in zip(SEEDS, runs):
         v = r.verdict
-        assert v.valid, f"jitter seed {js}: mutation invades the optimal path: {v.invasive}"
+        assert v.valid, f"jitter seed {js}: mutation invades the optimal path: {v.invasive_why}"
         assert v.outcome == "completed", f"jitter seed {js}: {v.outcome}"
         assert v.iou <= ctx.oracle.threshold and v.failure == "nods", f"jitter seed {js}: IoU {v.iou:.2f}"
+        if mechanism is not None:
+            assert v.finding is not None and v.finding.mechanism == mechanism, f"jitter seed {js}: {v.signature}"
+            assert set(v.finding.trigger_ids) <= {a["id"] for a in added}, v.finding
     return runs
 
 

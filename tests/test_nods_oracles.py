@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from deft_gym.search.context import seed_context
-from deft_gym.search.nods import LaneCells, iou, mmd_linear, world_cells
+from deft_gym.search.nods import LaneCells, collision_fault, iou, mmd_linear, world_cells
 from deft_gym.search.trace import Actor, Trace
 from deft_gym.world.geometry import box_gap
 
@@ -57,7 +57,7 @@ def test_mmd_linear_is_the_squared_mean_distance():
 def test_validity_replays_the_reference_ego(ctx):
     ref = ctx.ref
     mid = len(ref.ticks) // 2
-    on_path = np.array([[ref.ticks[mid], 0, ref.xy[mid, 0], ref.xy[mid, 1], 0.0]])
+    on_path = np.array([[ref.ticks[0], 0, ref.xy[mid, 0], ref.xy[mid, 1], 0.0]])  # a cone from the start
     beside = on_path.copy()
     beside[0, 3] += 4.0
     actors = [Actor("cone", "static", "CONE", 0.6, 0.6, added=True)]
@@ -78,3 +78,122 @@ def test_lane_cells_cover_every_lane_point(ctx):
     pi, _li, s = cells.membership(ctx.ref.xy)
     assert set(pi.tolist()) == set(range(len(ctx.ref.xy)))  # every reference point lies on a lane
     assert (s >= 0).all()
+
+
+# -- the loopholes the validity check closes ----------------------------------------------------------
+CAR = ("car", "scripted", "VEHICLE", 4.8, 2.0)
+
+
+def _with_car(ref: Trace, rows: list[tuple[float, float, float, float]], ego: np.ndarray | None = None) -> Trace:
+    """``ref`` (as a mutated run, its ego replaced by ``ego``) with one added car on ``rows``
+    ``(tick, x, y, heading)``."""
+    parts = np.array([(t, 0, x, y, h) for t, x, y, h in rows], dtype=float)
+    return dataclasses.replace(ref, actors=[Actor(*CAR, added=True)], parts=parts,
+                               ego=ref.ego if ego is None else ego, outcome="completed")
+
+
+def test_a_car_standing_where_the_reference_passed_2_s_before_is_invasive(ctx):
+    """A mutated ego 2 s late meets it there; 4 s after the reference passed it is out of the
+    3 s window (a parked vehicle, being static, never is)."""
+    ref = ctx.ref
+    k = len(ref.ticks) // 2
+    x, y, h = ref.ego[k, :3]
+    for lag, invasive in ((2.0, True), (4.0, False)):
+        t0 = int(ref.ticks[k] + round(lag / ref.world_dt))
+        rows = [(ref.ticks[0] + i, x - 60.0 + 0.5 * i, y + 3.5, h) for i in range(20)]  # away from the path first
+        rows += [(t, x, y, h) for t in range(t0, t0 + 40)]  # then standing on it for 2 s
+        v = ctx.oracle.judge(_with_car(ref, rows))
+        assert (v.invasive_why == {"car": "path"}) is invasive, (lag, v.invasive_why)
+
+
+def test_a_car_on_the_optimal_path_after_the_reference_ended_is_invasive(ctx):
+    """The check used to drop every row after the reference's last tick: a car could drive onto
+    any part of the path then, where a mutated ego that lags still drives."""
+    ref = ctx.ref
+    end = int(ref.ticks[-1])
+    k = len(ref.ticks) // 3
+    x, y, h = ref.ego[k, :3]
+    rows = [(end + 20 + i, x, y, h) for i in range(20)]
+    assert ctx.oracle.judge(_with_car(ref, rows)).invasive_why == {"car": "path"}
+
+
+def test_a_car_appearing_beside_the_live_ego_is_invasive(ctx):
+    """Spawn distance against the ego of the run itself (not the reference's): the mutated ego
+    lags 30 m behind the reference, and a car appears 6 m beside it - 30 m from where the
+    reference ego was."""
+    ref = ctx.ref
+    ego = ref.ego.copy()
+    ego[:, 0] -= 30.0
+    k = len(ref.ticks) // 2
+    ex, ey, h = ego[k, :3]
+    rows = [(int(ref.ticks[k]) + i, ex + 0.5 * i, ey - 6.0, h) for i in range(40)]
+    v = ctx.oracle.judge(_with_car(ref, rows, ego))
+    assert v.invasive_why == {"car": "spawn"}
+
+
+def _fault(ego_rows: list[tuple[float, float, float, float]], car_rows: list[tuple[float, float, float]],
+           first_tick: int = 0) -> tuple[bool, str]:
+    """:func:`collision_fault` of a 2 s encounter at 20 Hz: ego rows (x, y, heading, speed) and
+    the car's (x, y, heading) per tick, the car present from ``first_tick``, contact at the end."""
+    n = len(ego_rows)
+    ego = np.array([(x, y, h, v, 0.0) for x, y, h, v in ego_rows])
+    parts = np.array([(t, 0, *car_rows[t]) for t in range(first_tick, n)], dtype=float)
+    tr = Trace(0.05, np.arange(n), ego, [Actor(*CAR, added=True)], parts, "collision", n * 0.05)
+    return collision_fault(tr, {"participant": "car", "time": (n - 1) * 0.05, "ego_moving": True},
+                           lambda x, y, h: 0.0)  # a straight road along x
+
+
+def test_the_ego_is_at_fault_only_when_it_closed_the_gap():
+    t = np.arange(41) * 0.05
+    ego = [(10.0 * ti, 0.0, 0.0, 10.0) for ti in t]
+    # the ego runs into a slower car ahead in its lane
+    assert _fault(ego, [(20.0 + 4.0 * ti, 0.0, 0.0) for ti in t]) == (True, "rear_end")
+    # a car beside it cuts into the ego's lane
+    assert _fault(ego, [(10.0 * ti + 1.0, 3.5 - 1.5 * ti, -0.15) for ti in t]) == (False, "cut_in")
+    # the ego changes lanes into a car beside it
+    ego_lc = [(10.0 * ti, 1.5 * ti, 0.15, 10.0) for ti in t]
+    assert _fault(ego_lc, [(10.0 * ti + 1.0, 3.5, 0.0) for ti in t]) == (True, "lateral")
+    # a car that appeared 1 s before the contact, right in front of the ego
+    assert _fault(ego, [(20.0 - 5.0 * ti, 0.0, 0.0) for ti in t], first_tick=20) == (False, "appeared")
+
+
+# -- the reference path ------------------------------------------------------------------------------
+def test_the_reference_is_the_most_typical_of_several_jittered_runs(monkeypatch):
+    """One jittered run with a half lane change it gave up is not the optimal path: of five runs the
+    medoid is chosen, and runs that do not complete are left out."""
+    from deft_gym.scenarios.scenario import load_scenario
+    from deft_gym.search import trace as trace_mod
+
+    x = np.linspace(0.0, 100.0, 101)
+
+    def fake(sc, ads=None, jitter_seed=0):
+        y = np.full_like(x, 0.05 * jitter_seed)
+        if jitter_seed == 0:  # the seed the reference used to be: a half lane change, given up
+            y = 1.6 * np.exp(-(((x - 50.0) / 10.0) ** 2))
+        ego = np.column_stack([x, y, np.zeros_like(x), np.full_like(x, 10.0), np.zeros_like(x)])
+        outcome = "timeout" if jitter_seed == 4 else "completed"
+        return Trace(0.1, np.arange(len(x)), ego, [], np.zeros((0, 5)), outcome, 10.0, {"jitter_seed": jitter_seed})
+
+    monkeypatch.setattr(trace_mod, "record_run", fake)
+    monkeypatch.setattr(trace_mod, "_MEMO", {})
+    ref = trace_mod.reference_run(load_scenario("lane_follow_static"), cache_dir=None)
+    assert ref.meta["jitter_seed"] in (1, 2) and ref.meta["reference_of"] == [0, 1, 2, 3]
+    assert ref.meta["not_completed"] == [4]
+
+
+def test_a_reference_that_gives_up_a_lane_change_is_not_robust(ctx):
+    from deft_gym.search.context import robust
+    from deft_gym.search.trace import aborted_changes
+
+    a, b = ["a", "b", 0], ["a", "b", 1]
+    entry = {"home": a, "blocked": [], "tight": [], "refused": {}, "causes": {}}
+    gave_up = [{"t": 1.0, "reason": "keep", "lane": a, "target": a, **entry},
+               {"t": 2.0, "reason": "borrow", "lane": a, "target": b, **entry},
+               {"t": 3.0, "reason": "keep", "lane": a, "target": a, **entry}]
+    done = [*gave_up[:2], {"t": 4.0, "reason": "away", "lane": b, "target": b, **entry}]
+    assert aborted_changes(dataclasses.replace(ctx.ref, meta={"timeline": gave_up})) == [
+        {"t": 2.0, "lane": a, "target": b}]
+    assert aborted_changes(dataclasses.replace(ctx.ref, meta={"timeline": done})) == []
+    assert aborted_changes(ctx.ref) == []  # the seed itself is clean
+    bad = dataclasses.replace(ctx, ref=dataclasses.replace(ctx.ref, meta={"timeline": gave_up}))
+    assert robust(bad, cache_dir=None) is False

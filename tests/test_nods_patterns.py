@@ -1,8 +1,10 @@
 """Decictor's six root causes of non-optimal decisions (Table II), each shown on a hand-built
-scenario: a *valid* mutation (every added object at least 0.5 m from the optimal path, checked by
-the replay validity check) yields a NoDS under the paper's oracle (task completed, 2 m grid IoU
-<= 0.6) for two jitter seeds, the mechanism shows in what the modules published, and a control
-mutation that differs only in the point that matters yields none.
+scenario: a *valid* mutation (every added object at least 0.5 m from the optimal path while it is
+reserved - from 1 s before the reference ego is there until 3 s after it left - checked by the
+replay validity check) yields a NoDS under the paper's oracle (task completed, 2 m grid IoU <=
+0.6) for two jitter seeds, the mechanism shows in what the modules published and the oracle's
+root cause names it, and a control mutation that differs only in the point that matters yields
+none.
 
 The ADS is the default one: each pattern is the consequence of a parameter of the planner's
 lane decisions (deft_gym/planner/decision.py) or of prediction, not of a planted bug.
@@ -15,10 +17,12 @@ from typing import Any
 
 import numpy as np
 import pytest
-from nods_helpers import assert_no_nods, assert_nods, cone, parked, vehicle
+from nods_helpers import assert_no_nods, assert_nods, cone, parked, run, vehicle
 
 from deft_gym.scenarios.scenario import scenario_from_dict
 from deft_gym.search.context import SeedContext, seed_context
+from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH
+from deft_gym.world.geometry import box_gap
 
 LANE_W = 3.5
 
@@ -77,10 +81,10 @@ def change() -> SeedContext:
 # -- the six patterns -----------------------------------------------------------------------------
 def test_1_moving_vehicle_predicted_stationary(keep: SeedContext) -> None:
     """A vehicle crawling ahead (0.8 m/s, under prediction's 1 m/s stationary threshold) pulls
-    away before the ego arrives; prediction keeps it stationary for its hold time after it
+    away before the ego arrives (it never comes within 1 s of the optimal run); prediction keeps it stationary for its hold time after it
     speeds up, the middle lane looks blocked and the ego borrows a neighbour lane. The same
     vehicle crawling at 1.5 m/s is predicted as moving: no NoDS."""
-    runs = assert_nods(keep, [accelerating("npc", 65.0, LANE_W, 0.8, 3.0, 4.0, 14.0)])
+    runs = assert_nods(keep, [accelerating("npc", 75.0, LANE_W, 0.8, 3.0, 4.0, 14.0)], "predicted_static")
     r = runs[0]
     speed = {t: next(o["v"] for o in p["obstacles"]) for t, p in r.perceptions}
     # predicted stationary while actually moving faster than the threshold
@@ -88,14 +92,14 @@ def test_1_moving_vehicle_predicted_stationary(keep: SeedContext) -> None:
              and speed.get(p["perception_stamp"], 0.0) >= 1.0]
     assert wrong, "the vehicle was never predicted stationary while moving"
     assert {"blocked", "borrow"} <= r.reasons()
-    assert_no_nods(keep, [accelerating("npc", 65.0, LANE_W, 1.5, 3.0, 4.0, 14.0)])
+    assert_no_nods(keep, [accelerating("npc", 75.0, LANE_W, 1.5, 3.0, 4.0, 14.0)])
 
 
 def test_2_obstacle_impact_on_lane_bounds_enlarged(keep: SeedContext) -> None:
     """A vehicle parked in the left lane with its side 0.55 m from the optimal path: the planner
     grows parked vehicles by 0.5 m in its path bounds, so the middle lane looks too narrow. The
     same vehicle 0.75 m away leaves room: no NoDS."""
-    runs = assert_nods(keep, [parked("parked", 80.0, LANE_W - EDGE - 1.0)])
+    runs = assert_nods(keep, [parked("parked", 80.0, LANE_W - EDGE - 1.0)], "blocked")
     assert any("a-b-1" in d["blocked"] for _, d in runs[0].decisions)
     assert_no_nods(keep, [parked("parked", 80.0, LANE_W - 1.0 - 0.75 - 1.0)])
 
@@ -104,7 +108,7 @@ def test_3_accessible_region_between_parallel_obstacles_underestimated(keep: See
     """Two cones side by side, each 0.55 m from the optimal path: 3.1 m between them, enough for
     the ego (2 m) and the planner's own 0.5 m hard buffer each side, but the decider's impact
     buffers leave it 2.7 m and it borrows a lane. Either cone alone: no NoDS."""
-    runs = assert_nods(keep, [cone("left", 80.0, LEFT_CONE), cone("right", 80.0, RIGHT_CONE)])
+    runs = assert_nods(keep, [cone("left", 80.0, LEFT_CONE), cone("right", 80.0, RIGHT_CONE)], "parallel")
     assert any("a-b-1" in d["blocked"] for _, d in runs[0].decisions)
     assert_no_nods(keep, [cone("left", 80.0, LEFT_CONE)])
     assert_no_nods(keep, [cone("right", 80.0, RIGHT_CONE)])
@@ -112,16 +116,16 @@ def test_3_accessible_region_between_parallel_obstacles_underestimated(keep: See
 
 def test_4_unrelated_vehicle_intent_overweighted(change: SeedContext) -> None:
     """The ego must change to the middle lane; a vehicle in the right lane, 8 m behind the ego,
-    drives 0.7 m off its lane centre for 8 s without ever leaving its lane. Prediction takes the
+    drives 0.7 m off its lane centre for 6 s without ever leaving its lane. Prediction takes the
     offset for the intent to change into the middle lane, so the change is refused and delayed.
     The same vehicle on its lane centre: no NoDS."""
     def y(t: np.ndarray) -> np.ndarray:
-        return np.where(t < 8.0, 2 * LANE_W - 0.7, 2 * LANE_W)
+        return np.where(t < 6.0, 2 * LANE_W - 0.7, 2 * LANE_W)
 
     def dx(t: np.ndarray) -> np.ndarray:
         return np.full_like(t, -8.0)
 
-    runs = assert_nods(change, [along_reference(change, dx, y, "drifter")])
+    runs = assert_nods(change, [along_reference(change, dx, y, "drifter")], "intent")
     r = runs[0]
     assert any(o.get("intent") == "left" for _, p in r.predictions for o in p["obstacles"])
     assert any(d["refused"].get("a-b-1") == "rear_gap" for _, d in r.decisions)
@@ -132,20 +136,36 @@ def test_5_excessive_distance_from_static_obstacles(keep: SeedContext) -> None:
     """Four cones 5 m apart along the left edge of the middle lane, each 0.55 m from the optimal
     path: passable, but closer than the planner's 1 m comfort gap for more than 12 m, so the lane
     counts as tight and the ego keeps its distance in another lane. Two such cones: no NoDS."""
-    runs = assert_nods(keep, [cone(f"c{i}", 70.0 + 5.0 * i, LEFT_CONE) for i in range(4)])
+    runs = assert_nods(keep, [cone(f"c{i}", 70.0 + 5.0 * i, LEFT_CONE) for i in range(4)], "tight")
     assert any("a-b-1" in d["tight"] and "a-b-1" not in d["blocked"] for _, d in runs[0].decisions)
     assert_no_nods(keep, [cone(f"c{i}", 70.0 + 5.0 * i, LEFT_CONE) for i in range(2)])
 
 
 def test_6_overcautious_about_trailing_vehicles(change: SeedContext) -> None:
-    """The ego must change to the middle lane; a vehicle follows 15 m behind in that lane at the
-    ego's own speed (10 m between bumpers) for 8 s, then drops back. The rear gap acceptance
-    (1.5 s x its speed) refuses the change until it has dropped back. The same vehicle 25 m
+    """The ego must change to the middle lane; a vehicle follows 14 m behind in that lane at the
+    ego's own speed (9 m between bumpers) and moves on to the right lane after 2.5 s, before it
+    reaches the stretch the optimal run took in the middle lane (a follower that stayed there
+    would be on the optimal path within 3 s of the reference ego: invalid). The rear gap
+    acceptance (1.5 s x its speed) refuses the change while it follows. The same vehicle 25 m
     behind: no NoDS."""
-    def dx(t: np.ndarray) -> np.ndarray:
-        return -15.0 - np.where(t < 8.0, 0.0, 1.5 * (t - 8.0) ** 2)
+    def y(t: np.ndarray) -> np.ndarray:
+        return LANE_W + np.clip((t - 2.5) / 2.0, 0.0, 1.0) * LANE_W
 
-    runs = assert_nods(change, [along_reference(change, dx, lambda t: np.full_like(t, LANE_W), "follower")])
+    runs = assert_nods(change, [along_reference(change, lambda t: np.full_like(t, -14.0), y, "follower")], "gap:rear")
     assert any(d["refused"].get("a-b-1") == "rear_gap" for _, d in runs[0].decisions)
-    assert_no_nods(change, [along_reference(change, lambda t: np.full_like(t, -25.0),
-                                            lambda t: np.full_like(t, LANE_W), "follower")])
+    assert_no_nods(change, [along_reference(change, lambda t: np.full_like(t, -25.0), y, "follower")])
+
+
+def test_a_follower_that_stays_on_the_optimal_path_is_invasive(change: SeedContext) -> None:
+    """The loophole the reservation window closes: the follower of test 6 staying in the middle
+    lane drives where the reference ego was 1.4 s before - a mutated ego that lags that much meets
+    it there. Judged at the same instant only, it was valid."""
+    follower = along_reference(change, lambda t: np.full_like(t, -14.0), lambda t: np.full_like(t, LANE_W), "follower")
+    r = run(change, [follower], 0)
+    assert r.verdict.invasive_why == {"follower": "path"}
+    # at the same instants, while the reference ran (the old rule), it kept more than 0.5 m away
+    ref, parts = change.ref, r.trace.parts
+    rows = parts[parts[:, 0] <= ref.ticks[-1]]
+    e = ref.ego[np.searchsorted(ref.ticks, rows[:, 0].astype(np.int64))]
+    gap = box_gap(e[:, 0], e[:, 1], e[:, 2], EGO_LENGTH, EGO_WIDTH, rows[:, 2], rows[:, 3], rows[:, 4], 4.8, 2.0)
+    assert gap.min() > 0.5

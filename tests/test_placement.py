@@ -110,7 +110,8 @@ def test_random_never_starts_a_vehicle_on_the_ego(monkeypatch: pytest.MonkeyPatc
     added = 0
     for seed in range(20):
         mut = RandomMutator(ctx, np.random.default_rng(seed), "closest", max_added=8)
-        monkeypatch.setattr(mut, "_point", lambda: off_road)
+        t0 = 2.0 * (seed % 2)  # half of them at the start
+        monkeypatch.setattr(mut, "_point_at", lambda t0=t0: (*off_road, t0))
         m = Mutant(Layout(ctx.areas))
         if not mut.add_vehicle(m):
             continue
@@ -119,3 +120,61 @@ def test_random_never_starts_a_vehicle_on_the_ego(monkeypatch: pytest.MonkeyPatc
         assert w0["t"] > 0 or np.hypot(w0["x"] - exy[0], w0["y"] - exy[1]) >= MIN_GAP
         scenario_from_dict(with_participants(ctx.scenario, "left_turn+mut", m.specs), source="left_turn (mutated)")
     assert added  # those appearing later are fine
+
+
+# -- an honest comparison ---------------------------------------------------------------------------
+def test_every_method_asks_from_the_same_request_grid(ctx) -> None:
+    """The RL env's actions index the grid the baselines draw their requests from, and the
+    baselines' requests (kind, distance ahead of the reference ego, lateral offset, speed,
+    manoeuvre) all lie on it - the distribution uniform random actions ask from."""
+    from agents.mutation import RandomMutator
+    from deft_gym.envs import adversary
+    from deft_gym.search import placement
+
+    assert (adversary.ALONG, adversary.LATERAL, adversary.SPEEDS, adversary.MANOEUVRES) == \
+        (placement.ALONG, placement.LATERAL, placement.SPEEDS, placement.MANOEUVRES)
+    mut = NonInvasiveMutator(ctx, np.random.default_rng(3))
+    seen = set()
+    for _ in range(400):
+        req, t0, sigma = mut._request()
+        assert req.along in placement.ALONG and req.lateral in placement.LATERAL
+        assert req.speed in placement.SPEEDS and req.manoeuvre in placement.MANOEUVRES
+        assert sigma == pytest.approx(ctx.path.sigma_at_time(t0) + req.along)
+        seen.add((req.kind, req.lateral))
+    assert len(seen) == len(placement.KINDS) * len(placement.LATERAL)  # the whole grid, not a corner of it
+    rnd = RandomMutator(ctx, np.random.default_rng(3))
+    x, y, t0 = rnd._point_at()
+    sig, lat, _ = ctx.path.project(np.array([x, y]))
+    assert min(abs(lat - v) for v in placement.LATERAL) < 1e-3  # (the projection is exact to a few um)
+
+
+def test_the_ga_and_random_delta_do_not_draw_the_same_first_generation(ctx, monkeypatch) -> None:
+    """With one seed they used one random stream, so both simulated (and both counted) the same
+    first generation."""
+    import agents.search as search_mod
+
+    firsts: dict[str, list] = {}
+    real = search_mod.run_scenario
+
+    def spy(c, specs, *a, **kw):
+        firsts.setdefault(method, []).append(specs)
+        return real(c, specs, *a, **kw)
+
+    monkeypatch.setattr(search_mod, "run_scenario", spy)
+    for method in ("decictor", "random_delta"):
+        list(search(method, ctx, 2, 0, 8, None, rule="closest"))
+    assert firsts["decictor"][0] != firsts["random_delta"][0]
+
+
+def test_a_failure_counts_only_when_the_second_run_has_the_same_root_cause(ctx, monkeypatch) -> None:
+    """The re-check used to compare only the kind of failure; now the root cause must match."""
+    import dataclasses
+
+    import agents.search as search_mod
+    from deft_gym.search.nods import Verdict
+
+    first = Verdict("completed", False, True, 0.3, 1.0, 0.1, True, signature="nods:parked:far:blocked")
+    for again_sig, expected in (("nods:parked:far:blocked", True), ("nods:cone:near:tight", False)):
+        again = dataclasses.replace(first, signature=again_sig)
+        monkeypatch.setattr(search_mod, "run_scenario", lambda *a, v=again, **kw: type("R", (), {"verdict": v})())
+        assert search_mod.confirm(ctx, first, [], 1)[0] is expected

@@ -25,8 +25,10 @@ participants in the path frame, and where the previous placement went.
 
 **Reward**: per window, potential-based shaping - the growth of the ego's largest distance from the
 reference path (objective ``nods``) and of its largest proximity (gap / time to collision) to an
-added participant (``collision``); at the end a bonus for a collision
-(``collision``) or a non-optimal decision (``nods``) of a valid mutation (``both``: either), a
+added participant (``collision``); at the end a bonus for an ego-at-fault collision
+(``collision``) or a non-optimal decision (``nods``) of a valid mutation (``both``: either) - a
+fifth of it when the trigger stood inside the ego's lane, and divided by sqrt(1 + n) for a root
+cause this env was rewarded for n times before (distinct root causes are the headline) - a
 small penalty for a timeout/stuck ego (a task failure, no NoDS) or for a participant running into
 the ego (not the ego's fault), and shaping by 1 - IoU.
 
@@ -56,8 +58,8 @@ from deft_gym.scenarios.scenario import with_participants
 from deft_gym.search.context import SEED_SCENARIOS, SeedContext, robust, seed_context
 from deft_gym.search.episode import run_scenario
 from deft_gym.search.feasible import FeasibleConfig, Layout
-from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH
-from deft_gym.search.placement import Placer, first_window
+from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH, IN_LANE
+from deft_gym.search.placement import ALONG, LATERAL, MANOEUVRES, SPEEDS, Placer, first_window
 from deft_gym.search.trace import TraceRecorder
 from deft_gym.search.vehicles import (
     LENGTH,
@@ -71,11 +73,8 @@ from deft_gym.world.geometry import box_gap, box_gap_point
 from deft_gym.world.participants import SIZES
 
 OPS = ("noop", "cone", "static_vehicle", "vehicle", "change")
-ALONG = (-20.0, -10.0, 0.0, 10.0, 20.0, 30.0, 45.0, 60.0, 80.0)
 AT_LAST = ("last", "last+8")  # anchors relative to the previous placement (gates, walls)
-LATERAL = (-3.5, -2.5, -2.0, -1.5, 0.0, 1.5, 2.0, 2.5, 3.5)
-SPEEDS = (0.0, 0.3, 0.6, 0.9, 1.2)
-MANOEUVRES = ("keep", "toward", "away", "left", "right")
+# ALONG, LATERAL, SPEEDS, MANOEUVRES: the request grid every method asks from (placement.py)
 N_NEAR = 6
 OBS_DIM = 6 + 8 + 8 + 3 * len(ALONG) + 2 * len(ALONG) + 8 * N_NEAR + 4
 
@@ -86,6 +85,12 @@ class RewardConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     failure_bonus: float = 10.0
+    in_lane_share: float = Field(0.2, ge=0.0, le=1.0, description="share of failure_bonus for a failure whose "
+                                 "trigger stood inside the ego's own lane (< 0.75 m from the optimal path: the "
+                                 "headline leaves those root causes out)")
+    novelty: bool = Field(True, description="scale failure_bonus by 1 / sqrt(1 + n), n: how often this env has "
+                          "already been rewarded for the same root cause (count-based novelty: distinct root "
+                          "causes are the headline)")
     task_failure: float = -2.0
     invalid: float = -5.0
     deviation: float = 2.0
@@ -184,6 +189,7 @@ class AdversaryEnv(gym.Env):
                                  distinct=not self.cfg.keep_duplicates, shared=self.cfg.distinct_across_workers)
                      if self.cfg.log_dir else None)
         self._bad: set[str] = set()
+        self._rewarded: dict[str, int] = {}  # root cause -> failures rewarded so far (novelty)
         self.sim: Simulation | None = None
         self._finished = False
         self.ctx: SeedContext | None = None
@@ -476,10 +482,9 @@ class AdversaryEnv(gym.Env):
         if not verdict.valid:
             r += rw.invalid
         else:
-            if verdict.collision and cfg.objective in ("collision", "both"):
-                r += rw.failure_bonus
-            if verdict.nods and cfg.objective in ("nods", "both"):
-                r += rw.failure_bonus
+            if (verdict.failure == "collision" and cfg.objective in ("collision", "both")) or \
+                    (verdict.nods and cfg.objective in ("nods", "both")):
+                r += self._failure_bonus(verdict)
             if o.outcome in ("timeout", "stuck") or (verdict.collision and not verdict.ego_at_fault):
                 r += rw.task_failure  # no failure of the ADS, and the scenario is spent
             if o.outcome == "completed" and not verdict.nods and cfg.objective in ("nods", "both"):
@@ -499,6 +504,17 @@ class AdversaryEnv(gym.Env):
             info["log"] = done.get("dir")
             info["extraction"] = done.get("extraction")
         return r, info
+
+    def _failure_bonus(self, verdict: Any) -> float:
+        """``failure_bonus`` for a failure, less for a trigger inside the ego's lane and for a
+        root cause this env was rewarded for before (:class:`RewardConfig`)."""
+        rw = self.cfg.reward
+        bonus = rw.failure_bonus * (rw.in_lane_share if verdict.finding and verdict.finding.band == IN_LANE else 1.0)
+        if rw.novelty:
+            n = self._rewarded.get(verdict.signature, 0)
+            self._rewarded[verdict.signature] = n + 1
+            bonus /= math.sqrt(1.0 + n)
+        return bonus
 
     def _tag(self) -> str:
         return self.ctx.name.replace("~", "_").replace(":", "_")

@@ -59,7 +59,10 @@ class LaneView:
     blocked_at: float = math.inf  # s where the first impassable cluster starts
     blocked_by: list[int] = field(default_factory=list)  # obstacle indices of that cluster
     tight: float = 0.0  # metres of the lookahead with static objects closer than comfort_gap
+    tight_by: list[int] = field(default_factory=list)  # obstacle indices closer than comfort_gap
     gap: str = ""  # why a change into this lane is refused ("" = accepted)
+    gap_by: int = -1  # obstacle index of the vehicle that refused it (-1: none, e.g. a junction)
+    gap_predicted: bool = False  # that vehicle is in the lane only by its prediction (an intent)
 
 
 @dataclass
@@ -139,16 +142,31 @@ class LaneDecider:
             return "blocked"
         return "keep" if lane == st.home else "away"
 
-    def published(self, dec: Decision, reason: str) -> dict[str, Any]:
+    def published(self, dec: Decision, reason: str, obs: dict[str, Any] | None) -> dict[str, Any]:
         """What the plan publishes of the decision (lane ids as ``road-from-to-index`` strings):
-        its ``reason``, the ``home`` lane, the ``blocked`` and ``tight`` lanes and the lane
-        changes ``refused`` (lane -> why)."""
+        its ``reason``, the ``home`` lane, the ``blocked`` and ``tight`` lanes, the lane changes
+        ``refused`` (lane -> why), and ``causes``: per lane, the perception ids of the objects
+        behind each of those (``blocked``, ``tight``: ids; ``refused``: ``[id, "now" |
+        "predicted"]``, predicted when the vehicle is in the lane only by its predicted lane
+        change), so that a finding can name its trigger."""
         views = dec.views.values()
         home = self.pl.state.home
+        ids = obs["id"] if obs is not None else []
+        causes: dict[str, dict[str, Any]] = {}
+        for v in views:
+            c: dict[str, Any] = {}
+            if math.isfinite(v.blocked_at):
+                c["blocked"] = [ids[o] for o in v.blocked_by]
+            if v.tight >= self.p.tight_length:
+                c["tight"] = [ids[o] for o in v.tight_by]
+            if v.gap and v.gap_by >= 0:
+                c["refused"] = [ids[v.gap_by], "predicted" if v.gap_predicted else "now"]
+            if c:
+                causes[_name(v.lane)] = c
         return {"reason": reason, "home": list(home) if home else [],
                 "blocked": sorted(_name(v.lane) for v in views if math.isfinite(v.blocked_at)),
                 "tight": sorted(_name(v.lane) for v in views if v.tight >= self.p.tight_length),
-                "refused": {_name(v.lane): v.gap for v in views if v.gap}}
+                "refused": {_name(v.lane): v.gap for v in views if v.gap}, "causes": causes}
 
     # -- lanes ----------------------------------------------------------------------------------
     def _home(self, lane: LaneId, route: Any) -> LaneId:
@@ -198,6 +216,7 @@ class LaneDecider:
             gap = max(abs(fd[o] - centre) - fed[o] - p.ego_width / 2, -1.0)
             if gap < p.comfort_gap:
                 view.tight += s_hi - s_lo + p.ego_length
+                view.tight_by.append(o)
         if not items:
             return view
         items.sort()
@@ -218,7 +237,8 @@ class LaneDecider:
         return view
 
     def _gap(self, view: LaneView, obs: dict[str, Any] | None, s0: float, v0: float) -> str:
-        """Why a lane change into ``view``'s lane is refused now ("" when the gap is accepted)."""
+        """Why a lane change into ``view``'s lane is refused now ("" when the gap is accepted);
+        the refusing vehicle goes to ``view.gap_by`` (and ``view.gap_predicted``)."""
         if obs is None:
             return ""
         p = self.p
@@ -229,12 +249,16 @@ class LaneDecider:
             if obs["still"][o] or min(abs(fd[o] - view.centre), abs(fd_end[o] - view.centre)) >= half_w:
                 continue
             o_lo, o_hi = fs[o][0] - fes[o][0], fs[o][0] + fes[o][0]
+            why = ""
             if o_hi >= rear - 1.0 and o_lo <= front + 1.0:
-                return "alongside"
-            if o_hi < rear and rear - o_hi < max(p.rear_gap_min, p.rear_time_gap * v[o]):
-                return "rear_gap"
-            if o_lo > front and o_lo - front < p.front_gap_min:
-                return "front_gap"
+                why = "alongside"
+            elif o_hi < rear and rear - o_hi < max(p.rear_gap_min, p.rear_time_gap * v[o]):
+                why = "rear_gap"
+            elif o_lo > front and o_lo - front < p.front_gap_min:
+                why = "front_gap"
+            if why:
+                view.gap_by, view.gap_predicted = o, abs(fd[o] - view.centre) >= half_w
+                return why
         return ""
 
     def _junction_gap(self, ref: Any, s0: float) -> str:

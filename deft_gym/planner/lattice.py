@@ -392,7 +392,7 @@ class LatticePlanner(Planner):
         payload = self._payload(out, behavior, lane, target, stitched, cost)
         if dec is not None:
             st = self.state
-            payload["decision"].update(self.decider.published(dec, reason))
+            payload["decision"].update(self.decider.published(dec, reason, obs))
         return payload
 
     # -- frame parsing ------------------------------------------------------------------------
@@ -529,17 +529,19 @@ class LatticePlanner(Planner):
         if not pred or not pred.get("obstacles"):
             return None
         K = self.K
-        statics, kinds = [], []
+        statics, kinds, ids = [], [], []
         groups: dict[tuple[float, float, int], list[dict[str, Any]]] = {}
         for ob in pred["obstacles"]:
             if len(ob["x"]) == 1:  # static: one point, constant over the horizon
                 statics.append((ob["x"][0], ob["y"][0], ob["heading"][0], 0.5 * ob["length"], 0.5 * ob["width"], 0.0))
                 kinds.append(ob.get("type", ""))
+                ids.append(ob.get("id"))
             else:  # moving: grouped by time base, resampled together
                 groups.setdefault((float(ob["t0"]), float(ob["dt"]), len(ob["x"])), []).append(ob)
         still = [True] * len(statics)
         for obs_g in groups.values():
             kinds += [ob.get("type", "") for ob in obs_g]
+            ids += [ob.get("id") for ob in obs_g]
             still += [False] * len(obs_g)
         n = len(statics) + sum(len(g) for g in groups.values())
         oxy = np.empty((2, n, K))  # centre (x, y) over time
@@ -603,6 +605,7 @@ class LatticePlanner(Planner):
             hl, hw, fed0 = dims[:, :1], dims[:, 1:2], fed0.take(keep)
             fs_l, fes_l, fd0_l = [fs_l[o] for o in keep], [fes_l[o] for o in keep], [fd0_l[o] for o in keep]
             kinds, still, fd1_l = [kinds[o] for o in keep], [still[o] for o in keep], [fd1_l[o] for o in keep]
+            ids = [ids[o] for o in keep]
         n = len(keep)
         ocs = np.empty((2, n * K))  # cos, sin of the heading, flat (obstacle, time)
         np.cos(oh.ravel(), out=ocs[0])
@@ -613,8 +616,9 @@ class LatticePlanner(Planner):
                 # per obstacle, for choosing leaders: Frenet s (now, end), extent along s (now,
                 # end), d now, extent along d now, speed
                 "fs": fs_l, "fes": fes_l, "fd": fd0_l, "fed": fed0.tolist(), "v": dims[:, 2].tolist(),
-                # per obstacle, for lane decisions: perceived type and whether it is predicted static
-                "kind": kinds, "still": still, "fd_end": fd1_l}
+                # per obstacle, for lane decisions: perceived type, whether it is predicted static,
+                # and its perception id (published with the decisions it causes)
+                "kind": kinds, "still": still, "fd_end": fd1_l, "id": ids}
 
     # -- lateral options ----------------------------------------------------------------------
     def _continues(self, lid: LaneId, route: _Route) -> bool:

@@ -22,7 +22,14 @@ from deft_gym.scenarios.scenario import Scenario, list_scenarios, load_scenario
 from deft_gym.search.feasible import FeasibleConfig, MotionAreas, motion_areas
 from deft_gym.search.nods import DecisionOracle
 from deft_gym.search.refpath import RefPath
-from deft_gym.search.trace import CACHE_DIR, Trace, content_key, record_run, reference_run
+from deft_gym.search.trace import (
+    CACHE_DIR,
+    Trace,
+    aborted_changes,
+    content_key,
+    record_run,
+    reference_run,
+)
 from deft_gym.world.roadmap import RoadMap, shared_roadmap
 
 SEED_SCENARIOS = ("left_turn", "right_turn", "lane_follow_static", "u_turn", "cross_intersection",
@@ -109,7 +116,8 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
         rm = shared_roadmap(sc.map)
         areas = motion_areas(ref, rm, feasible, sc.duration)
         oracle = DecisionOracle(ref, rm, threshold=threshold, grid_kind=grid,  # type: ignore[arg-type]
-                                clearance=feasible.margin)
+                                clearance=feasible.margin, window=(feasible.early_window, feasible.late_window),
+                                spawn_distance=feasible.spawn_distance)
         if len(_CTX) > 256:
             _CTX.clear()
         ctx = _CTX[key] = SeedContext(sc, ads, ref, rm, areas, RefPath(ref, rm), oracle, feasible)
@@ -117,16 +125,17 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
 
 
 def robust(ctx: SeedContext, runs: int = 8, cache_dir: Path | str | None = CACHE_DIR) -> bool:
-    """Is the scenario an optimal-decision seed under timing noise? Its unmutated runs with jitter
-    seeds 1..``runs`` (8) must all complete without a collision and stay consistent with the reference
-    (IoU above the threshold). A variant that fails this would report failures the adversary did
+    """Is the scenario an optimal-decision seed under timing noise? Its reference must not give up a
+    lane change it began (:func:`~deft_gym.search.trace.aborted_changes`), and its unmutated runs
+    with jitter seeds 1..``runs`` (8) must all complete without a collision and stay consistent
+    with the reference (IoU above the threshold). A variant that fails this would report failures the adversary did
     not cause. Cached on disk next to the reference."""
     key = f"{ctx.name}-{content_key(ctx.scenario, ctx.ads, 0)}-robust{runs}-{ctx.oracle.grid_kind}"
     path = Path(cache_dir) / f"{key}.json" if cache_dir else None
     if path is not None and path.exists():
         return bool(json.loads(path.read_text())["robust"])
-    ok = True
-    for js in range(1, runs + 1):
+    ok = not aborted_changes(ctx.ref)  # a reference that gives up a lane change is no optimal path
+    for js in range(1, runs + 1 if ok else 1):
         tr = record_run(ctx.scenario, ctx.ads, js)
         if tr.outcome != "completed" or ctx.oracle.iou(tr.xy) <= ctx.oracle.threshold:
             ok = False

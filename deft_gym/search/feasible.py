@@ -2,8 +2,10 @@
 
 Time is cut into windows ``[k dt, (k+1) dt]`` (``dt`` = 2 s in the paper). For every window the
 reference run (the seed scenario's optimal run, :func:`deft_gym.search.trace.reference_run`) gives
-the *motion areas* R^p(pi(s*), dt): the area the ego's box sweeps along its reference path,
-inflated by ``margin``, and the areas the seed participants sweep, inflated by
+the *motion areas* R^p(pi(s*), dt): the area the ego's box sweeps along its reference path
+from ``late_window`` seconds before the window to ``early_window`` after it (all of the path once
+the reference run has ended), inflated by ``margin`` - the same reservation the validity check
+(:func:`deft_gym.search.nods.clearances`) applies - and the areas the seed participants sweep, inflated by
 ``participant_margin``. A new participant is non-invasive when, in every window it exists in,
 the area it sweeps stays out of all of them (eq. 3-4) and out of the areas of the participants
 already added; a static obstacle never intersects any of them in any window.
@@ -54,6 +56,11 @@ class FeasibleConfig(BaseModel):
                             "drivable area (on the shoulder, where cones and parked cars are found)")
     sample_dt: float = Field(0.25, gt=0.0, le=1.0, description="pose sampling of swept areas")
     spawn_distance: float = Field(15.0, ge=0.0, le=100.0, description="min distance of a new participant to the ego")
+    early_window: float = Field(1.0, ge=0.0, le=30.0, description="[s] the optimal path is reserved from this "
+                                "long before the reference ego is there (a mutated ego this much early still finds "
+                                "it free)")
+    late_window: float = Field(3.0, ge=0.0, le=30.0, description="[s] ... until this long after it left (a mutated "
+                               "ego this much late still finds it free); all of it once the reference run has ended")
 
 
 def swept_hulls(corners: np.ndarray) -> np.ndarray:
@@ -98,12 +105,17 @@ class MotionAreas:
         self.ego: list[shapely.Geometry] = []
         self.seed: list[shapely.Geometry] = []
         tracks = [(a, ref.track(i)) for i, a in enumerate(ref.actors)]
+        whole: shapely.Geometry | None = None  # the whole path: reserved once the reference has ended
         for k in range(self.n_windows):
             t0, t1 = k * dt, (k + 1) * dt
-            idx = _window_samples(t, t0, t1, cfg.sample_dt)
-            if len(idx) == 0:  # after the end of the reference: the ego rests at its last pose
-                idx = np.array([len(t) - 1])
-            self.ego.append(swept_area(e[idx, 0], e[idx, 1], e[idx, 2], EGO_LENGTH + 2 * m, EGO_WIDTH + 2 * m))
+            if t1 > t[-1] + 1e-9:
+                if whole is None:
+                    idx = _window_samples(t, t[0], t[-1], cfg.sample_dt)
+                    whole = swept_area(e[idx, 0], e[idx, 1], e[idx, 2], EGO_LENGTH + 2 * m, EGO_WIDTH + 2 * m)
+                self.ego.append(whole)
+            else:  # a participant in the window meets an ego up to late_window late or early_window early
+                idx = _window_samples(t, t0 - cfg.late_window, t1 + cfg.early_window, cfg.sample_dt)
+                self.ego.append(swept_area(e[idx, 0], e[idx, 1], e[idx, 2], EGO_LENGTH + 2 * m, EGO_WIDTH + 2 * m))
             parts = []
             for a, tr in tracks:
                 if not len(tr):

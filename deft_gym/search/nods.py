@@ -19,22 +19,32 @@
   (fixed per seed, so children compare on one scale); heading enters as (cos, sin) so that it
   has no wrap-around jump at +-pi.
 - **Validity** (%Mutation): the reference ego path is replayed against the participants of the
-  mutated run; a participant closer than ``clearance`` (0.5 m, the paper's safe distance and
-  the planner's own hard buffer) to the reference ego box at the same instant (a static one at
-  any instant) makes the mutation invasive.
+  mutated run. An added participant closer than ``clearance`` (0.5 m, the paper's safe distance
+  and the planner's own hard buffer) to the reference ego box while that stretch of the path is
+  reserved - from ``EARLY_WINDOW`` (1 s) before the reference ego is there until ``LATE_WINDOW``
+  (3 s) after it left, and all of the path once the reference run has ended (a static one at any
+  time) - makes the
+  mutation invasive, and so does one that appears within ``SPAWN_DISTANCE`` (15 m) of the live
+  ego, or a seed participant (which may react to what was added) overlapping the reference ego.
+- **Fault**: a collision is the ego's when the ego closed the gap (:func:`collision_fault`).
+- **Findings**: every failure carries its root cause (:class:`Finding`): the trigger (the added
+  object the planner's decision names: cone, parked vehicle, vehicle), its clearance band to the
+  optimal path (in the ego's lane < 0.75 m, near 0.75-1.0 m, far) and the mechanism (which rule of
+  the ADS's decisions fired, :meth:`DecisionOracle.explain`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
 import shapely
 
-from deft_gym.search.trace import Trace
-from deft_gym.world.geometry import box_gap, box_polygon
+from deft_gym.search.trace import Actor, Trace
+from deft_gym.world.geometry import box_corners, box_gap, box_polygon
 from deft_gym.world.roadmap import RoadMap
 from deft_gym.world.world import EgoVehicle
 
@@ -157,57 +167,278 @@ def mmd_rbf(x: np.ndarray, y: np.ndarray, bandwidth: float) -> float:
 
 # -- validity -----------------------------------------------------------------------------------
 EGO_LENGTH, EGO_WIDTH = EgoVehicle.LENGTH, EgoVehicle.WIDTH
+# [s] the optimal path stays reserved from EARLY_WINDOW before the reference ego is there until
+# LATE_WINDOW after it left: a mutated ego up to 1 s early or 3 s late still finds it free (a lagging
+# ego is what detours make; nothing makes one much earlier, and a symmetric 3 s would outlaw every
+# leader within 3 s headway, the most ordinary traffic there is)
+EARLY_WINDOW, LATE_WINDOW = 1.0, 3.0
+SPAWN_DISTANCE = 15.0  # [m] a participant appears at least this far from the live ego
+_REACH = 2.5  # [m] clearances are computed exactly up to this distance (farther: inf)
 
 
-def invasive_actors(ref: Trace, trace: Trace, until_tick: int | None = None,
-                    clearance: float = CLEARANCE) -> list[str]:
-    """Participants of ``trace`` that invade the optimal path: added ones closer than
-    ``clearance`` [m] to the reference ego replayed at the same ticks, seed ones (which may react
-    to what was added) overlapping it. Static participants are extended to the end of the
-    reference run."""
+def _exact_min(ego: np.ndarray, boxes: np.ndarray, gap: np.ndarray, dims: np.ndarray) -> float:
+    """Smallest exact distance [m] between ego boxes ``ego`` (n, 3: x, y, h) and participant boxes
+    ``boxes`` (n, 3) paired row by row, whose separating-axis gaps ``gap`` are lower bounds:
+    pairs are tried in order of their bound, in blocks, until no bound is below the best."""
+    order = np.argsort(gap, kind="stable")
+    best = math.inf
+    for a in range(0, len(order), 256):
+        blk = order[a:a + 256]
+        if gap[blk[0]] >= best:
+            break
+        pa = shapely.polygons(box_corners(ego[blk, 0], ego[blk, 1], ego[blk, 2], EGO_LENGTH, EGO_WIDTH))
+        pb = shapely.polygons(box_corners(boxes[blk, 0], boxes[blk, 1], boxes[blk, 2], dims[0], dims[1]))
+        best = min(best, float(shapely.distance(pa, pb).min()))
+    return best
+
+
+def clearances(ref: Trace, trace: Trace, window: tuple[float, float] = (EARLY_WINDOW, LATE_WINDOW),
+               reach: float = _REACH) -> dict[int, float]:
+    """Per added participant of ``trace`` (actor index): its smallest distance [m] to the
+    reference ego's box while that stretch of the optimal path is reserved - from ``window[0]``
+    seconds before the reference ego is there until ``window[1]`` seconds after it left, and
+    all of the path once the reference run has ended (a mutated ego that lags meets what stands
+    there then); a static participant at any time. Exact (shapely) up to ``reach`` metres,
+    ``inf`` beyond."""
+    out: dict[int, float] = {}
+    added = [i for i, a in enumerate(trace.actors) if a.added]
+    if not added or not len(trace.parts):
+        return out
+    from scipy.spatial import cKDTree
+
+    rt = ref.ticks.astype(np.int64)
+    last = int(rt[-1])
+    early, late = round(window[0] / ref.world_dt), round(window[1] / ref.world_dt)
+    tree = cKDTree(ref.xy)
+    ego_r = 0.5 * math.hypot(EGO_LENGTH, EGO_WIDTH)
     parts = trace.parts
-    if not len(parts):
+    for i in added:
+        a = trace.actors[i]
+        rows = parts[parts[:, 1] == i]
+        if not len(rows):
+            continue
+        if a.kind == "static":
+            rows = rows[:1]
+        r = ego_r + 0.5 * math.hypot(a.length, a.width) + reach
+        near = tree.query_ball_point(rows[:, 2:4], r)
+        n = np.fromiter((len(x) for x in near), dtype=np.int64, count=len(near))
+        if not n.sum():
+            out[i] = math.inf
+            continue
+        ri = np.repeat(np.arange(len(rows)), n)
+        ei = np.fromiter((j for x in near for j in x), dtype=np.int64, count=int(n.sum()))
+        if a.kind != "static":  # moving: only while that stretch of the path is reserved
+            t = rows[ri, 0].astype(np.int64)
+            # the reference ego is there from `late` ticks before the participant to `early` after
+            keep = ((rt[ei] >= t - late) & (rt[ei] <= t + early)) | (t > last)
+            ri, ei = ri[keep], ei[keep]
+        if not len(ri):
+            out[i] = math.inf
+            continue
+        e, b = ref.ego[ei, :3], rows[ri, 2:5]
+        gap = box_gap(e[:, 0], e[:, 1], e[:, 2], EGO_LENGTH, EGO_WIDTH, b[:, 0], b[:, 1], b[:, 2], a.length, a.width)
+        close = gap < reach
+        out[i] = _exact_min(e[close], b[close], gap[close], (a.length, a.width)) if close.any() else math.inf
+        if out[i] >= reach:
+            out[i] = math.inf
+    return out
+
+
+def seed_overlaps(ref: Trace, trace: Trace) -> list[int]:
+    """Seed participants of ``trace`` (which may react to what was added) that overlap the
+    reference ego at the same instant (actor indices)."""
+    parts = trace.parts
+    seed = np.array([not a.added for a in trace.actors], dtype=bool)
+    if not len(parts) or not seed.any():
         return []
-    last_ref = int(ref.ticks[-1])
-    ticks = parts[:, 0].astype(np.int64)
-    rows = parts[ticks <= last_ref]
-    # statics are there for good: check them against the whole reference path
-    static = [i for i, a in enumerate(trace.actors) if a.kind == "static"]
-    extra = []
-    if static:
-        first = {i: rows[rows[:, 1] == i][:1] for i in static}
-        for i, r in first.items():
-            if len(r):
-                n = len(ref.ticks)
-                extra.append(np.column_stack([ref.ticks, np.full(n, i), np.repeat(r[:, 2:], n, axis=0)]))
-        rows = np.concatenate([rows[~np.isin(rows[:, 1], static)], *extra]) if extra else rows
-    if until_tick is not None:
-        rows = rows[rows[:, 0] <= until_tick]
+    rows = parts[seed[parts[:, 1].astype(np.int64)]]
+    k = np.searchsorted(ref.ticks, rows[:, 0].astype(np.int64))
+    k = np.clip(k, 0, len(ref.ticks) - 1)
+    ok = ref.ticks[k] == rows[:, 0]
+    rows, k = rows[ok], k[ok]
     if not len(rows):
         return []
-    tick_index = np.searchsorted(ref.ticks, rows[:, 0].astype(np.int64))
-    tick_index = np.clip(tick_index, 0, len(ref.ticks) - 1)
-    ok = ref.ticks[tick_index] == rows[:, 0]
-    rows, tick_index = rows[ok], tick_index[ok]
-    e = ref.ego[tick_index]
+    e = ref.ego[k]
     idx = rows[:, 1].astype(np.int64)
     dims = np.array([(a.length, a.width) for a in trace.actors])
-    need = np.array([clearance if a.added else 0.0 for a in trace.actors])[idx]
     gap = box_gap(e[:, 0], e[:, 1], e[:, 2], EGO_LENGTH, EGO_WIDTH, rows[:, 2], rows[:, 3], rows[:, 4],
                   dims[idx, 0], dims[idx, 1])
-    # the SAT gap is a lower bound of the distance: confirm candidates exactly with shapely
-    hit = np.flatnonzero((gap < need) | ((need == 0.0) & (gap <= 0.0)))
-    bad: list[str] = []
-    for k in hit:
-        i = int(idx[k])
-        aid = trace.actors[i].id
-        if aid in bad:
+    bad: list[int] = []
+    for j in np.flatnonzero(gap <= 0.0):  # the SAT bound says "maybe": confirm exactly
+        i = int(idx[j])
+        if i in bad:
             continue
-        pa = box_polygon(e[k, 0], e[k, 1], e[k, 2], EGO_LENGTH, EGO_WIDTH)
-        pb = box_polygon(rows[k, 2], rows[k, 3], rows[k, 4], dims[i, 0], dims[i, 1])
-        if (pa.distance(pb) < clearance) if trace.actors[i].added else pa.intersects(pb):
-            bad.append(aid)
+        pa = box_polygon(e[j, 0], e[j, 1], e[j, 2], EGO_LENGTH, EGO_WIDTH)
+        if pa.intersects(box_polygon(rows[j, 2], rows[j, 3], rows[j, 4], dims[i, 0], dims[i, 1])):
+            bad.append(i)
     return bad
+
+
+def spawned_near(trace: Trace, distance: float = SPAWN_DISTANCE) -> list[int]:
+    """Added participants of ``trace`` that appeared during the run closer than ``distance`` [m]
+    (centre to centre) to the live ego - where the ego was the step before they appeared (actor
+    indices). Whatever the method meant, a vehicle that appears beside the ego is no scenario a
+    real road makes. Those present from the start are judged by their clearance alone."""
+    parts = trace.parts
+    bad = []
+    for i, a in enumerate(trace.actors):
+        if not a.added:
+            continue
+        rows = parts[parts[:, 1] == i]
+        if not len(rows) or rows[0, 0] <= trace.ticks[0]:
+            continue
+        k = max(int(np.searchsorted(trace.ticks, int(rows[0, 0]))) - 1, 0)
+        if math.hypot(rows[0, 2] - trace.ego[k, 0], rows[0, 3] - trace.ego[k, 1]) < distance:
+            bad.append(i)
+    return bad
+
+
+def invasive_actors(ref: Trace, trace: Trace, clearance: float = CLEARANCE,
+                    window: tuple[float, float] = (EARLY_WINDOW, LATE_WINDOW),
+                    spawn_distance: float = SPAWN_DISTANCE) -> dict[str, str]:
+    """Participants of ``trace`` that make a mutation invasive, with why: an added one closer
+    than ``clearance`` [m] to the optimal path while it is reserved (:func:`clearances`,
+    ``"path"``) or appearing within ``spawn_distance`` [m] of the live ego (``"spawn"``); a seed
+    one overlapping the reference ego at the same instant (``"seed"``)."""
+    bad: dict[str, str] = {}
+    for i, c in clearances(ref, trace, window).items():
+        if c < clearance:
+            bad[trace.actors[i].id] = "path"
+    for i in spawned_near(trace, spawn_distance):
+        bad.setdefault(trace.actors[i].id, "spawn")
+    for i in seed_overlaps(ref, trace):
+        bad.setdefault(trace.actors[i].id, "seed")
+    return bad
+
+
+# -- who closed the gap -------------------------------------------------------------------------
+APPEAR_WINDOW = 2.0  # [s] a participant that appeared this shortly before a collision appeared on the ego
+FAULT_WINDOW = 2.0  # [s] how far back the fault analysis looks for the two side by side
+
+
+def _intervals(x: float, y: float, h: float, length: float, width: float, h0: float) -> tuple[float, float, float, float]:
+    """A box's extent in the frame of heading ``h0``: (lon centre, lon half extent, lat centre,
+    lat half extent) [m]."""
+    c, s = math.cos(h0), math.sin(h0)
+    dh = h - h0
+    lon, lat = x * c + y * s, -x * s + y * c
+    hl, hw = length / 2, width / 2
+    return (lon, hl * abs(math.cos(dh)) + hw * abs(math.sin(dh)),
+            lat, hl * abs(math.sin(dh)) + hw * abs(math.cos(dh)))
+
+
+def collision_fault(trace: Trace, collision: dict[str, Any],
+                    road_heading: Callable[[float, float, float], float] | None = None) -> tuple[bool, str]:
+    """``(ego_at_fault, how)`` of a collision, by which vehicle closed the gap, seen along the
+    road (``road_heading(x, y, heading)`` [rad]: the heading of the lane at the ego; default:
+    the ego's own heading):
+
+    - a standing ego, or a participant that appeared less than ``APPEAR_WINDOW`` s before, is
+      never at fault (``"standing"``, ``"appeared"``);
+    - boxes that overlapped sideways (across the road) for all of the last
+      ``FAULT_WINDOW`` s: one ran into the other from behind - the ego is at fault when the
+      other is ahead of it (``"rear_end"``, else ``"rear_ended"``);
+    - otherwise, from the last moment they were side by side: whoever moved sideways towards the
+      other more closed the gap - a car that cuts in beside the ego is not the ego's fault
+      (``"cut_in"``), the ego's own lateral move is (``"lateral"``); a participant crossing at
+      more than 45 degrees is ``"crossing"``."""
+    if not collision.get("ego_moving", True):
+        return False, "standing"
+    dt = trace.world_dt
+    tick = round(float(collision["time"]) / dt)
+    try:
+        a = trace.actor_index(str(collision["participant"]))
+    except StopIteration:
+        return True, "unknown"
+    actor = trace.actors[a]
+    rows = trace.parts[(trace.parts[:, 1] == a) & (trace.parts[:, 0] <= tick)]
+    if not len(rows):
+        return True, "unknown"
+    if (tick - rows[0, 0]) * dt < APPEAR_WINDOW - 1e-9 and rows[0, 0] > trace.ticks[0]:
+        return False, "appeared"
+
+    def ego_at(tk: float) -> np.ndarray:
+        return trace.ego[int(np.clip(np.searchsorted(trace.ticks, tk), 0, len(trace.ticks) - 1)), :3]
+
+    def other_at(tk: float) -> np.ndarray:
+        j = int(np.clip(np.searchsorted(rows[:, 0], tk, side="right") - 1, 0, len(rows) - 1))
+        return rows[j, 2:5]
+
+    def sideways(tk: float) -> tuple[tuple[float, ...], tuple[float, ...], float, bool]:
+        """(ego extent, other's extent, road heading, overlapping across the road) at tick ``tk``."""
+        e, o = ego_at(tk), other_at(tk)
+        h = float(e[2]) if road_heading is None else road_heading(float(e[0]), float(e[1]), float(e[2]))
+        ego_x, other_x = _intervals(*e, EGO_LENGTH, EGO_WIDTH, h), _intervals(*o, actor.length, actor.width, h)
+        return ego_x, other_x, h, abs(other_x[2] - ego_x[2]) < other_x[3] + ego_x[3]
+
+    e1, o1 = ego_at(tick), other_at(tick)
+    k0 = tick - round(FAULT_WINDOW / dt)
+    apart = next((k for k in range(tick, max(k0, int(rows[0, 0])) - 1, -1) if not sideways(k)[3]), None)
+    if apart is None:  # overlapping across the road all along: a rear-end, one way or the other
+        ego0, other0, _, _ = sideways(k0)
+        ahead = other0[0] > ego0[0]
+        return ahead, ("rear_end" if ahead else "rear_ended")
+    ego0, other0, h0, _ = sideways(apart)
+    ego1 = _intervals(*e1, EGO_LENGTH, EGO_WIDTH, h0)
+    other1 = _intervals(*o1, actor.length, actor.width, h0)
+    side = math.copysign(1.0, other0[2] - ego0[2])  # where the other is, seen from the ego
+    ego_move = side * (ego1[2] - ego0[2])  # [m] the ego's lateral move towards the other
+    other_move = -side * (other1[2] - other0[2])  # [m] the other's towards the ego
+    at_fault = ego_move >= other_move
+    crossing = abs(math.remainder(float(other_at(apart)[2]) - h0, 2 * math.pi)) > math.pi / 4
+    return at_fault, ("crossing" if crossing else "lateral" if at_fault else "cut_in")
+
+
+def ego_at_fault(trace: Trace, collision: dict[str, Any],
+                 road_heading: Callable[[float, float, float], float] | None = None) -> bool:
+    """Whether the ego closed the gap (:func:`collision_fault`)."""
+    return collision_fault(trace, collision, road_heading)[0]
+
+
+# -- findings: trigger x band x mechanism ------------------------------------------------------
+BANDS = ((0.75, "in_lane"), (1.0, "near"), (math.inf, "far"))  # [m] clearance to the optimal path
+IN_LANE = "in_lane"  # an object inside the ego's own lane (< 0.75 m from a lane-centred ego)
+MOVING_SPEED = 0.3  # [m/s] a vehicle faster than this is moving (not parked)
+
+
+def band(clearance: float | None) -> str:
+    """The clearance band of a trigger [m]: ``in_lane`` (< 0.75: inside the ego's lane, the
+    ego centred in a 3.5 m lane has 0.75 m each side), ``near`` (0.75-1.0) or ``far``; ``-``
+    without one (a seed participant)."""
+    if clearance is None:
+        return "-"
+    return next((name for limit, name in BANDS if clearance < limit), BANDS[-1][1])
+
+
+def trigger_type(actor: Actor) -> str:
+    """``cone``, ``parked`` (a static vehicle) or ``vehicle`` (one that moves), prefixed
+    ``seed:`` for a participant of the seed scenario."""
+    kind = ("cone" if actor.obstacle_type == "CONE" else "parked") if actor.kind == "static" else "vehicle"
+    return kind if actor.added else f"seed:{kind}"
+
+
+def lane_name(lane: list[Any] | tuple[Any, ...]) -> str:
+    """A lane id as the planner publishes it (``road-from-to-index``)."""
+    return "-".join(map(str, lane))
+
+
+@dataclass
+class Finding:
+    """Why a failure happened: the participant(s) that set it off, how close the closest of them
+    came to the optimal path, and which rule of the ADS fired (see :meth:`DecisionOracle.explain`)."""
+
+    trigger: str = "none"  # cone | parked | vehicle | seed:<...> | none
+    clearance: float | None = None  # [m] the trigger's clearance to the optimal path (added ones)
+    mechanism: str = "other"
+    trigger_ids: list[str] = field(default_factory=list)
+
+    @property
+    def band(self) -> str:
+        return band(self.clearance) if self.trigger != "none" and not self.trigger.startswith("seed:") else "-"
+
+    def key(self, kind: str) -> str:
+        """The root cause: ``kind:trigger:band:mechanism``."""
+        return f"{kind}:{self.trigger}:{self.band}:{self.mechanism}"
 
 
 # -- verdict ------------------------------------------------------------------------------------
@@ -223,17 +454,18 @@ class Verdict:
     f_b: float
     valid: bool
     invasive: list[str] = field(default_factory=list)
-    signature: str = ""
+    signature: str = ""  # the root cause of a failure or task failure: kind:trigger:band:mechanism
     collision_detail: dict[str, Any] | None = None
-    ego_at_fault: bool = False  # the ego was moving and the other party was not behind it
+    ego_at_fault: bool = False  # the ego closed the gap (collision_fault)
     off_length: float = 0.0  # [m] longest stretch farther than half a lane from the reference
     nods_local: bool = False  # completed with off_length >= the local length (separate column)
+    invasive_why: dict[str, str] = field(default_factory=dict)  # id -> path | spawn | seed
+    finding: Finding | None = None
 
     @property
     def failure(self) -> str | None:
         """'collision' | 'nods' | None, counting only valid (non-invasive) mutations and only
-        collisions the ego drove into (not a participant running into a standing ego or into its
-        back)."""
+        collisions the ego caused (it closed the gap: :func:`collision_fault`)."""
         if not self.valid:
             return None
         if self.collision:
@@ -247,13 +479,18 @@ class Verdict:
         return self.outcome if self.valid and self.outcome in ("timeout", "stuck") else None
 
     def as_dict(self) -> dict[str, Any]:
+        f = self.finding
         return {"outcome": self.outcome, "collision": self.collision, "ego_at_fault": self.ego_at_fault,
                 "nods": self.nods,
                 "iou": round(self.iou, 4), "f_p": round(self.f_p, 4), "f_b": round(self.f_b, 4),
-                "valid": self.valid, "invasive": self.invasive, "failure": self.failure,
-                "task_failure": self.task_failure, "off_length": round(self.off_length, 2),
-                "nods_local": self.nods_local,
-                "signature": self.signature, "collision_detail": self.collision_detail}
+                "valid": self.valid, "invasive": self.invasive, "invasive_why": self.invasive_why,
+                "failure": self.failure, "task_failure": self.task_failure, "off_length": round(self.off_length, 2),
+                "nods_local": self.nods_local, "signature": self.signature,
+                "trigger": f.trigger if f else None, "band": f.band if f else None,
+                "clearance": None if not f or f.clearance is None or not math.isfinite(f.clearance)
+                else round(f.clearance, 3),
+                "mechanism": f.mechanism if f else None, "trigger_ids": f.trigger_ids if f else [],
+                "collision_detail": self.collision_detail}
 
 
 class DecisionOracle:
@@ -261,10 +498,12 @@ class DecisionOracle:
 
     def __init__(self, ref: Trace, roadmap: RoadMap, threshold: float = THRESHOLD, grid: float = GRID,
                  grid_kind: Literal["lane", "world"] = "lane", clearance: float = CLEARANCE,
-                 local_length: float = LOCAL_LENGTH) -> None:
+                 local_length: float = LOCAL_LENGTH, window: tuple[float, float] = (EARLY_WINDOW, LATE_WINDOW),
+                 spawn_distance: float = SPAWN_DISTANCE) -> None:
         self.ref, self.roadmap = ref, roadmap
         self.threshold, self.grid, self.grid_kind = threshold, grid, grid_kind
         self.clearance, self.local_length = clearance, local_length
+        self.window, self.spawn_distance = window, spawn_distance
         self.lanes = LaneCells(roadmap, grid)
         self.ref_cells = self.cells(ref.xy)
         self.ref_line = shapely.LineString(ref.xy)
@@ -281,6 +520,12 @@ class DecisionOracle:
 
     def cells(self, xy: np.ndarray) -> np.ndarray:
         return self.lanes.cells(xy) if self.grid_kind == "lane" else world_cells(xy, self.grid)
+
+    def road_heading(self, x: float, y: float, heading: float) -> float:
+        """The heading [rad] of the lane at ``(x, y)`` best matching ``heading`` (itself
+        off the road)."""
+        loc = self.roadmap.locate(np.array([x, y]), heading)
+        return heading if loc is None else float(self.roadmap.geom(loc[0]).heading_point(loc[1]))
 
     def iou(self, xy: np.ndarray) -> float:
         return iou(self.ref_cells, self.cells(xy))
@@ -321,82 +566,170 @@ class DecisionOracle:
         return float(best)
 
     def judge(self, trace: Trace, collision: dict[str, Any] | None = None) -> Verdict:
-        """Task check, consistency check, feedback, validity and a failure signature."""
+        """Task check, consistency check, feedback, validity and the root cause of a failure."""
         outcome = trace.outcome
         xy = trace.xy
-        dist = self.distances(xy)  # computed once: f_p, off_length, signature
+        dist = self.distances(xy)  # computed once: f_p, off_length, the finding
         io, fp, fb = self.iou(xy), self.f_p(dist), self.f_b(trace.ego)
-        bad = invasive_actors(self.ref, trace, clearance=self.clearance)
+        clear = clearances(self.ref, trace, self.window)
+        why = {trace.actors[i].id: "path" for i, c in clear.items() if c < self.clearance}
+        for i in spawned_near(trace, self.spawn_distance):
+            why.setdefault(trace.actors[i].id, "spawn")
+        for i in seed_overlaps(self.ref, trace):
+            why.setdefault(trace.actors[i].id, "seed")
         is_collision = outcome == "collision"
         nods = outcome == "completed" and io <= self.threshold
         off = self.off_length(xy, dist)
-        v = Verdict(outcome, is_collision, nods, io, fp, fb, not bad, bad, collision_detail=collision,
-                    ego_at_fault=bool(is_collision and collision and ego_at_fault(trace, collision)),
-                    off_length=off, nods_local=outcome == "completed" and off >= self.local_length)
-        v.signature = self.signature(v, trace, collision, dist)
+        fault, how = collision_fault(trace, collision, self.road_heading) if is_collision and collision else (False, "")
+        v = Verdict(outcome, is_collision, nods, io, fp, fb, not why, list(why), collision_detail=collision,
+                    ego_at_fault=fault, off_length=off, nods_local=outcome == "completed" and off >= self.local_length,
+                    invasive_why=why)
+        kind = ("collision" if v.collision else "nods" if v.nods else "local" if v.nods_local
+                else v.outcome if v.outcome in ("timeout", "stuck") else None)
+        if kind is not None:
+            v.finding = self.explain(trace, kind, dist, clear, collision, how)
+            v.signature = v.finding.key(kind)
         return v
 
-    def signature(self, v: Verdict, trace: Trace, collision: dict[str, Any] | None, dist: np.ndarray) -> str:
-        """Root-cause signature of a failure, for counting distinct failures: its kind, where
-        along the optimal path it happened (10 m buckets), the participant involved (seed or
-        added, kind, type) and the decision change (the planning decisions of the run that the
-        reference run never made, e.g. ``blocked+reason:borrow`` or ``refused:rear_gap``);
-        ``dist``: :meth:`distances` of the run's path."""
-        change = "+".join(self.decision_change(trace)) or "-"
-        if v.collision and collision:
-            who = _actor_key(trace, collision.get("participant", ""))
-            where = self._bucket(np.array([collision["x"], collision["y"]]))
-            return f"collision@{where}:{who}:{change}"
-        if v.nods or v.nods_local or v.task_failure:
-            xy = trace.xy
-            off = np.flatnonzero(dist > self.roadmap.spec.lane_width / 2)
-            k = int(off[0]) if len(off) else int(np.argmax(dist))
-            side = _side(self.ref.xy, xy[k])
-            who = _nearest_added(trace, int(trace.ticks[k]), xy[k])
-            kind = "nods" if v.nods else ("local" if v.nods_local else v.task_failure)
-            return f"{kind}@{self._bucket(xy[k])}:{side}:{who}:{change}"
-        return ""
+    # -- root causes ----------------------------------------------------------------------------
+    def explain(self, trace: Trace, kind: str, dist: np.ndarray, clear: dict[int, float],
+                collision: dict[str, Any] | None = None, how: str = "") -> Finding:
+        """The root cause of a failure of ``kind`` (collision | nods | local | timeout | stuck):
+
+        - a collision: the participant hit and ``collision:<how>`` (:func:`collision_fault`);
+        - otherwise the decision that took the ego off the optimal path (or, never off it, the last
+          one it made): a lane borrow from a lane the planner called ``blocked`` - by one object
+          (``blocked``), by objects on both sides of the lane (``parallel``), by a vehicle that was
+          moving (``predicted_static``: prediction took it for a parked one) - or ``tight``
+          (closer than the comfort gap); a lane change the planner refused, by the gap to a vehicle
+          (``gap:rear``, ``gap:front``, ``gap:alongside``), by a vehicle in the target lane only by
+          its predicted lane change (``intent``), or near a junction (``junction``). ``other``:
+          none of these (a planner that publishes no decisions always gives ``other``).
+
+        The trigger is the participant(s) the decision names (by perception id), the added ones
+        first; its clearance is their smallest (``clear``: :func:`clearances`)."""
+        if collision is not None and kind == "collision":
+            try:
+                i = trace.actor_index(str(collision.get("participant", "")))
+            except StopIteration:
+                return Finding(mechanism=f"collision:{how or 'unknown'}")
+            return self._finding(trace, [i], f"collision:{how or 'unknown'}", clear)
+        timeline = trace.meta.get("timeline") or []
+        off = np.flatnonzero(dist > self.roadmap.spec.lane_width / 2)
+        t_event = float(trace.t[off[0]]) if len(off) else float(trace.t[-1])
+        before = [e for e in timeline if e["t"] <= t_event + 1e-9]
+        found = (self._borrow_cause(before) or self._refusal_cause(timeline, t_event)
+                 or self._lane_cause(before[-1:]))
+        if found is None:
+            k = int(off[0]) if len(off) else len(trace.ticks) - 1
+            near = _nearest_added(trace, int(trace.ticks[k]), trace.xy[k])
+            return self._finding(trace, [near] if near is not None else [], "other", clear)
+        nums, mechanism, t_cause = found
+        idx = [i for i, a in enumerate(trace.actors) if a.num in nums]
+        if mechanism == "blocked":
+            mechanism = self._blocked_kind(trace, idx, t_cause)
+        return self._finding(trace, idx, mechanism, clear)
+
+    @staticmethod
+    def _borrow_cause(before: list[dict[str, Any]]) -> tuple[list[int], str, float] | None:
+        """The home lane's state when the last lane borrow before the event began: ``(perception
+        ids, blocked | tight, time)``, looking back from the borrow's start to the latest entry
+        that called the lane blocked or tight."""
+        start = None
+        for j in range(len(before) - 1, -1, -1):
+            if before[j]["reason"] == "borrow" and (j == 0 or before[j - 1]["reason"] != "borrow"):
+                start = j
+                break
+        if start is None:
+            return None
+        lane = lane_name(before[start]["lane"])
+        for e in reversed(before[:start + 1]):
+            cause = e["causes"].get(lane, {})
+            if lane in e["blocked"]:
+                return list(cause.get("blocked", [])), "blocked", e["t"]
+            if lane in e["tight"]:
+                return list(cause.get("tight", [])), "tight", e["t"]
+        return [], "other", before[start]["t"]
+
+    @staticmethod
+    def _lane_cause(entries: list[dict[str, Any]]) -> tuple[list[int], str, float] | None:
+        """The ego's own lane blocked or tight in the last of ``entries`` (an ego that never left
+        the optimal path but stopped or crawled)."""
+        for e in reversed(entries):
+            lane = lane_name(e["lane"])
+            cause = e["causes"].get(lane, {})
+            if lane in e["blocked"]:
+                return list(cause.get("blocked", [])), "blocked", e["t"]
+            if lane in e["tight"]:
+                return list(cause.get("tight", [])), "tight", e["t"]
+        return None
+
+    def _refusal_cause(self, timeline: list[dict[str, Any]], t_event: float, look_back: float = 10.0,
+                       look_ahead: float = 3.0) -> tuple[list[int], str, float] | None:
+        """The refusal that held longest, within ``look_back`` s before the event and
+        ``look_ahead`` s after it, of a lane change into a lane the reference ego drove in within
+        5 s: ``(perception ids, gap:<why> | intent | junction, when it began)``. Refusals of
+        other lanes (the planner weighs every neighbour every cycle) did not keep the ego off the
+        optimal path."""
+        ref = self.ref
+        held: dict[tuple[Any, ...], list[float]] = {}  # (ids, mechanism) -> [seconds, first time]
+        for n, e in enumerate(timeline):
+            if not (t_event - look_back <= e["t"] <= t_event + look_ahead) or not e["refused"]:
+                continue
+            k0, k1 = np.searchsorted(ref.t, [e["t"], e["t"] + 5.0])
+            want = set()
+            for k in range(min(k0, len(ref.t) - 1), min(k1, len(ref.t)), 10):
+                loc = self.roadmap.locate(ref.xy[k], float(ref.ego[k, 2]))
+                if loc is not None:
+                    want.add(lane_name(loc[0]))
+            want.discard(lane_name(e["lane"]))
+            until = timeline[n + 1]["t"] if n + 1 < len(timeline) else e["t"] + 0.1
+            for lane in sorted(want & set(e["refused"])):
+                why = e["refused"][lane]
+                cause = e["causes"].get(lane, {}).get("refused")
+                if why == "junction" or not cause:
+                    key: tuple[Any, ...] = ((), "junction" if why == "junction" else f"gap:{why.replace('_gap', '')}")
+                else:
+                    key = ((cause[0],), "intent" if cause[1] == "predicted" else f"gap:{why.replace('_gap', '')}")
+                h = held.setdefault(key, [0.0, e["t"]])
+                h[0] += until - e["t"]
+        if not held:
+            return None
+        (ids, mechanism), (_, t0) = max(held.items(), key=lambda kv: (kv[1][0], -kv[1][1]))
+        return list(ids), mechanism, t0
+
+    def _blocked_kind(self, trace: Trace, idx: list[int], t: float) -> str:
+        """``predicted_static`` when a blocking participant was moving at ``t`` [s], ``parallel``
+        when the blocking objects stand on both sides of the optimal path, else ``blocked``."""
+        tick = round(t / trace.world_dt)
+        sides = set()
+        for i in idx:
+            rows = trace.parts[trace.parts[:, 1] == i]
+            if not len(rows):
+                continue
+            j = int(np.clip(np.searchsorted(rows[:, 0], tick), 0, len(rows) - 1))
+            lo, hi = max(j - 5, 0), min(j + 5, len(rows) - 1)
+            span = (rows[hi, 0] - rows[lo, 0]) * trace.world_dt
+            if trace.actors[i].kind != "static" and span > 0 and \
+                    math.hypot(rows[hi, 2] - rows[lo, 2], rows[hi, 3] - rows[lo, 3]) / span > MOVING_SPEED:
+                return "predicted_static"
+            sides.add(_side(self.ref.xy, rows[j, 2:4]))
+        return "parallel" if len(sides) > 1 else "blocked"
+
+    @staticmethod
+    def _finding(trace: Trace, idx: list[int], mechanism: str, clear: dict[int, float]) -> Finding:
+        if not idx:
+            return Finding(mechanism=mechanism)
+        added = [i for i in idx if trace.actors[i].added]
+        pick = added or idx
+        main = min(pick, key=lambda i: (clear.get(i, math.inf), i)) if added else pick[0]
+        c = clear.get(main) if added else None
+        return Finding(trigger_type(trace.actors[main]), c, mechanism, [trace.actors[i].id for i in pick])
 
     def decision_change(self, trace: Trace) -> list[str]:
         """Planning decisions the run made that the reference run never did (sorted)."""
         ref = self.ref.meta.get("decisions", {})
         return sorted(k for k in trace.meta.get("decisions", {}) if k not in ref)
-
-    def _bucket(self, p: np.ndarray) -> str:
-        """Where along the optimal path a point is: a 10 m bucket of its arc length."""
-        sigma = float(self.ref_line.project(shapely.Point(float(p[0]), float(p[1]))))
-        return f"{int(sigma // 10.0) * 10}m"
-
-
-def ego_at_fault(trace: Trace, collision: dict[str, Any]) -> bool:
-    """The ego was moving and the participant's centre was not behind the ego's rear end - the
-    ego drove into it (or cut across it), rather than being run into from behind or standing."""
-    if not collision.get("ego_moving", True):
-        return False
-    tick = round(float(collision["time"]) / trace.world_dt)
-    i = int(np.clip(np.searchsorted(trace.ticks, tick), 0, len(trace.ticks) - 1))
-    ex, ey, eh = trace.ego[i, :3]
-    try:
-        a = trace.actor_index(str(collision["participant"]))
-    except StopIteration:
-        return True
-    rows = trace.parts[(trace.parts[:, 1] == a) & (trace.parts[:, 0] <= tick)]
-    if not len(rows):
-        return True
-    px, py = rows[-1, 2], rows[-1, 3]
-    lon = (px - ex) * math.cos(eh) + (py - ey) * math.sin(eh)
-    return bool(lon > -EGO_LENGTH / 2)
-
-
-def _cell5(x: float, y: float) -> str:
-    return f"{math.floor(x / 5.0)},{math.floor(y / 5.0)}"
-
-
-def _actor_key(trace: Trace, pid: str) -> str:
-    for a in trace.actors:
-        if a.id == pid:
-            return f"{'added' if a.added else 'seed:' + a.id}:{a.kind}:{a.obstacle_type}"
-    return pid
 
 
 def _side(ref_xy: np.ndarray, p: np.ndarray) -> str:
@@ -408,12 +741,13 @@ def _side(ref_xy: np.ndarray, p: np.ndarray) -> str:
     return "right" if cross > 0 else "left"  # y points down: positive cross is to the right
 
 
-def _nearest_added(trace: Trace, tick: int, p: np.ndarray) -> str:
+def _nearest_added(trace: Trace, tick: int, p: np.ndarray) -> int | None:
+    """The added participant nearest to ``p`` at ``tick`` (actor index), if any is present."""
     rows = trace.parts[trace.parts[:, 0] == tick]
-    best, key = math.inf, "none"
+    best, out = math.inf, None
     for r in rows:
         a = trace.actors[int(r[1])]
-        dist = math.hypot(r[2] - p[0], r[3] - p[1])
-        if dist < best:
-            best, key = dist, f"{'added' if a.added else 'seed:' + a.id}:{a.kind}:{a.obstacle_type}"
-    return key
+        d = math.hypot(r[2] - p[0], r[3] - p[1])
+        if a.added and d < best:
+            best, out = d, int(r[1])
+    return out

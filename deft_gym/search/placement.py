@@ -1,7 +1,9 @@
 """Placement rules: where an object requested at a point of the path frame actually goes.
 
-Every adversary - the RL env and the search baselines - asks for objects at a point ``(sigma,
-lateral)`` of the reference path frame (:class:`~deft_gym.search.refpath.RefPath`: arc length
+Every adversary - the RL env and the search baselines - asks for objects from one request grid
+(:data:`KINDS`, :data:`ALONG` the path ahead of the ego, :data:`LATERAL` offsets, vehicle
+:data:`SPEEDS` and :data:`MANOEUVRES`: the RL env's actions index it, the baselines draw from it
+uniformly with :func:`draw_request`) at a point ``(sigma, lateral)`` of the reference path frame (:class:`~deft_gym.search.refpath.RefPath`: arc length
 [m], offset to the right [m]) and hands the request to the same :class:`Placer`, so a comparison
 between them is a comparison of where they ask, not of how requests are granted. Two rules:
 
@@ -38,6 +40,36 @@ from deft_gym.search.vehicles import (
     window_feasible,
 )
 from deft_gym.world.participants import SIZES
+
+# -- what every adversary may ask for: the request grid ------------------------------------------
+# The RL env's action indexes it; the search baselines (and uniform random actions) draw from it
+# uniformly (:func:`draw_request`), so every method asks from the same distribution
+KINDS = ("cone", "static_vehicle", "vehicle")  # what is added
+ALONG = (-20.0, -10.0, 0.0, 10.0, 20.0, 30.0, 45.0, 60.0, 80.0)  # [m] along the path, ahead of the ego
+LATERAL = (-3.5, -2.5, -2.0, -1.5, 0.0, 1.5, 2.0, 2.5, 3.5)  # [m] offset from the path, right +
+SPEEDS = (0.0, 0.3, 0.6, 0.9, 1.2)  # x the lane's speed limit (vehicles)
+MANOEUVRES = ("keep", "toward", "away", "left", "right")  # a vehicle's first window
+
+
+@dataclass
+class Request:
+    """One placement request: ``kind`` (of :data:`KINDS`) at ``along`` metres ahead of the ego
+    on the optimal path and ``lateral`` metres to its right; a vehicle with ``speed`` x the lane
+    limit and a first-window ``manoeuvre``."""
+
+    kind: str
+    along: float
+    lateral: float
+    speed: float = 0.0
+    manoeuvre: str = "keep"
+
+
+def draw_request(rng: np.random.Generator) -> Request:
+    """A request drawn uniformly from the grid (what uniform random actions of the RL env ask)."""
+    return Request(KINDS[int(rng.integers(len(KINDS)))], ALONG[int(rng.integers(len(ALONG)))],
+                   LATERAL[int(rng.integers(len(LATERAL)))], SPEEDS[int(rng.integers(len(SPEEDS)))],
+                   MANOEUVRES[int(rng.integers(len(MANOEUVRES)))])
+
 
 RULES = ("closest", "uniform")
 STEP = 0.05  # [m] lateral grid of the closest rule

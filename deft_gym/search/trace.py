@@ -27,7 +27,7 @@ from deft_gym.files import write_atomic
 from deft_gym.scenarios.scenario import Scenario, scenario_to_dict
 
 CACHE_DIR = cache_dir() / "reference"
-TRACE_FORMAT = 2  # bump when the recorded content changes (invalidates the cache)
+TRACE_FORMAT = 3  # bump when the recorded content changes (invalidates the cache)
 
 
 @dataclass
@@ -40,6 +40,7 @@ class Actor:
     length: float
     width: float
     added: bool = False  # added by an adversary / mutation (not in the seed scenario)
+    num: int = -1  # the perception id the ADS knows it by (-1: unknown)
 
 
 @dataclass
@@ -112,6 +113,8 @@ class TraceRecorder:
         #: planning decisions seen (``reason:<r>``, ``blocked``, ``tight``, ``refused:<why>``) and
         #: when each was first seen [s]
         self.decisions: dict[str, float] = {}
+        #: the decision each plan published, an entry per change (:func:`decision_entry`)
+        self.timeline: list[dict[str, Any]] = []
         self._planning = sim.ads.topic("planning")
         sim.on_step.append(self._on_step)
         sim.bus.taps.append(self._on_message)
@@ -130,6 +133,9 @@ class TraceRecorder:
         t = float(msg.payload["header"]["stamp"])
         for k in kinds:
             self.decisions.setdefault(k, t)
+        entry = decision_entry(d)
+        if not self.timeline or {k: v for k, v in self.timeline[-1].items() if k != "t"} != entry:
+            self.timeline.append({"t": t, **entry})
 
     def _actor(self, p: Any) -> int:
         key = id(p)
@@ -138,7 +144,7 @@ class TraceRecorder:
             o = p.obj
             i = self._index[key] = len(self.actors)
             self.actors.append(Actor(p.id, p.kind, str(p.obstacle_type), float(o.LENGTH), float(o.WIDTH),
-                                     p.id in self.added))
+                                     p.id in self.added, int(p.num)))
         return i
 
     def _on_step(self, sim: Any, initial: bool = False) -> None:
@@ -166,7 +172,20 @@ class TraceRecorder:
     def trace(self, outcome: str = "", sim_time: float = 0.0, meta: dict[str, Any] | None = None) -> Trace:
         parts = np.array(self._parts, dtype=float).reshape(-1, 5)
         return Trace(self.world_dt, np.array(self._ticks, dtype=np.int64), np.array(self._ego, dtype=float),
-                     list(self.actors), parts, outcome, sim_time, {**(meta or {}), "decisions": dict(self.decisions)})
+                     list(self.actors), parts, outcome, sim_time,
+                     {**(meta or {}), "decisions": dict(self.decisions), "timeline": list(self.timeline)})
+
+
+def decision_entry(d: dict[str, Any]) -> dict[str, Any]:
+    """What a trace keeps of a published planning decision: the ``reason``, the ego's ``lane``,
+    the ``target`` lane, the ``home`` lane (ids as lists), the ``blocked`` and ``tight`` lanes,
+    the ``refused`` lane changes (lane -> why) and their ``causes`` (perception ids; see
+    :meth:`deft_gym.planner.decision.LaneDecider.published`). A planner that publishes none of
+    these gives empty fields."""
+    return {"reason": d.get("reason") or d.get("behavior", ""), "lane": list(d.get("lane") or []),
+            "target": list(d.get("target_lane") or []), "home": list(d.get("home") or []),
+            "blocked": list(d.get("blocked") or []), "tight": list(d.get("tight") or []),
+            "refused": dict(d.get("refused") or {}), "causes": dict(d.get("causes") or {})}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -221,16 +240,38 @@ def record_run(sc: Scenario, ads: AdsConfig | None = None, jitter_seed: int = 0)
 
 
 _MEMO: dict[str, Trace] = {}
+REFERENCE_RUNS = 5  # jitter seeds the reference path is chosen from
+
+
+def path_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean distance [m] of the points of path ``a`` to the polyline ``b`` (both (n, 2))."""
+    import shapely
+
+    return float(shapely.distance(shapely.points(a), shapely.LineString(b)).mean())
+
+
+def medoid(paths: list[np.ndarray]) -> int:
+    """Index of the most typical of ``paths``: the one with the smallest summed symmetric mean
+    distance to the others (the first on a tie)."""
+    n = len(paths)
+    d = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            d[i, j] = d[j, i] = 0.5 * (path_distance(paths[i], paths[j]) + path_distance(paths[j], paths[i]))
+    return int(np.argmin(d.sum(axis=1)))
 
 
 def reference_run(sc: Scenario, ads: AdsConfig | None = None, jitter_seed: int = 0,
-                  cache_dir: Path | str | None = CACHE_DIR) -> Trace:
-    """The reference run of a seed scenario (memoised per process, cached on disk).
+                  cache_dir: Path | str | None = CACHE_DIR, runs: int = REFERENCE_RUNS) -> Trace:
+    """The reference run of a seed scenario (memoised per process, cached on disk): of its runs
+    with jitter seeds ``jitter_seed`` .. ``jitter_seed + runs - 1`` that complete, the most
+    typical path (:func:`medoid`), so that one jittered run with, say, a half lane change it
+    gave up does not become the optimal path. ``meta`` names the seeds tried and the one chosen.
 
-    Raises ``ValueError`` if the reference does not complete its task: a seed scenario must be
-    an optimal-decision scenario, so its run has to reach the destination without collision."""
+    Raises ``ValueError`` if no run completes its task: a seed scenario must be an
+    optimal-decision scenario, so its run has to reach the destination without collision."""
     ads = ads or load_ads_config()
-    key = f"{sc.name}-{content_key(sc, ads, jitter_seed)}"
+    key = f"{sc.name}-{content_key(sc, ads, jitter_seed)}-of{runs}"
     tr = _MEMO.get(key)
     if tr is not None:
         return tr
@@ -241,11 +282,38 @@ def reference_run(sc: Scenario, ads: AdsConfig | None = None, jitter_seed: int =
         except (OSError, ValueError, KeyError):
             tr = None
     if tr is None:
-        tr = record_run(sc, ads, jitter_seed)
-        if tr.outcome != "completed":
-            raise ValueError(f"scenario {sc.name!r}: the reference run ended '{tr.outcome}' at "
-                             f"{tr.sim_time:.1f} s; a seed scenario must complete its task")
+        tries = [record_run(sc, ads, jitter_seed + i) for i in range(max(runs, 1))]
+        done = [t for t in tries if t.outcome == "completed"]
+        if not done:
+            first = tries[0]
+            raise ValueError(f"scenario {sc.name!r}: the reference run ended '{first.outcome}' at "
+                             f"{first.sim_time:.1f} s; a seed scenario must complete its task")
+        tr = done[medoid([t.xy for t in done])]
+        tr.meta["reference_of"] = [int(t.meta["jitter_seed"]) for t in done]
+        tr.meta["not_completed"] = [int(t.meta["jitter_seed"]) for t in tries if t.outcome != "completed"]
         if path is not None:
             tr.save(path)
     _MEMO[key] = tr
     return tr
+
+
+def aborted_changes(trace: Trace) -> list[dict[str, Any]]:
+    """Lane changes the run began and gave up (from the planning decisions in ``trace.meta``):
+    ``{"t": start [s], "lane", "target"}`` for each change towards a lane of the same road that
+    ended with the ego still in its lane, wanting it again. A planner that publishes no lanes
+    gives none."""
+    out: list[dict[str, Any]] = []
+    change: dict[str, Any] | None = None
+    for e in trace.meta.get("timeline") or []:
+        lane, target = e["lane"], e["target"]
+        if not lane or not target:
+            continue
+        if change is not None:
+            if lane == change["target"] or lane[:2] != change["lane"][:2]:
+                change = None  # reached, or the road ended (a junction): not given up here
+            elif target == change["lane"] and lane == change["lane"]:
+                out.append(change)
+                change = None
+        if change is None and target != lane and target[:2] == lane[:2]:
+            change = {"t": e["t"], "lane": lane, "target": target}
+    return out
