@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("agents.train", "train the RL adversary (stable-baselines3)"),
     "evaluate": ("agents.evaluate", "compare adversaries at an equal budget of scenarios"),
     "eval-report": ("agents.eval_report", "re-render an evaluation's tables and plots"),
+    "findings": ("agents.findings", "re-simulate and draw a sample of each root cause an evaluation counted"),
     "bench-env": ("agents.bench_env", "adversary env steps/s and scenarios/hour"),
     "profile-env": ("agents.profile_env", "where an adversary env process spends its CPU (cProfile)"),
     "standing": ("agents.standing", "how long mutated runs stand with no light holding them (the stuck time)"),
@@ -48,7 +49,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 GROUPS = (("simulate", ("run", "calibrate", "generate", "bench", "digest")),
           ("look at episodes", ("render", "report")),
           ("DeFT: logs -> planning-module tests", ("extract", "check-planner", "verify")),
-          ("the adversary", ("train", "evaluate", "eval-report", "bench-env", "profile-env", "standing")),
+          ("the adversary", ("train", "evaluate", "eval-report", "findings", "bench-env", "profile-env", "standing")),
           ("robustness (ASTAA)", ("stress",)),
           ("experiments and tools", ("demo", "record", "extract-eval", "planner-edits", "log-damage", "bench-scale")))
 

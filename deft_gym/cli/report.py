@@ -335,6 +335,20 @@ def section_evaluation(page: Page, folder: Path) -> str:
     parts.append(kpis([("methods", ", ".join(cfg.get("methods", []))), ("budget per scenario", cfg.get("budget", "-")),
                        ("scenarios", len(cfg.get("scenarios", [])) + len(cfg.get("held_out", []))),
                        ("wall time", f"{s.get('wall_seconds', 0):.0f} s")]))
+    # the headline: distinct root causes per method (first placement rule), raw failures beside
+    heads = []
+    for m, ps in (s.get("groups") or {}).items():
+        cell = next(iter(ps.values()), {}).get("all") or {}
+        rc, fl = (cell.get("root_causes") or {}).get("mean"), (cell.get("failures") or {}).get("mean")
+        if rc is not None:
+            heads.append((f"{m}: root causes", f"{rc:.1f} ({fl:.0f} failures)" if fl is not None else f"{rc:.1f}"))
+    if heads:
+        parts.append(kpis(heads))
+    found = folder / "findings" / "findings.md"
+    if found.exists():
+        pics = sorted(found.parent.glob("*.png"))[:MAX_CARDS]
+        parts.append(f'<h3>Findings re-simulated and drawn ({esc(page.rel(found))})</h3>'
+                     + "".join(img_data(p, p.stem) for p in pics))
     for png, alt in (("cumulative_failures.png", "cumulative failures per method"),
                      ("per_scenario.png", "failures per scenario")):
         if (folder / png).exists():

@@ -1,0 +1,215 @@
+"""Look at what an evaluation counted: a sample of each root cause re-simulated, measured and drawn.
+
+    deft-gym findings runs/eval/x --per-cause 2          # -> runs/eval/x/findings/findings.md
+
+A finding is a mechanism, not a count. For every root cause (``kind:trigger:band:mechanism``) of the
+counted failures in ``records.jsonl`` this takes up to ``--per-cause`` failures (the first ones by
+scenario, repeat and index: deterministic), simulates each again from its equivalent scenario with
+the jitter seed it ran with, checks that it fails again with the same root cause, and draws it:
+the optimal (reference) path, the ego's path, every added object with the trigger in red and its
+clearance to the optimal path, the collision if any. ``findings.md`` lists the root causes with
+their counts per method and, under each, the pictures, the numbers (IoU, longest stretch off the
+path, clearance) and the decision the planner took when it left the optimal path - what a reader
+needs to judge whether a competent driver would call it a failure.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.stats import METHOD_LABELS, RecordError, counted_failure, normalize
+from deft_gym.cli import common
+from deft_gym.files import read_jsonl, write_atomic
+
+
+def build_parser() -> common.Parser:
+    p = common.parser("findings", "agents.findings", __doc__)
+    p.add_argument("folder", type=Path, help="evaluation folder (records.jsonl)")
+    p.add_argument("--per-cause", type=common.positive_int, default=2, metavar="N",
+                   help="failures re-simulated and drawn per root cause (default: 2)")
+    p.add_argument("--methods", nargs="+", action=common.ListAction, default=None, metavar="METHOD",
+                   help="only these methods' failures (default: all)")
+    common.add_out(p, None, "output folder (default: FOLDER/findings)")
+    common.add_output_flags(p)
+    return p
+
+
+def split_equivalent(rec: dict[str, Any]) -> tuple[dict[str, Any], dict[str, float] | None, int]:
+    """``(scenario dict, added_at, jitter seed)`` of a record's equivalent scenario - the RL env
+    stores ``{"scenario", "added_at", "jitter_seed"}``, the search baselines the scenario itself."""
+    eq = rec.get("scenario_equivalent")
+    if not isinstance(eq, dict):
+        raise RecordError(f"record {rec.get('method')}/{rec.get('scenario')}/{rec.get('index')}: "
+                          "field 'scenario_equivalent' is missing")
+    if "scenario" in eq and isinstance(eq["scenario"], dict):
+        return eq["scenario"], eq.get("added_at") or None, int(eq.get("jitter_seed", rec["jitter_seed"]))
+    return eq, None, int(rec["jitter_seed"])
+
+
+def resimulate(rec: dict[str, Any]) -> tuple[Any, Any]:
+    """``(context, run)``: the record's failure simulated again with its jitter seed."""
+    from deft_gym.search.context import seed_context
+    from deft_gym.search.episode import run_scenario
+
+    ctx = seed_context(rec["scenario"])
+    data, added_at, jitter = split_equivalent(rec)
+    specs = data["participants"][len(ctx.scenario.participants):]
+    return ctx, run_scenario(ctx, specs, jitter, added_at=added_at)
+
+
+def leaving_decision(trace: Any, dist: np.ndarray, half_lane: float) -> str:
+    """The planner's decision when the ego first got half a lane off the optimal path (or its
+    last one), in a line: reason, lane, blocked / tight lanes, refused changes."""
+    timeline = trace.meta.get("timeline") or []
+    if not timeline:
+        return "-"
+    off = np.flatnonzero(dist > half_lane)
+    t = float(trace.t[off[0]]) if len(off) else float(trace.t[-1])
+    e = [x for x in timeline if x["t"] <= t + 1e-9][-1:] or timeline[:1]
+    e = e[0]
+    parts = [f"t {e['t']:.1f} s: {e['reason']} in {'-'.join(map(str, e['lane'])) or '-'}"]
+    if e["blocked"]:
+        parts.append("blocked " + ", ".join(e["blocked"]))
+    if e["tight"]:
+        parts.append("tight " + ", ".join(e["tight"]))
+    if e["refused"]:
+        parts.append("refused " + ", ".join(f"{k} ({v})" for k, v in e["refused"].items()))
+    return "; ".join(parts)
+
+
+def draw(ctx: Any, run: Any, path: Path, title: str) -> None:
+    """The optimal path, the ego's path, the added objects (the trigger in red) and the collision."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from deft_gym.files import atomic_path
+    from deft_gym.viz.plot import _box, draw_map
+
+    tr, v = run.trace, run.verdict
+    trig = set(v.finding.trigger_ids) if v.finding else set()
+    fig, ax = plt.subplots(figsize=(9, 6))
+    draw_map(ax, ctx.roadmap)
+    ref = ctx.ref.xy
+    ax.plot(ref[:, 0], ref[:, 1], "k--", lw=1.4, label="optimal (reference) path", zorder=5)
+    ax.plot(tr.xy[:, 0], tr.xy[:, 1], color="#1f77b4", lw=2.2, label="ego", zorder=6)
+    pts = [ref, tr.xy]
+    for i, a in enumerate(tr.actors):
+        rows = tr.parts[tr.parts[:, 1] == i]
+        if not len(rows) or not a.added:
+            continue
+        color = "#d62728" if a.id in trig else "#2ca02c"
+        if a.kind == "static":
+            _box(ax, rows[0, 2], rows[0, 3], rows[0, 4], a.length, a.width, color=color, alpha=0.85)
+        else:
+            ax.plot(rows[:, 2], rows[:, 3], color=color, lw=1.2, alpha=0.8, zorder=4)
+            k = rows[:: max(len(rows) // 4, 1)]
+            for r in k:
+                _box(ax, r[2], r[3], r[4], a.length, a.width, color=color, alpha=0.35)
+        ax.annotate(a.id, (rows[0, 2], rows[0, 3]), fontsize=7, color=color, zorder=7)
+        pts.append(rows[:, 2:4])
+    if v.collision_detail:
+        c = v.collision_detail
+        ax.plot(c["x"], c["y"], "x", color="#d62728", ms=14, mew=3, zorder=8)
+    # frame the triggers and the paths within 60 m of them (all of the paths without a trigger),
+    # at most 2.5:1 either way
+    trig_xy = [tr.parts[tr.parts[:, 1] == i][:, 2:4] for i, a in enumerate(tr.actors) if a.id in trig]
+    trig_xy = [t for t in trig_xy if len(t)]
+    if v.collision_detail:
+        trig_xy.append(np.array([[v.collision_detail["x"], v.collision_detail["y"]]]))
+    focus = list(pts[:2])
+    if trig_xy:
+        centre = np.concatenate(trig_xy)
+        focus = [p[np.min(np.hypot(p[:, None, 0] - centre[None, ::5, 0], p[:, None, 1] - centre[None, ::5, 1]),
+                          axis=1) < 60.0] for p in pts[:2]] + trig_xy
+    fp = np.concatenate([f for f in focus if len(f)])
+    x0, y0 = fp.min(axis=0) - 6.0
+    x1, y1 = fp.max(axis=0) + 6.0
+    w, h = x1 - x0, y1 - y0
+    if h < w / 2.5:
+        y0, y1 = (y0 + y1) / 2 - w / 5, (y0 + y1) / 2 + w / 5
+    elif w < h / 2.5:
+        x0, x1 = (x0 + x1) / 2 - h / 5, (x0 + x1) / 2 + h / 5
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y1, y0)  # y points down in highway-env
+    ax.set_aspect("equal")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper left", fontsize=7, bbox_to_anchor=(1.0, 1.0))
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    folder: Path = args.folder
+    rec_path = folder / "records.jsonl"
+    out: Path = Path(args.out) if args.out else folder / "findings"
+    con = common.console(args)
+    try:
+        if not rec_path.exists():
+            raise RecordError(f"{rec_path}: no such file")
+        raw = read_jsonl(rec_path)
+        rows, _ = normalize(raw, str(rec_path))
+    except (RecordError, ValueError) as err:
+        return common.cli_error(str(err))
+    by_cause: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    counts: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
+    for r, full in zip(rows, raw):
+        if counted_failure(r) and (args.methods is None or r["method"] in common.split_list(args.methods)):
+            by_cause[r["signature"]].append(full)
+            counts[r["signature"]][r["method"]] += 1
+    if not by_cause:
+        con.print("no counted failures in the records")
+        return 0
+    out.mkdir(parents=True, exist_ok=True)
+    causes = sorted(by_cause, key=lambda c: (-len(by_cause[c]), c))
+    sample = [(c, r) for c in causes
+              for r in sorted(by_cause[c], key=lambda r: (r["scenario"], r["repeat"], r["index"], r["method"]))[
+                  : args.per_cause]]
+    lines = [f"# Findings of {folder}", "",
+             f"{sum(len(v) for v in by_cause.values())} counted failures, {len(causes)} root causes; up to "
+             f"{args.per_cause} of each simulated again with their jitter seed and drawn (dashed: the optimal path; "
+             "blue: the ego; red: the trigger).", "",
+             "| root cause | failures | " + " | ".join(METHOD_LABELS.values()) + " |",
+             "|---|---|" + "---|" * len(METHOD_LABELS)]
+    for c in causes:
+        lines.append(f"| `{c}` | {len(by_cause[c])} | " + " | ".join(str(counts[c].get(m, 0) or "-")
+                                                               for m in METHOD_LABELS) + " |")
+    with common.bar(args, len(sample), "failures simulated again") as b:
+        current = None
+        for n, (cause, rec) in enumerate(sample):
+            if cause != current:
+                lines += ["", f"## `{cause}`", ""]
+                current = cause
+            ctx, run = resimulate(rec)
+            v = run.verdict
+            same = v.signature == rec.get("signature") and v.failure == rec.get("failure")
+            name = f"{n:03d}_{rec['method']}_{rec['scenario'].replace(':', '_')}_r{rec['repeat']}_{rec['index']}.png"
+            title = (f"{METHOD_LABELS.get(rec['method'], rec['method'])} {rec['placement']} on {rec['scenario']} "
+                     f"(repeat {rec['repeat']}, #{rec['index']}): {v.signature or v.outcome}")
+            draw(ctx, run, out / name, title)
+            dist = ctx.oracle.distances(run.trace.xy)
+            clear = v.finding.clearance if v.finding else None
+            lines += [f"![{cause}]({name})", "",
+                      f"- {rec['method']} / {rec['placement']} / {rec['scenario']} repeat {rec['repeat']} #{rec['index']}, "
+                      f"jitter seed {rec['jitter_seed']}: again **{'the same' if same else 'NOT the same: ' + (v.signature or v.outcome)}**",
+                      f"- IoU {v.iou:.2f}, off the optimal path for {v.off_length:.0f} m, outcome {v.outcome}"
+                      + (f", clearance of the trigger {clear:.2f} m" if clear is not None and math.isfinite(clear) else ""),
+                      f"- the planner when it left the path: {leaving_decision(run.trace, dist, ctx.roadmap.spec.lane_width / 2)}",
+                      ""]
+            b.update(1)
+    write_atomic(out / "findings.md", "\n".join(lines) + "\n")
+    con.print(f"{len(causes)} root causes, {len(sample)} failures drawn -> {out / 'findings.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
