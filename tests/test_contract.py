@@ -16,8 +16,8 @@ import pytest
 import yaml
 from test_extract_support import TESTS, HiddenStatePlanner, short_scenario
 
-from agents.record import ads_overrides
 from deft_gym.bus.ads import load_ads_config
+from deft_gym.experiments.record import ads_overrides
 from deft_gym.planner.lattice import LatticePlanner
 from deft_gym.sim.simulation import Simulation
 from extract import extract_episode

@@ -13,7 +13,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
 
-from agents.record import record_episode
+from deft_gym.experiments.record import record_episode
 from deft_gym.planner.lattice import LatticePlanner
 from deft_gym.scenarios.scenario import load_scenario, scenario_from_dict, scenario_to_dict
 from deft_gym.scenarios.variants import inject_cut_in

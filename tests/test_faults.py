@@ -259,8 +259,8 @@ LANE_FOLLOW = ROOT / "configs" / "scenarios" / "lane_follow_static.yaml"
 
 
 def faulty_ads(fault: str, after: int = 20, **params):
-    from agents.record import ads_overrides
     from deft_gym.bus.ads import load_ads_config
+    from deft_gym.experiments.record import ads_overrides
 
     return load_ads_config(None, ads_overrides(planner_class=FAULTY,
                                                planner_params={"fault": fault, "after": after, **params}))

@@ -29,6 +29,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("deft_gym.robustness",),
     ("deft_gym.cli",),
     ("agents",),
+    ("deft_gym.experiments",),
 ]
 # what extract may import of deft_gym: the log (bus messages and their codec), the planner
 # interface (and trajectory measures), configuration, file helpers and the execution layer

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from agents.log_damage import KINDS, chunk_table, damage, evaluate
+from deft_gym.experiments.log_damage import KINDS, chunk_table, damage, evaluate
 from extract.logs import read_log
 from extract.verify import verify
 
@@ -179,7 +179,7 @@ def test_extracting_a_folder_with_a_damaged_log_marks_it_and_exits_1(log, tmp_pa
 def test_the_extraction_evaluation_names_a_damaged_s0_log_in_its_headline(log, tmp_path) -> None:
     from types import SimpleNamespace
 
-    from agents.extract_report import _markdown, collect
+    from deft_gym.experiments.extract_report import _markdown, collect
     from extract import extract_episode
 
     out = tmp_path / "eval"

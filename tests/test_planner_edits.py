@@ -1,4 +1,4 @@
-"""The planner-edit experiment (agents.planner_edits) on one short episode: an edit that changes
+"""The planner-edit experiment (deft_gym.experiments.planner_edits) on one short episode: an edit that changes
 the output is caught by the generated tests, one that changes nothing is not flagged."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from agents.planner_edits import EDITS, _apply, main
+from deft_gym.experiments.planner_edits import EDITS, _apply, main
 
 
 def test_every_edit_applies_to_the_reference_planner() -> None:

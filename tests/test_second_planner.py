@@ -15,8 +15,8 @@ import pytest
 from lane_keeper import LaneKeeperPlanner
 from test_extract_support import TESTS, run_pytest, short_scenario
 
-from agents.record import ads_overrides
 from deft_gym.bus.ads import load_ads_config
+from deft_gym.experiments.record import ads_overrides
 from deft_gym.planner.base import Frame, validate_output
 from deft_gym.sim.simulation import Simulation
 from extract import extract_episode

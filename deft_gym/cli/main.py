@@ -39,10 +39,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "stress": ("agents.stress", "robustness campaign: exceptional values on the live bus"),
     # experiments and tools
     "demo": ("agents.demo", "the end-to-end demo (make demo): flaky -> deterministic, adversary, report"),
-    "record": ("agents.record", "record one episode (optionally renamed topics, headers)"),
-    "extract-eval": ("agents.extract_eval_args", "DeFT's research questions on a scenario pool"),
-    "planner-edits": ("agents.planner_edits", "do generated tests catch small planner edits?"),
-    "log-damage": ("agents.log_damage", "damage logs on purpose and check what the reader recovers"),
+    "record": ("deft_gym.experiments.record", "record one episode (optionally renamed topics, headers)"),
+    "extract-eval": ("deft_gym.experiments.extract_eval_args", "DeFT's research questions on a scenario pool"),
+    "planner-edits": ("deft_gym.experiments.planner_edits", "do generated tests catch small planner edits?"),
+    "log-damage": ("deft_gym.experiments.log_damage", "damage logs on purpose and check what the reader recovers"),
     "bench-scale": ("agents.bench_scale", "a campaign at 1..N workers, local processes and Ray"),
 }
 GROUPS = (("simulate", ("run", "calibrate", "generate", "bench", "digest")),

@@ -1,7 +1,7 @@
 """Reproduce the DeFT paper's research questions on this testbed.
 
-    python -m agents.extract_eval --out runs/extract/eval                      # all seed scenarios
-    python -m agents.extract_eval --scenarios left_turn u_turn --cut-ins 4 --reruns 10 --out DIR
+    python -m deft_gym.experiments.extract_eval --out runs/extract/eval                      # all seed scenarios
+    python -m deft_gym.experiments.extract_eval --scenarios left_turn u_turn --cut-ins 4 --reruns 10 --out DIR
 
 Scenario pool: every seed scenario plus ``--variants`` perturbations and ``--cut-ins`` cut-in
 variants of it (:mod:`deft_gym.scenarios.variants`), like the output of a test generator. Each scenario
@@ -45,12 +45,12 @@ from typing import Any
 
 import numpy as np
 
-from agents.extract_report import write_report
-from agents.record import ads_overrides
 from deft_gym.bus.ads import load_ads_config
 from deft_gym.cli import common
 from deft_gym.config import ConfigError
 from deft_gym.execution import Backend, Executor, Record, backend_from_args
+from deft_gym.experiments.extract_report import write_report
+from deft_gym.experiments.record import ads_overrides
 from deft_gym.files import write_atomic
 from deft_gym.planner.trajectory import lsed
 from deft_gym.record.recorder import init_pool_worker
@@ -352,7 +352,7 @@ def _git_state() -> dict[str, Any]:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    from agents.extract_eval_args import parse_args as parse
+    from deft_gym.experiments.extract_eval_args import parse_args as parse
 
     return parse(argv)
 

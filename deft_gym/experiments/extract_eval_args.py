@@ -1,4 +1,4 @@
-"""The command line of :mod:`agents.extract_eval` (``deft-gym extract-eval``), apart from it so
+"""The command line of :mod:`deft_gym.experiments.extract_eval` (``deft-gym extract-eval``), apart from it so
 that ``--help`` loads no simulation."""
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ MODES = ("heuristic", "last", "headers")  # extract.search.MODES (checked by tes
 
 
 def _doc() -> str:
-    """agents.extract_eval's docstring, read without importing it."""
+    """deft_gym.experiments.extract_eval's docstring, read without importing it."""
     import ast
     from importlib.util import find_spec
 
-    spec = find_spec("agents.extract_eval")
+    spec = find_spec("deft_gym.experiments.extract_eval")
     return ast.get_docstring(ast.parse(Path(spec.origin).read_text())) or "" if spec and spec.origin else ""
 
 
@@ -27,7 +27,7 @@ DOC = _doc()
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = common.parser("extract-eval", "agents.extract_eval", DOC,
+    ap = common.parser("extract-eval", "deft_gym.experiments.extract_eval", DOC,
                        epilog="\n\n".join(DOC.split("\n\n")[1:3]))
     common.add_scenarios(ap, help="seed scenarios (default: all in configs/scenarios except bench_*)")
     ap.add_argument("--variants", type=int, default=1, help="perturbed variants per seed")
@@ -61,7 +61,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)  # --help and bad input answered here, before the simulation loads
-    from agents.extract_eval import main as run
+    from deft_gym.experiments.extract_eval import main as run
 
     with common.watchdog_env(args):
         return run(argv)

@@ -1,9 +1,9 @@
 """Record deft_gym episodes whose logs differ from the default - to try the extractor on them.
 
     deft-gym record left_turn --out runs/extract/renamed --topics configs/mappings/renamed_example.yaml
-    python -m agents.record left_turn --out runs/extract/tuned --planner-params '{"w_speed": 4.0}'
-    python -m agents.record left_turn --out runs/extract/hdr --headers --jitter-seed 7
-    PYTHONPATH=tests python -m agents.record left_turn --out runs/extract/lk --planner lane_keeper:LaneKeeperPlanner
+    python -m deft_gym.experiments.record left_turn --out runs/extract/tuned --planner-params '{"w_speed": 4.0}'
+    python -m deft_gym.experiments.record left_turn --out runs/extract/hdr --headers --jitter-seed 7
+    PYTHONPATH=tests python -m deft_gym.experiments.record left_turn --out runs/extract/lk --planner lane_keeper:LaneKeeperPlanner
 
 ``--topics`` renames the bus topics to those of a mapping file (a log as another stack would
 name them), ``--planner-params`` configures the planner differently from the default,
@@ -57,7 +57,7 @@ def record_episode(scenario: Scenario | str | Path, out_dir: Path | str, *, jitt
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = common.parser("record", "agents.record", __doc__)
+    ap = common.parser("record", "deft_gym.experiments.record", __doc__)
     ap.add_argument("scenario", help="scenario YAML or the name of one in configs/scenarios")
     common.add_out(ap, None, help="output folder for episode.mcap and truth.jsonl (default: runs/record/<scenario>)")
     common.add_jitter_seed(ap, "jitter seed")

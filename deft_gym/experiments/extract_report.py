@@ -1,6 +1,6 @@
 """The evaluation report: tables (markdown), results (JSON) and plots from the evaluation records.
 
-Kept apart from :mod:`agents.extract_eval` (which runs things) so a report can be re-rendered
+Kept apart from :mod:`deft_gym.experiments.extract_eval` (which runs things) so a report can be re-rendered
 from the records of a finished run.
 """
 
@@ -26,7 +26,7 @@ class RecordFile(Protocol):
 
 
 class Evaluation(Protocol):
-    """What the report reads of a finished evaluation (:class:`agents.extract_eval.Evaluation`):
+    """What the report reads of a finished evaluation (:class:`deft_gym.experiments.extract_eval.Evaluation`):
     its arguments, output folder and record files. A protocol, so this module never imports the
     one that runs things."""
 

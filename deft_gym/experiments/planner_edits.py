@@ -1,7 +1,7 @@
 """Do the extracted tests catch behavioural regressions? Small realistic edits of the reference planner.
 
-    python -m agents.planner_edits --out runs/planner_edits
-    python -m agents.planner_edits --out runs/planner_edits --edits w_jerk nudge_label    # a few
+    python -m deft_gym.experiments.planner_edits --out runs/planner_edits
+    python -m deft_gym.experiments.planner_edits --out runs/planner_edits --edits w_jerk nudge_label    # a few
 
 Each edit (:data:`EDITS`) is one small change of ``deft_gym/planner/lattice.py`` of the kind a
 developer makes - a buffer, a comparison, a horizon, a cost term, a decision label, a profile -
@@ -199,7 +199,7 @@ def caught(cls_path: str, pinned: Path, dirs: list[Path]) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = common.parser("planner-edits", "agents.planner_edits", __doc__)
+    ap = common.parser("planner-edits", "deft_gym.experiments.planner_edits", __doc__)
     common.add_out(ap, common.RUNS / "planner_edits")
     common.add_scenarios(ap, default=SCENARIOS, help="seed scenarios of the episodes")
     ap.add_argument("--duration", type=float, default=12.0, help="episode length [s]")

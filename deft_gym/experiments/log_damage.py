@@ -1,7 +1,7 @@
 """Log integrity, measured: damage real episode logs on purpose and check what the reader says.
 
-    python -m agents.log_damage runs/x/0/episode.mcap runs/y/0/episode.mcap
-    python -m agents.log_damage --record 3 --out runs/log_damage        # record 3 seed logs first
+    python -m deft_gym.experiments.log_damage runs/x/0/episode.mcap runs/y/0/episode.mcap
+    python -m deft_gym.experiments.log_damage --record 3 --out runs/log_damage        # record 3 seed logs first
 
 For each log and each damaged chunk (the first, the middle and the last by default) it applies
 one damage of each kind to a copy, reads the copy with :func:`extract.verify.verify` and checks:
@@ -157,7 +157,7 @@ def _record(n: int, out: Path) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = common.parser("log-damage", "agents.log_damage", __doc__)
+    ap = common.parser("log-damage", "deft_gym.experiments.log_damage", __doc__)
     ap.add_argument("logs", nargs="*", metavar="LOG", help="intact MCAP logs to damage (copies; never changed)")
     ap.add_argument("--record", type=int, default=0, metavar="N", help="first record N seed-scenario logs into OUT")
     common.add_out(ap, common.RUNS / "log_damage")
