@@ -69,7 +69,7 @@ def test_help_imports_no_simulation_and_is_fast() -> None:
             f"print(sorted(m for m in {HEAVY!r} if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     assert out.stdout.strip() == "[]", f"importing the programs loads {out.stdout.strip()}"
-    from agents.stress import SUBCOMMANDS
+    from deft_gym.robustness.stress import SUBCOMMANDS
 
     # every command's help (and the stress subcommands'): the CPU time it costs, which a loaded
     # machine (this suite's other worker, other jobs) does not inflate as it does the wall time;

@@ -143,7 +143,7 @@ def _flipped(log: Path, tmp_path: Path, name: str = "episode.mcap") -> Path:
 def test_the_offline_invariant_checker_refuses_a_log_with_a_flipped_bit(log, tmp_path, capsys) -> None:
     """``stress check`` read logs with the mcap library, which does not check CRCs: a flipped bit
     gave 'no invariant violated', exit 0. Now: one line saying what is damaged, exit 2."""
-    from agents import stress
+    from deft_gym.robustness import stress
     from deft_gym.robustness.offline import LogDamaged, check_log
 
     bad = _flipped(log, tmp_path)

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from agents.stress import main
 from deft_gym.robustness.campaign import Campaign, load_campaign_config, replay, run_campaign
+from deft_gym.robustness.stress import main
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -69,7 +69,7 @@ def test_replay_is_deterministic_across_processes(tmp_path: Path) -> None:
     out = tmp_path / "c"
     s = run_campaign(_campaign(tmp_path), out, budget=6)
     assert s["runs_with_findings"] > 0
-    proc = subprocess.run([sys.executable, "-m", "agents.stress", "replay", str(out)], cwd=ROOT,
+    proc = subprocess.run([sys.executable, "-m", "deft_gym.robustness.stress", "replay", str(out)], cwd=ROOT,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
 

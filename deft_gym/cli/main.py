@@ -36,7 +36,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "profile-env": ("agents.profile_env", "where an adversary env process spends its CPU (cProfile)"),
     "standing": ("agents.standing", "how long mutated runs stand with no light holding them (the stuck time)"),
     # robustness (ASTAA)
-    "stress": ("agents.stress", "robustness campaign: exceptional values on the live bus"),
+    "stress": ("deft_gym.robustness.stress", "robustness campaign: exceptional values on the live bus"),
     # experiments and tools
     "demo": ("agents.demo", "the end-to-end demo (make demo): flaky -> deterministic, adversary, report"),
     "record": ("deft_gym.experiments.record", "record one episode (optionally renamed topics, headers)"),

@@ -1,11 +1,11 @@
 """ASTAA-style robustness testing of the ADS on DeFT-Gym's bus.
 
     deft-gym stress --scenarios left_turn --budget 200 --out runs/stress/left_turn
-    python -m agents.stress replay runs/stress/left_turn/minimised/<finding>.json
-    python -m agents.stress check runs/stress/left_turn/minimised/<finding>/episode.mcap
-    python -m agents.stress spec
-    python -m agents.stress compare runs/stress/off runs/stress/on
-    python -m agents.stress subsystem FRAMES.jsonl --out runs/stress/subsystem
+    python -m deft_gym.robustness.stress replay runs/stress/left_turn/minimised/<finding>.json
+    python -m deft_gym.robustness.stress check runs/stress/left_turn/minimised/<finding>/episode.mcap
+    python -m deft_gym.robustness.stress spec
+    python -m deft_gym.robustness.stress compare runs/stress/off runs/stress/on
+    python -m deft_gym.robustness.stress subsystem FRAMES.jsonl --out runs/stress/subsystem
 
 The campaign (default command) generates interception policies from the message schemas and
 the exceptional-values dictionary, runs them live on the jittered bus, classifies every run
@@ -46,7 +46,7 @@ def _scenario_path(name: str) -> str:
 
 def campaign_parser() -> argparse.ArgumentParser:
     ap = common.parser(
-        "stress", "agents.stress",
+        "stress", "deft_gym.robustness.stress",
         "ASTAA robustness campaign: intercept live bus messages with exceptional values, "
         "monitor crashes, hangs and safety invariants, minimise findings.",
         epilog="other commands: replay CASE.json|DIR, check LOG.mcap, spec, compare DIR DIR, "
@@ -189,7 +189,7 @@ def print_summary(s: dict[str, Any], out: Path) -> None:
 
 
 def replay_cli(argv: list[str]) -> int:
-    ap = common.parser("stress replay", "agents.stress replay",
+    ap = common.parser("stress replay", "deft_gym.robustness.stress replay",
                        "Replay test case files and check they reproduce their finding.")
     ap.add_argument("cases", nargs="+", help="case JSON files, or campaign folders (all cases/ and minimised/)")
     ap.add_argument("--log", default=None, help="write the test log (MCAP) of a single case to this folder")
@@ -224,7 +224,7 @@ def replay_cli(argv: list[str]) -> int:
 
 
 def check_cli(argv: list[str]) -> int:
-    ap = common.parser("stress check", "agents.stress check",
+    ap = common.parser("stress check", "deft_gym.robustness.stress check",
                        "Evaluate the safety invariants offline on an episode log (MCAP). Exit status: 0 when "
                        "none is violated, 1 when one is, 2 when the log is damaged (CRCs, counts, footer) or "
                        "not an episode log.")
@@ -251,7 +251,7 @@ def check_cli(argv: list[str]) -> int:
 
 
 def spec_cli(argv: list[str]) -> int:
-    ap = common.parser("stress spec", "agents.stress spec",
+    ap = common.parser("stress spec", "deft_gym.robustness.stress spec",
                        "Print the test specification derived from the message schemas.")
     ap.add_argument("--json", action="store_true", help="as JSON")
     args = ap.parse_args(argv)
@@ -274,7 +274,7 @@ def spec_cli(argv: list[str]) -> int:
 
 
 def compare_cli(argv: list[str]) -> int:
-    ap = common.parser("stress compare", "agents.stress compare",
+    ap = common.parser("stress compare", "deft_gym.robustness.stress compare",
                        "Compare campaign summaries (e.g. hardening off vs on).")
     ap.add_argument("dirs", nargs="+", help="campaign folders")
     args = ap.parse_args(argv)
@@ -293,7 +293,7 @@ def compare_cli(argv: list[str]) -> int:
 
 
 def subsystem_cli(argv: list[str]) -> int:
-    ap = common.parser("stress subsystem", "agents.stress subsystem",
+    ap = common.parser("stress subsystem", "deft_gym.robustness.stress subsystem",
                        "Subsystem replay testing: the dictionary applied to DeFT-extracted planning frames, the "
                        "planner alone; findings become pytest tests.")
     ap.add_argument("frames", help="frames.jsonl written by the extractor (deft-gym extract)")
