@@ -1,6 +1,6 @@
 """Run every seed scenario a few times on the jittered ADS and report how the reruns differ.
 
-    python -m deft_gym.cli.demo --out runs/demo/seeds [--reruns 3]
+    python -m deft_gym.cli.seeds --out runs/demo/seeds [--reruns 3]
 
 An overview of the seed scenarios: one row per seed scenario with its outcomes over the reruns,
 collisions, how far the reruns' planning outputs are from the first rerun's, and the sim speed.
@@ -25,7 +25,7 @@ from deft_gym.sim.simulation import run_episode
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = common.parser("seeds", "deft_gym.cli.demo", __doc__)
+    ap = common.parser("seeds", "deft_gym.cli.seeds", __doc__)
     common.add_out(ap, common.RUNS / "demo" / "seeds", help="output folder (logs per scenario and rerun)")
     ap.add_argument("--reruns", type=common.positive_int, default=3, help="reruns per seed scenario")
     common.add_jitter_seed(ap, "jitter seed of rerun 0 of every scenario; rerun i uses S+i")
