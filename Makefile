@@ -34,7 +34,7 @@ $(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules
 	$(PY) -c "import deft_gym, extract, agents" && touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m agents.demo --out runs/demo
+	$(PY) -m deft_gym.cli.demo --out runs/demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 --dist loadfile

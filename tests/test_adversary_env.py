@@ -133,7 +133,7 @@ def test_evaluation_config_errors_name_the_file_and_field(tmp_path):
 def test_profile_env_prints_both_profiles_and_restores_the_timed_methods(capsys) -> None:
     """deft-gym profile-env: the cProfile shares, the shares timed around each call, the
     throughput; the timed methods are the originals again afterwards."""
-    from agents import profile_env
+    from deft_gym.cli import profile_env
     from deft_gym.envs.adversary import AdversaryEnv
 
     before = AdversaryEnv.__dict__["_obs"]

@@ -243,7 +243,7 @@ def test_pictures_cut_by_a_kill_are_drawn_again(tmp_path, lane_follow_log, monke
 
 
 def test_demo_never_deletes_folders_it_did_not_write(tmp_path, capsys):
-    from agents import demo
+    from deft_gym.cli import demo
 
     (tmp_path / "train").mkdir()
     (tmp_path / "train" / "precious.txt").write_text("not the demo's")

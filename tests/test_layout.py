@@ -27,9 +27,9 @@ LAYERS: list[tuple[str, ...]] = [
     ("deft_gym.search", "deft_gym.viz"),
     ("deft_gym.envs",),
     ("deft_gym.robustness",),
-    ("deft_gym.cli",),
     ("agents",),
     ("deft_gym.experiments",),
+    ("deft_gym.cli",),
 ]
 # what extract may import of deft_gym: the log (bus messages and their codec), the planner
 # interface (and trajectory measures), configuration, file helpers and the execution layer

@@ -265,7 +265,7 @@ def test_a_wait_at_a_red_light_is_not_stuck_however_long() -> None:
 
 
 def test_standing_counts_what_a_shorter_stuck_time_would_end() -> None:
-    from agents.standing import shorter_rule
+    from deft_gym.cli.standing import shorter_rule
 
     rows = [{"outcome": "completed", "failure": "nods", "sim_time": 30.0, "stretches": [(5.0, 6.5)]},
             {"outcome": "stuck", "failure": None, "sim_time": 40.0, "stretches": [(15.0, 40.0)]},

@@ -1,7 +1,7 @@
 """Scaling of a campaign over workers and backends (issue 21's figure).
 
-    python -m agents.bench_scale --workers 1,2 --backends local,ray
-    python -m agents.bench_scale --campaign calibrate --workers 1,2,4,8,16   # the 256-run calibration
+    python -m deft_gym.cli.bench_scale --workers 1,2 --backends local,ray
+    python -m deft_gym.cli.bench_scale --campaign calibrate --workers 1,2,4,8,16   # the 256-run calibration
 
 Runs the same campaign - the adversary evaluation (``evaluate``, default) or the calibration
 (``calibrate``: issue 21's 256 runs) - once per backend and worker count, each in a fresh
@@ -56,7 +56,7 @@ def driver_cost(backend: Backend, n: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = common.parser("bench-scale", "agents.bench_scale", __doc__)
+    ap = common.parser("bench-scale", "deft_gym.cli.bench_scale", __doc__)
     ap.add_argument("--campaign", choices=("evaluate", "calibrate"), default="evaluate", help="campaign to scale")
     ap.add_argument("--workers", default="1,2", help="comma-separated worker counts")
     ap.add_argument("--backends", default="local,ray", help="comma-separated, of local,ray")

@@ -26,7 +26,7 @@ THRESHOLDS = (5.0, 8.0, 10.0, 12.0, 15.0, 20.0)  # [s] stuck times compared
 
 
 def build_parser() -> common.Parser:
-    p = common.parser("standing", "agents.standing", __doc__)
+    p = common.parser("standing", "deft_gym.cli.standing", __doc__)
     p.add_argument("--config", type=Path, default=Path("configs/train/adversary.yaml"),
                    help="training YAML whose env section runs the episodes (default: configs/train/adversary.yaml)")
     p.add_argument("--episodes", type=common.positive_int, default=400, help="episodes (default: 400)")

@@ -20,7 +20,7 @@ from deft_gym.files import write_json_atomic
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = common.parser("bench-env", "agents.bench_env", __doc__)
+    p = common.parser("bench-env", "deft_gym.cli.bench_env", __doc__)
     p.add_argument("--episodes", type=common.positive_int, default=14, help="episodes to time")
     common.add_scenarios(p, help="seed scenarios (default: the seven seeds)")
     p.add_argument("--policy", choices=("random", "noop"), default="random", help="the adversary's actions")

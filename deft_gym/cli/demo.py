@@ -36,7 +36,7 @@ MARKER = ".agents-demo"  # in --out: train/ and eval/ there are the demo's and m
 
 
 def build_parser() -> common.Parser:
-    p = common.parser("demo", "agents.demo", __doc__)
+    p = common.parser("demo", "deft_gym.cli.demo", __doc__)
     common.add_out(p, common.RUNS / "demo")
     p.add_argument("--config", type=Path, default=None,
                    help="adversary training YAML (default: configs/train/demo.yaml)")
@@ -208,10 +208,10 @@ def _main(args: argparse.Namespace) -> int:
         return common.cli_error(f"--out {out}: is a file; expected a folder for the demo's outputs")
     marker = out / MARKER
     if not marker.exists() and any((out / part).exists() for part in ("flaky", "train", "eval")):
-        return common.cli_error(f"--out {out}: holds flaky/, train/ or eval/ that agents.demo did not write "
+        return common.cli_error(f"--out {out}: holds flaky/, train/ or eval/ that deft_gym.cli.demo did not write "
                                 f"(no {MARKER}); choose another --out")
     out.mkdir(parents=True, exist_ok=True)
-    marker.write_text("written by agents.demo; a new demo into this folder replaces flaky/, train/ and eval/\n")
+    marker.write_text("written by deft_gym.cli.demo; a new demo into this folder replaces flaky/, train/ and eval/\n")
     t0 = time.perf_counter()
     doc: dict[str, Any] = {"created": time.strftime("%Y-%m-%dT%H:%M:%S")}
     doc["flaky"] = flaky_story(out / "flaky", args.reruns, con)

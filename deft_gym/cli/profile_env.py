@@ -1,6 +1,6 @@
 """Where an adversary env process spends its CPU (the profile behind the training throughput).
 
-    python -m agents.profile_env --config configs/train/adversary.yaml --episodes 60
+    python -m deft_gym.cli.profile_env --config configs/train/adversary.yaml --episodes 60
 
 Runs ``--episodes`` episodes of the training config's env (its placement, reward and recording
 settings; failing episodes are replayed into MCAP logs and extracted as in training) on the seeds
@@ -89,7 +89,7 @@ class _Timers:
 
 
 def build_parser() -> common.Parser:
-    p = common.parser("profile-env", "agents.profile_env", __doc__)
+    p = common.parser("profile-env", "deft_gym.cli.profile_env", __doc__)
     p.add_argument("--config", type=Path, default=Path("configs/train/adversary.yaml"),
                    help="training YAML whose env section is profiled (or a run's config.yaml)")
     p.add_argument("--episodes", type=common.positive_int, default=60, help="episodes profiled, and timed")
