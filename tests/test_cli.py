@@ -166,7 +166,7 @@ def test_module_entry_points_keep_working(module: str) -> None:
 def test_every_program_module_has_a_main() -> None:
     for module, _ in COMMANDS.values():
         assert callable(importlib.import_module(module).main), module
-    from deft_gym.experiments.extract_eval_args import MODES
+    from deft_gym.experiments.extract_eval import MODES
     from extract.search import MODES as SEARCH_MODES
 
     assert tuple(SEARCH_MODES) == MODES  # the light parser's copy

@@ -40,7 +40,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     # experiments and tools
     "demo": ("deft_gym.cli.demo", "the end-to-end demo (make demo): flaky -> deterministic, adversary, report"),
     "record": ("deft_gym.experiments.record", "record one episode (optionally renamed topics, headers)"),
-    "extract-eval": ("deft_gym.experiments.extract_eval_args", "DeFT's research questions on a scenario pool"),
+    "extract-eval": ("deft_gym.experiments.extract_eval", "DeFT's research questions on a scenario pool"),
     "planner-edits": ("deft_gym.experiments.planner_edits", "do generated tests catch small planner edits?"),
     "log-damage": ("deft_gym.experiments.log_damage", "damage logs on purpose and check what the reader recovers"),
     "bench-scale": ("deft_gym.cli.bench_scale", "a campaign at 1..N workers, local processes and Ray"),

@@ -1,7 +1,7 @@
 """Reproduce the DeFT paper's research questions on this testbed.
 
-    python -m deft_gym.experiments.extract_eval --out runs/extract/eval                      # all seed scenarios
-    python -m deft_gym.experiments.extract_eval --scenarios left_turn u_turn --cut-ins 4 --reruns 10 --out DIR
+    deft-gym extract-eval --out runs/extract/eval                      # all seed scenarios
+    deft-gym extract-eval --scenarios left_turn u_turn --cut-ins 4 --reruns 10 --out DIR
 
 Scenario pool: every seed scenario plus ``--variants`` perturbations and ``--cut-ins`` cut-in
 variants of it (:mod:`deft_gym.scenarios.variants`), like the output of a test generator. Each scenario
@@ -48,24 +48,19 @@ import numpy as np
 from deft_gym.bus.ads import load_ads_config
 from deft_gym.cli import common
 from deft_gym.config import ConfigError
-from deft_gym.execution import Backend, Executor, Record, backend_from_args
+from deft_gym.execution import Backend, Executor, Record, add_backend_arguments, backend_from_args
 from deft_gym.experiments.extract_report import write_report
 from deft_gym.experiments.record import ads_overrides
 from deft_gym.files import write_atomic
 from deft_gym.planner.trajectory import lsed
 from deft_gym.record.recorder import init_pool_worker
-from deft_gym.scenarios.scenario import (
-    list_scenarios,
-    load_scenario,
-    scenario_from_dict,
-    scenario_to_dict,
-)
-from deft_gym.scenarios.variants import inject_cut_in, perturb
-from deft_gym.sim.simulation import Simulation, reference_path
 from extract.batch import extract_directory
 from extract.runtime import load_frames, make_planner, replay
 from extract.validator import distance
 
+# the parser and the program are this one module; the scenarios and the simulation are imported
+# where they are used, so that --help and bad input are answered before they load
+MODES = ("heuristic", "last", "headers")  # extract.search.MODES (checked by tests/test_cli.py)
 RQ1_THETAS = (0.0, 0.1, 0.23, 1.62, 6.99, 17.15)
 FAILURE_K = "does_not_plan_into_collision"
 
@@ -76,6 +71,10 @@ def scenario_pool(seeds: list[str], variants: int, cut_ins: int, extra: int = 0
     """``(group, scenario dict)`` lists: the pool (each seed scenario, its perturbations and its
     first ``cut_ins`` cut-ins) and ``extra`` further cut-ins per seed, which join the evaluation
     only when their S0 collides (as a test generator reports the failures it finds)."""
+    from deft_gym.scenarios.scenario import load_scenario, scenario_to_dict
+    from deft_gym.scenarios.variants import inject_cut_in, perturb
+    from deft_gym.sim.simulation import reference_path
+
     pool, more = [], []
     for path in seeds:
         sc = load_scenario(path)
@@ -129,6 +128,9 @@ def pin_planner(out: Path) -> tuple[str, str]:
 def _timed_run(data: dict[str, Any], seed: int, out_dir: str | None, headers: bool,
                planner: str | None = None) -> tuple[Any, float]:
     """One system-level run, timed from construction to the end (log closed)."""
+    from deft_gym.scenarios.scenario import scenario_from_dict
+    from deft_gym.sim.simulation import Simulation
+
     sc = scenario_from_dict(data, source=data["name"])
     ads = load_ads_config(None, ads_overrides(headers=headers, planner_class=planner) or None)
     t0 = time.perf_counter()
@@ -352,13 +354,46 @@ def _git_state() -> dict[str, Any]:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    from deft_gym.experiments.extract_eval_args import parse_args as parse
-
-    return parse(argv)
+    ap = common.parser("extract-eval", "deft_gym.experiments.extract_eval", __doc__,
+                       epilog="\n\n".join(__doc__.split("\n\n")[1:3]))
+    common.add_scenarios(ap, help="seed scenarios (default: all in configs/scenarios except bench_*)")
+    ap.add_argument("--variants", type=int, default=1, help="perturbed variants per seed")
+    ap.add_argument("--cut-ins", type=int, default=8, help="cut-in variants per seed")
+    ap.add_argument("--extra-cut-ins", type=int, default=0,
+                    help="further cut-ins per seed that join only when their S0 collides (default 0)")
+    ap.add_argument("--reruns", type=int, default=10, help="system runs per scenario incl. S0")
+    ap.add_argument("--test-runs", type=int, default=10, help="executions of the generated tests")
+    ap.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES), help="input-search modes")
+    common.add_jitter_seed(ap, "S_k uses jitter seed S+k (a resumed evaluation keeps its seeds)")
+    common.add_workers(ap, "parallel processes for S0, extraction, reruns")
+    common.add_out(ap, common.RUNS / "extract" / "eval")
+    ap.add_argument("--report-only", action="store_true", help="re-render report.md, results.json and plots "
+                    "from the records of OUT")
+    ap.add_argument("--no-pin-planner", dest="pin_planner", action="store_false",
+                    help="use the planner module in place instead of a copy pinned at the start")
+    add_backend_arguments(ap)
+    common.add_watchdog(ap)
+    common.add_output_flags(ap)
+    args = ap.parse_args(argv)
+    if args.reruns < 2:
+        ap.error("--reruns must be at least 2 (S0 and one rerun)")
+    if args.jitter_seed is None:  # resuming: the seed recorded there; else a fresh one
+        try:
+            args.jitter_seed = int(json.loads((Path(args.out) / "options.json").read_text())["jitter_seed"])
+        except (OSError, ValueError, KeyError, TypeError):
+            args.jitter_seed = common.fresh_seed()
+    return args
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+    args = parse_args(argv)  # --help and bad input answered here, before the simulation loads
+    with common.watchdog_env(args):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
+    from deft_gym.scenarios.scenario import list_scenarios
+
     console = common.console(args)
     Path(args.out).mkdir(parents=True, exist_ok=True)
     write_atomic(Path(args.out) / "options.json", json.dumps({"jitter_seed": args.jitter_seed}))
