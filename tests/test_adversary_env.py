@@ -130,16 +130,33 @@ def test_evaluation_config_errors_name_the_file_and_field(tmp_path):
     assert load_eval_config(parse_args(["--methods", "random", "--budget", "3", "--out", str(tmp_path)])).budget == 3
 
 
-def test_profile_env_prints_both_profiles_and_restores_the_timed_methods(capsys) -> None:
-    """deft-gym profile-env: the cProfile shares, the shares timed around each call, the
+def test_bench_env_profile_prints_both_profiles_and_restores_the_timed_methods(capsys) -> None:
+    """deft-gym bench-env --profile: the cProfile shares, the shares timed around each call, the
     throughput; the timed methods are the originals again afterwards."""
-    from deft_gym.cli import profile_env
+    from deft_gym.cli import bench_env
     from deft_gym.envs.adversary import AdversaryEnv
 
     before = AdversaryEnv.__dict__["_obs"]
-    assert profile_env.main(["--config", "configs/train/demo.yaml", "--episodes", "2", "--generated", "0",
-                             "--no-progress"]) == 0
+    assert bench_env.main(["--profile", "--config", "configs/train/demo.yaml", "--episodes", "2", "--generated", "0",
+                           "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "CPU shares under cProfile" in out and "timed around each call" in out
     assert "scenarios per CPU-hour" in out and "closest-cone probe" in out
     assert AdversaryEnv.__dict__["_obs"] is before
+
+
+def test_bench_env_without_profile_writes_its_figures_and_times_no_parts(tmp_path, capsys) -> None:
+    """deft-gym bench-env: steps/s, scenarios per hour and per CPU-hour, to the console and to
+    --out; no cProfile and no timed parts unless --profile asks."""
+    import json
+
+    from deft_gym.cli import bench_env
+
+    out = tmp_path / "bench.json"
+    assert bench_env.main(["--episodes", "2", "--scenarios", SCN, "--policy", "noop", "--out", str(out),
+                           "--no-progress"]) == 0
+    figures = json.loads(out.read_text())
+    assert figures["episodes"] == 2 and figures["steps"] > 0 and figures["scenarios"] == [SCN]
+    assert figures["scenarios_per_cpu_hour"] > 0 and "profile" not in figures
+    text = capsys.readouterr().out
+    assert "scenarios per CPU-hour" in text and "cProfile" not in text

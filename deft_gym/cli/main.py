@@ -32,8 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("agents.train", "train the RL adversary (stable-baselines3)"),
     "evaluate": ("agents.evaluate", "compare adversaries at an equal budget of scenarios"),
     "eval-report": ("agents.eval_report", "re-render an evaluation's tables and plots"),
-    "bench-env": ("deft_gym.cli.bench_env", "adversary env steps/s and scenarios/hour"),
-    "profile-env": ("deft_gym.cli.profile_env", "where an adversary env process spends its CPU (cProfile)"),
+    "bench-env": ("deft_gym.cli.bench_env", "adversary env steps/s and scenarios/hour; --profile: where its CPU goes"),
     "standing": ("deft_gym.cli.standing", "how long mutated runs stand with no light holding them (the stuck time)"),
     # robustness (ASTAA)
     "stress": ("deft_gym.robustness.stress", "robustness campaign: exceptional values on the live bus"),
@@ -48,7 +47,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 GROUPS = (("simulate", ("run", "calibrate", "generate", "bench", "digest")),
           ("look at episodes", ("render", "report")),
           ("DeFT: logs -> planning-module tests", ("extract", "check-planner", "verify")),
-          ("the adversary", ("train", "evaluate", "eval-report", "bench-env", "profile-env", "standing")),
+          ("the adversary", ("train", "evaluate", "eval-report", "bench-env", "standing")),
           ("robustness (ASTAA)", ("stress",)),
           ("experiments and tools", ("demo", "record", "extract-eval", "planner-edits", "log-damage", "bench-scale")))
 
