@@ -53,7 +53,7 @@ $(BROWSER_STAMP): $(STAMP)
 	touch $(BROWSER_STAMP)
 
 test-browser: $(BROWSER_STAMP)
-	$(PY) -m pytest -q -m slow tests/test_scene_render_report.py -k browser
+	$(PY) -m pytest -q -m slow tests/cli/test_scene_render_report.py -k browser
 
 bench: $(STAMP)
 	$(PY) -m deft_gym.cli.bench --repeats 15 --out runs/bench.json

@@ -254,7 +254,7 @@ def test_demo_never_deletes_folders_it_did_not_write(tmp_path, capsys):
 
 
 # -- failures never hidden: crashing, hanging, NaN-emitting and silent modules ----------------------
-FAULTY = "fault_planners:FaultyPlanner"
+FAULTY = "tests.support.fault_planners:FaultyPlanner"
 LANE_FOLLOW = ROOT / "configs" / "scenarios" / "lane_follow_static.yaml"
 
 

@@ -60,7 +60,7 @@ from extract.validator import distance
 
 # the parser and the program are this one module; the scenarios and the simulation are imported
 # where they are used, so that --help and bad input are answered before they load
-MODES = ("heuristic", "last", "headers")  # extract.search.MODES (checked by tests/test_cli.py)
+MODES = ("heuristic", "last", "headers")  # extract.search.MODES (checked by tests/cli/test_cli.py)
 RQ1_THETAS = (0.0, 0.1, 0.23, 1.62, 6.99, 17.15)
 FAILURE_K = "does_not_plan_into_collision"
 

@@ -3,7 +3,7 @@
     deft-gym record left_turn --out runs/extract/renamed --topics configs/mappings/renamed_example.yaml
     python -m deft_gym.experiments.record left_turn --out runs/extract/tuned --planner-params '{"w_speed": 4.0}'
     python -m deft_gym.experiments.record left_turn --out runs/extract/hdr --headers --jitter-seed 7
-    PYTHONPATH=tests python -m deft_gym.experiments.record left_turn --out runs/extract/lk --planner lane_keeper:LaneKeeperPlanner
+    python -m deft_gym.experiments.record left_turn --out runs/extract/lk --planner tests.support.lane_keeper:LaneKeeperPlanner
 
 ``--topics`` renames the bus topics to those of a mapping file (a log as another stack would
 name them), ``--planner-params`` configures the planner differently from the default,
