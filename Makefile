@@ -34,7 +34,7 @@ $(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules
 	$(PY) -c "import deft_gym, extract, agents" && touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m agents.demo --out runs/demo
+	$(PY) -m deft_gym.cli.demo --out runs/demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 --dist loadfile
@@ -53,7 +53,7 @@ $(BROWSER_STAMP): $(STAMP)
 	touch $(BROWSER_STAMP)
 
 test-browser: $(BROWSER_STAMP)
-	$(PY) -m pytest -q -m slow tests/test_scene_render_report.py -k browser
+	$(PY) -m pytest -q -m slow tests/cli/test_scene_render_report.py -k browser
 
 bench: $(STAMP)
 	$(PY) -m deft_gym.cli.bench --repeats 15 --out runs/bench.json

@@ -1,1 +1,3 @@
-"""Adversaries and the scripts users run: training, evaluation, search baselines, the robustness campaign, the demo."""
+"""The adversaries and their evaluation: RL training (``train``, ``config``), the search
+baselines (``search``, ``mutation``: Decictor-GA, Random-delta, Random) and the comparison at an
+equal budget (``evaluate``, ``stats``, ``eval_report``)."""

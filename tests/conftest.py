@@ -1,30 +1,3 @@
-"""Shared fixtures: small episodes recorded once per test session."""
+"""The fixtures every test may use live in ``tests/support/fixtures.py``."""
 
-from __future__ import annotations
-
-import os
-from pathlib import Path
-
-import pytest
-
-os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
-os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
-
-ROOT = Path(__file__).resolve().parent.parent
-SCENARIOS = ROOT / "configs" / "scenarios"
-
-
-def float_bits(values: object) -> bytes:
-    """The bytes of ``values`` as float64 (signed zeros and NaN payloads included)."""
-    import numpy as np
-
-    return np.asarray(values, dtype=float).tobytes()
-
-
-@pytest.fixture(scope="session")
-def lane_follow_log(tmp_path_factory: pytest.TempPathFactory):
-    """One recorded episode of the lane-following seed (jitter seed 7)."""
-    from deft_gym.sim.simulation import run_episode
-
-    out = tmp_path_factory.mktemp("lane_follow")
-    return run_episode(SCENARIOS / "lane_follow_static.yaml", jitter_seed=7, out_dir=out)
+pytest_plugins = ["tests.support.fixtures"]

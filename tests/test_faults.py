@@ -243,7 +243,7 @@ def test_pictures_cut_by_a_kill_are_drawn_again(tmp_path, lane_follow_log, monke
 
 
 def test_demo_never_deletes_folders_it_did_not_write(tmp_path, capsys):
-    from agents import demo
+    from deft_gym.cli import demo
 
     (tmp_path / "train").mkdir()
     (tmp_path / "train" / "precious.txt").write_text("not the demo's")
@@ -254,13 +254,13 @@ def test_demo_never_deletes_folders_it_did_not_write(tmp_path, capsys):
 
 
 # -- failures never hidden: crashing, hanging, NaN-emitting and silent modules ----------------------
-FAULTY = "fault_planners:FaultyPlanner"
+FAULTY = "tests.support.fault_planners:FaultyPlanner"
 LANE_FOLLOW = ROOT / "configs" / "scenarios" / "lane_follow_static.yaml"
 
 
 def faulty_ads(fault: str, after: int = 20, **params):
-    from agents.record import ads_overrides
     from deft_gym.bus.ads import load_ads_config
+    from deft_gym.experiments.record import ads_overrides
 
     return load_ads_config(None, ads_overrides(planner_class=FAULTY,
                                                planner_params={"fault": fault, "after": after, **params}))
@@ -636,8 +636,8 @@ def test_a_topic_clash_in_an_ads_overlay_or_a_calibration_config_is_one_line(tmp
     """Two roles on one topic used to be a KeyError traceback (run), a traceback from a worker
     with exit 1 (calibrate), or a run that 'completed' with control on the chassis topic; now one
     line naming the file (the overlay, for stress) and the field, exit 2, nothing written."""
-    from agents import stress
     from deft_gym.cli import calibrate
+    from deft_gym.robustness import stress
 
     clash = tmp_path / "clash.yaml"
     clash.write_text("topics:\n  prediction: /apollo/planning\n")
@@ -655,7 +655,7 @@ def test_a_topic_clash_in_an_ads_overlay_or_a_calibration_config_is_one_line(tmp
 def test_stress_campaign_with_a_missing_invariants_file_is_a_setup_error(tmp_path, capsys):
     """A campaign set-up error exits 2 with one line before any run (it used to exit 0 with every
     test errored)."""
-    from agents import stress
+    from deft_gym.robustness import stress
 
     code = stress.main(["--invariants", str(tmp_path / "missing.yaml"), "--budget", "1",
                         "--out", str(tmp_path / "campaign"), "--quiet"])
@@ -749,7 +749,7 @@ def test_kill_9_of_a_stress_campaign_in_its_tests_then_in_its_minimisation(tmp_p
     cfg.write_text(json.dumps({"scenarios": ["configs/scenarios/lane_follow_static.yaml"], "seeds_per_scenario": 1,
                                "generation": {"start_s": {"min": 2.0, "max": 6.0}},
                                "minimise": {"max_signatures": 7, "max_replays": 6}}))
-    args = ["agents.stress", "--config", str(cfg), "--budget", "16", "--seed", "7", "--workers", "2",
+    args = ["deft_gym.robustness.stress", "--config", str(cfg), "--budget", "16", "--seed", "7", "--workers", "2",
             "--render", "none", "--quiet"]
     full, cut = tmp_path / "full", tmp_path / "cut"
     run_module(args, full)
@@ -917,7 +917,7 @@ def test_bad_training_settings_are_one_line_before_any_env_starts(body, field, t
 def test_stress_policies_out_of_order_or_unknown_are_one_line(body, field, tmp_path, capsys):
     """Policy ranges with min > max or infinite bounds, and roles the spec does not know, are
     set-up errors (they used to be accepted and drawn from silently)."""
-    from agents import stress
+    from deft_gym.robustness import stress
 
     cfg = tmp_path / "stress.yaml"
     cfg.write_text(body)

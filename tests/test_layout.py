@@ -2,7 +2,7 @@
 module-level imports have no cycles, ``extract`` imports only the log, the mapping and the
 planner interface (plus configuration, files and the execution layer), and ``deft_gym/`` holds
 packages plus two cross-cutting modules (the third cross-cutting part, ``deft_gym.execution``, is a
-package)."""
+package), each package either simulation code (in the code fingerprint) or named as not."""
 
 from __future__ import annotations
 
@@ -24,11 +24,20 @@ LAYERS: list[tuple[str, ...]] = [
     ("deft_gym.scenarios",),
     ("deft_gym.sim",),
     ("extract",),
-    ("deft_gym.search", "deft_gym.viz"),
+    # driving-quality metrics of an episode, from its log (planned: issue 33)
+    ("deft_gym.metrics",),
+    # the search support; an episode's log drawn (viz) or written in standard formats (export,
+    # planned: issue 37)
+    ("deft_gym.search", "deft_gym.viz", "deft_gym.export"),
     ("deft_gym.envs",),
+    # ASTAA, and its command (deft_gym.robustness.stress)
     ("deft_gym.robustness",),
-    ("deft_gym.cli",),
+    # the adversaries and their evaluation
     ("agents",),
+    # DeFT's research questions
+    ("deft_gym.experiments",),
+    # the console script, the simulation's programs and the tools (the demo runs everything)
+    ("deft_gym.cli",),
 ]
 # what extract may import of deft_gym: the log (bus messages and their codec), the planner
 # interface (and trajectory measures), configuration, file helpers and the execution layer
@@ -38,6 +47,10 @@ EXTRACT_MAY_IMPORT = ("deft_gym.bus.codec", "deft_gym.bus.messages", "deft_gym.p
 # the cross-cutting layer 0 imports nothing of deft_gym above it
 LAYER0_MAY_IMPORT = ("deft_gym.config", "deft_gym.files", "deft_gym.execution", "deft_gym.cli.common")
 TOP_LEVEL_MODULES = {"__init__.py", "config.py", "files.py"}
+# the packages of deft_gym/ that code_fingerprint hashes (deft_gym.search.trace): a changed file
+# in them makes cached reference runs and evaluation records stale; every other package is named
+# in its _NOT_SIMULATION_PACKAGES
+SIMULATION_PACKAGES = {"world", "bus", "record", "planner", "modules", "scenarios", "sim"}
 OWN = ("deft_gym", "extract", "agents")
 
 
@@ -158,3 +171,10 @@ def test_deft_gym_top_level_holds_packages_and_two_cross_cutting_modules() -> No
         assert init.exists(), f"{d.name}: not a package"
         doc = ast.get_docstring(ast.parse(init.read_text()))
         assert doc and len(doc) > 40, f"deft_gym/{d.name}/__init__.py: no docstring saying what it holds"
+    from deft_gym.search.trace import _NOT_SIMULATION_PACKAGES
+
+    packages = {p.name for p in pkg.iterdir() if (p / "__init__.py").exists()}
+    unnamed = packages - SIMULATION_PACKAGES - set(_NOT_SIMULATION_PACKAGES)
+    assert unnamed == set(), (f"packages of deft_gym/ {sorted(unnamed)}: simulation code (SIMULATION_PACKAGES here) or not "
+                              "(deft_gym.search.trace._NOT_SIMULATION_PACKAGES, outside the code fingerprint)?")
+    assert not SIMULATION_PACKAGES & set(_NOT_SIMULATION_PACKAGES)

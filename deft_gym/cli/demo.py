@@ -1,68 +1,244 @@
-"""Run every seed scenario a few times on the jittered ADS and report how the reruns differ.
+"""`make demo`: what DeFT-Gym is for, end to end, in a few minutes.
 
-    python -m deft_gym.cli.demo --out runs/demo/seeds [--reruns 3]
+1. a system-level test - one scenario on the jittered multi-module ADS - rerun 10 times: only
+   the module timing differs, yet some reruns collide and some do not (flaky);
+2. DeFT extracts planning-module tests from the log of a colliding rerun;
+3. the extracted failure test runs 10 times: it fails every time (deterministic), in a fraction
+   of the time of a system rerun;
+4. the RL adversary learns briefly where to place obstacles (``configs/train/demo.yaml``), is
+   compared with Random-delta at an equal budget, and its failures become tests too;
+5. one HTML report of all of it (``OUT/report.html``), with a picture of every failure.
 
-An overview of the seed scenarios: one row per seed scenario with its outcomes over the reruns,
-collisions, how far the reruns' planning outputs are from the first rerun's, and the sim speed.
+    deft-gym demo [--out runs/demo] [--timesteps 1536] [--budget 16]
 """
 
 from __future__ import annotations
 
+import argparse
+import contextlib
+import io
 import json
+import os
+import shutil
+import subprocess
 import sys
+import time
+import warnings
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from rich import box
-from rich.table import Table
-
 from deft_gym.cli import common
-from deft_gym.cli.run import divergence_stats
-from deft_gym.files import write_atomic
-from deft_gym.scenarios.scenario import list_scenarios, load_scenario
-from deft_gym.sim.simulation import run_episode
+
+FLAKY = "flaky_left_turn.yaml"  # configs/demo/: a left turn with a vehicle cutting in
+JITTER_SEED = 1000  # the reruns' jitter seeds: 1000..1009 (a reproducible demo)
+
+MARKER = ".agents-demo"  # in --out: train/ and eval/ there are the demo's and may be replaced
+
+
+def build_parser() -> common.Parser:
+    p = common.parser("demo", "deft_gym.cli.demo", __doc__)
+    common.add_out(p, common.RUNS / "demo")
+    p.add_argument("--config", type=Path, default=None,
+                   help="adversary training YAML (default: configs/train/demo.yaml)")
+    p.add_argument("--timesteps", type=int, default=None, help="training steps (default: the config's)")
+    p.add_argument("--budget", type=int, default=16, help="simulated scenarios per method in the evaluation")
+    p.add_argument("--reruns", type=common.positive_int, default=10, help="system reruns and test runs")
+    p.add_argument("--skip-adversary", action="store_true", help="only the flaky -> deterministic part")
+    common.add_watchdog(p)
+    common.add_output_flags(p)
+    return p
+
+
+def _quietly(fn: Any, *args: Any) -> Any:
+    """Call ``fn`` with its prints (not its progress bars: they go to stderr) held back."""
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        return fn(*args)
+
+
+def _pytest(paths: list[Path], select: str | None = None) -> dict[str, Any]:
+    """One pytest run of ``paths``: counts of passed / failed / xfailed and the wall time [s]."""
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=", "-W", "ignore",
+           "--durations=0", "--durations-min=0", *(["-k", select] if select else []), *map(str, paths)]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    seconds = time.perf_counter() - t0
+    last = (proc.stdout.strip().splitlines() or [""])[-1]
+    counts: dict[str, Any] = {k: 0 for k in ("passed", "failed", "xfailed", "error", "deselected")}
+    took = last.rsplit(" in ", 1)[-1].split("s")[0] if " in " in last else ""
+    counts["session_seconds"] = float(took) if took.replace(".", "", 1).isdigit() else seconds
+    # the tests' own time: the "call" phases of pytest's --durations report
+    calls = [ln.split()[0] for ln in proc.stdout.splitlines() if " call " in ln and ln.split()[0].endswith("s")]
+    counts["call_seconds"] = sum(float(c[:-1]) for c in calls if c[:-1].replace(".", "", 1).isdigit())
+    for part in last.strip("= ").split(","):
+        words = part.split()
+        if len(words) >= 2 and words[0].isdigit():
+            key = words[1].rstrip("s") if words[1].startswith("error") else words[1]
+            counts[key] = counts.get(key, 0) + int(words[0])
+    return {**counts, "seconds": seconds, "summary": last.strip("= "), "code": proc.returncode}
+
+
+def flaky_story(out: Path, reruns: int, con: Any) -> dict[str, Any]:
+    """Steps 1-3 (see the module docstring)."""
+    from deft_gym.cli import run as run_cli
+    from deft_gym.config import CONFIG_DIR
+
+    scenario = CONFIG_DIR / "demo" / FLAKY
+    runs = out / "reruns"
+    con.print(f"[bold][1/5][/bold] a system-level test, rerun {reruns} times: {scenario.stem} (left turn, a "
+              f"vehicle cutting in), jitter seeds {JITTER_SEED}-{JITTER_SEED + reruns - 1}", soft_wrap=True)
+    _quietly(run_cli.main, [str(scenario), "--reruns", str(reruns), "--jitter-seed", str(JITTER_SEED),
+                            "--out", str(runs), "--render", "failures", "--quiet"])
+    s = json.loads((runs / "summary.json").read_text())
+    rerun_s = sum(r["wall_time"] for r in s["reruns"]) / reruns  # the simulation alone, without pictures
+    marks = "".join("X" if r["collision"] else "." for r in s["reruns"])
+    hit = [r for r in s["reruns"] if r["collision"]]
+    con.print(f"      {marks}   {len(hit)} of {reruns} reruns collide (X) - the same test, only the module "
+              f"timing differs: flaky", soft_wrap=True)
+    story: dict[str, Any] = {"scenario": str(scenario), "reruns": reruns, "collided": len(hit),
+                             "pattern": marks, "rerun_seconds": rerun_s}
+    if not hit:
+        story["story"] = f"No rerun of {scenario.stem} collided this time (0 of {reruns}); nothing to extract."
+        con.print("      [yellow]no collision to extract[/yellow] (the planner or the scenario changed?)")
+        return story
+    first = hit[0]
+    tests_root = out / "reruns_tests"
+    ext = tests_root / str(first["rerun"])
+    con.print(f"[bold][2/5][/bold] DeFT extracts planning-module tests from the log of rerun {first['rerun']} "
+              f"(collided with {first['collision_detail']['participant']} at {first['collision_detail']['time']:.2f} s)",
+              soft_wrap=True)
+    from deft_gym.cli.extract import main as extract_main
+
+    _quietly(extract_main, [first["log"], "--out", str(ext), "--render", "failures", "--quiet"])
+    es = json.loads((ext / "summary.json").read_text())
+    f = es.get("faulty_trajectory")
+    con.print(f"      {es['reproduced_at_theta']} of {es['frames']} planning outputs reproduced bit-exactly from "
+              f"the log; the planner's failing plan (P_faulty) is frame {f['index']} at t={f['time']:.2f} s"
+              if f else f"      {es['frames']} frames; no plan into the collision found", soft_wrap=True)
+    test = Path(es["test_path"])
+    con.print(f"[bold][3/5][/bold] the extracted failure test, run {reruns} times ({test.name})")
+    results = [_pytest([test], "does_not_plan_into_collision") for _ in range(reruns)]
+    failed = sum(1 for r in results if r["failed"])
+    test_s = sum(r["call_seconds"] for r in results) / len(results)
+    session_s = sum(r["session_seconds"] for r in results) / len(results)
+    repro = _pytest([test], "reproduces")
+    con.print(f"      {'F' * failed}{'.' * (reruns - failed)}   fails {failed} of {reruns} runs: deterministic. The test "
+              f"takes {test_s:.3f} s (its pytest session {session_s:.1f} s, mostly imports and loading "
+              f"{repro['passed']} frames); a system rerun simulates for {rerun_s:.2f} s and collides in "
+              f"{len(hit)} of {reruns}", soft_wrap=True)
+    con.print(f"      its {repro['passed']} reproduction tests pass: the replayed frames give the recorded plans",
+              soft_wrap=True)
+    story.update(test=str(test), test_runs=reruns, test_failed=failed, test_seconds=test_s,
+                 test_session_seconds=session_s,
+                 reproduction=repro["summary"], extraction=str(ext),
+                 story=f"{len(hit)} of {reruns} system-level reruns of {scenario.stem} collided ({marks}); the "
+                       f"planning-module test DeFT extracted from rerun {first['rerun']} failed {failed} of {reruns} "
+                       f"runs.")
+    return story
+
+
+def adversary_story(args: Any, out: Path, con: Any) -> dict[str, Any]:
+    """Step 4 (see the module docstring)."""
+    from agents import evaluate, train
+    from deft_gym.config import CONFIG_DIR
+
+    config = args.config or CONFIG_DIR / "train" / "demo.yaml"
+    cfg = train.load_train_config(config)
+    scenario = cfg.env.scenarios[0]
+    for part in ("train", "eval"):  # the demo's own outputs (its marker says so): a new demo replaces them
+        if (out / part).exists():
+            shutil.rmtree(out / part)
+    steps = args.timesteps or cfg.timesteps
+    con.print(f"[bold][4/5][/bold] the RL adversary learns where to place obstacles on {scenario} "
+              f"({steps} env steps) ...")
+    t0 = time.perf_counter()
+    targs = ["--config", str(config), "--out", str(out / "train"), "--quiet", "--render", "failures"]
+    if args.timesteps:
+        targs += ["--timesteps", str(args.timesteps)]
+    if _quietly(train.main, targs) != 0:
+        raise RuntimeError("training failed")
+    ts = json.loads((out / "train" / "summary.json").read_text())
+    con.print(f"      {ts['episodes']} episodes in {time.perf_counter() - t0:.0f} s: {ts['collisions']} collisions + "
+              f"{ts['nods']} non-optimal decisions provoked, {100 * ts['validity']:.0f} % of placements valid",
+              soft_wrap=True)
+    con.print(f"      then RL vs Random-delta, {args.budget} simulated scenarios each ...")
+    eargs = ["--methods", "rl", "random_delta", "--budget", str(args.budget), "--repeats", "1", "--scenarios",
+             scenario, "--held-out", "0", "--placements", "closest", "--model", str(out / "train" / "model.zip"),
+             "--out", str(out / "eval"), "--log-failures", "--quiet", "--render", "failures"]
+    if _quietly(evaluate.main, eargs) != 0:
+        raise RuntimeError("evaluation failed")
+    summary = json.loads((out / "eval" / "summary.json").read_text())
+    story: dict[str, Any] = {"scenario": scenario, "train": ts}
+    lines = []
+    for m in ("rl", "random_delta"):
+        cell = ((summary.get("per_scenario", {}).get(m, {}).get("closest") or {}).get(scenario)) or {}
+        c = {k: (v["mean"] if isinstance(v, dict) else v) for k, v in cell.items()}
+        if c:
+            lines.append(f"{'RL adversary' if m == 'rl' else 'Random-delta'}: {c['failures']:g} failures "
+                         f"({c['collisions']:g} collisions + {c['nods']:g} NoDS) in {c['simulated']:g} scenarios")
+    for line in lines:
+        con.print(f"      {line}")
+    tests = sorted((out / "train").rglob("extracted/test_*.py")) + sorted((out / "eval").rglob("extracted/test_*.py"))
+    if tests:
+        r = _pytest(tests)
+        con.print(f"      {len(tests)} planning-module test module(s) extracted from the adversary's failures: "
+                  f"{r['failed']} failure test(s) fail (collisions reproduced), {r['passed']} reproduction tests "
+                  f"pass (a non-optimal decision has no failure oracle)", soft_wrap=True)
+        story["tests"] = [str(t) for t in tests]
+    else:
+        con.print("      no failure of the adversary this time, so no test extracted from it (a longer training "
+                  "finds more: docs/adversary.md)", soft_wrap=True)
+    story["story"] = (f"The RL adversary trained {ts['episodes']} episodes on {scenario} ({ts['collisions']} collisions, "
+                      f"{ts['nods']} non-optimal decisions); evaluation: " + "; ".join(lines) + ".")
+    return story
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = common.parser("seeds", "deft_gym.cli.demo", __doc__)
-    common.add_out(ap, common.RUNS / "demo" / "seeds", help="output folder (logs per scenario and rerun)")
-    ap.add_argument("--reruns", type=common.positive_int, default=3, help="reruns per seed scenario")
-    common.add_jitter_seed(ap, "jitter seed of rerun 0 of every scenario; rerun i uses S+i")
-    common.add_output_flags(ap)
-    args = ap.parse_args(argv)
-    console = common.console(args, width=110)
+    args = build_parser().parse_args(argv)
+    with common.watchdog_env(args):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
+    con = common.console(args)
+    os.environ.setdefault("PYTHONWARNINGS", "ignore")  # the demo shows results, not library warnings
+    warnings.simplefilter("ignore")
     out = Path(args.out)
-    seeds = [p for p in list_scenarios() if not p.name.startswith("bench")]
-    rows: list[dict[str, Any]] = []
-    with common.bar(args, len(seeds) * args.reruns, "seed scenarios") as progress:
-        for path in seeds:
-            sc = load_scenario(path)
-            results = []
-            for i in range(args.reruns):
-                seed = common.fresh_seed() if args.jitter_seed is None else args.jitter_seed + i
-                results.append(run_episode(sc, jitter_seed=seed, out_dir=out / sc.name / str(i)))
-                progress.update()
-            # reruns without planning outputs to pair have no divergence (median None)
-            div = [d for r in results[1:] if (d := divergence_stats(results[0].planning, r.planning))["paired"]]
-            rows.append({"scenario": sc.name,
-                         "outcomes": [r.outcome.outcome for r in results],
-                         "collisions": sum(r.outcome.collision is not None for r in results),
-                         "sim_speed": sum(r.sim_time for r in results) / sum(r.wall_time for r in results),
-                         "lsed_median": float(np.median([d["median"] for d in div])) if div else None,
-                         "jitter_seeds": [r.jitter_seed for r in results]})
-    t = Table(title=f"seed scenarios, {args.reruns} reruns each (fresh jitter seeds)", title_justify="left",
-              box=box.SIMPLE_HEAD)
-    for c in ("scenario", "outcomes", "collisions", "LSED vs rerun 0 [m]", "x real time"):
-        t.add_column(c, justify="left" if c in ("scenario", "outcomes") else "right")
-    for r in rows:
-        t.add_row(r["scenario"], ", ".join(r["outcomes"]), str(r["collisions"]),
-                  "-" if r["lsed_median"] is None else f"{r['lsed_median']:.2f}", f"{r['sim_speed']:.0f}")
-    console.print(t)
-    write_atomic(out / "summary.json", json.dumps(rows, indent=2))
-    console.print(f"logs and summary in {out}")
+    if out.exists() and not out.is_dir():
+        return common.cli_error(f"--out {out}: is a file; expected a folder for the demo's outputs")
+    marker = out / MARKER
+    if not marker.exists() and any((out / part).exists() for part in ("flaky", "train", "eval")):
+        return common.cli_error(f"--out {out}: holds flaky/, train/ or eval/ that deft_gym.cli.demo did not write "
+                                f"(no {MARKER}); choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    marker.write_text("written by deft_gym.cli.demo; a new demo into this folder replaces flaky/, train/ and eval/\n")
+    t0 = time.perf_counter()
+    doc: dict[str, Any] = {"created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    doc["flaky"] = flaky_story(out / "flaky", args.reruns, con)
+    if not args.skip_adversary:
+        doc["adversary"] = adversary_story(args, out, con)
+    doc["seconds"] = round(time.perf_counter() - t0, 1)
+    from deft_gym.files import write_json_atomic
+
+    write_json_atomic(out / "demo.json", doc)
+    con.print("[bold][5/5][/bold] the report ...")
+    from deft_gym.cli.report import write_report
+
+    report = write_report(out)
+    test = doc["flaky"].get("test")
+    con.print(f"\ndone in {doc['seconds']:.0f} s. Next:")
+    con.print(f"  open the report       {report}")
+    if test:
+        con.print(f"  run the failing test  pytest {test}")
+    if not args.skip_adversary:
+        con.print(f"  training curves       tensorboard --logdir {out / 'train' / 'tb'}")
+    logs = sorted((out / "flaky" / "reruns").glob("*/episode.mcap"))
+    if logs:
+        con.print(f"  a log in Foxglove     open {logs[0]} with the layout configs/foxglove/layout.json")
+    if args.quiet:
+        print(f"report: {report}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

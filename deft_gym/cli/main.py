@@ -12,8 +12,8 @@ import sys
 from deft_gym.cli import common
 
 # command -> (module, one line); grouped as the help lists them. The modules are named, not
-# imported: agents (the adversary programs) sit above deft_gym.cli in the layers and load
-# only when their command runs.
+# imported: each loads only when its command runs (agents, deft_gym.experiments and
+# deft_gym.robustness.stress hold their own packages' commands).
 COMMANDS: dict[str, tuple[str, str]] = {
     # simulate
     "run": ("deft_gym.cli.run", "run a scenario N times on the jittered ADS; logs, table, pictures"),
@@ -33,23 +33,22 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("agents.evaluate", "compare adversaries at an equal budget of scenarios"),
     "eval-report": ("agents.eval_report", "re-render an evaluation's tables and plots"),
     "findings": ("agents.findings", "re-simulate and draw a sample of each root cause an evaluation counted"),
-    "bench-env": ("agents.bench_env", "adversary env steps/s and scenarios/hour"),
-    "profile-env": ("agents.profile_env", "where an adversary env process spends its CPU (cProfile)"),
-    "standing": ("agents.standing", "how long mutated runs stand with no light holding them (the stuck time)"),
+    "bench-env": ("deft_gym.cli.bench_env", "adversary env steps/s and scenarios/hour; --profile: where its CPU goes"),
+    "standing": ("deft_gym.cli.standing", "how long mutated runs stand with no light holding them (the stuck time)"),
     # robustness (ASTAA)
-    "stress": ("agents.stress", "robustness campaign: exceptional values on the live bus"),
+    "stress": ("deft_gym.robustness.stress", "robustness campaign: exceptional values on the live bus"),
     # experiments and tools
-    "demo": ("agents.demo", "the end-to-end demo (make demo): flaky -> deterministic, adversary, report"),
-    "record": ("agents.record", "record one episode (optionally renamed topics, headers)"),
-    "extract-eval": ("agents.extract_eval_args", "DeFT's research questions on a scenario pool"),
-    "planner-edits": ("agents.planner_edits", "do generated tests catch small planner edits?"),
-    "log-damage": ("agents.log_damage", "damage logs on purpose and check what the reader recovers"),
-    "bench-scale": ("agents.bench_scale", "a campaign at 1..N workers, local processes and Ray"),
+    "demo": ("deft_gym.cli.demo", "the end-to-end demo (make demo): flaky -> deterministic, adversary, report"),
+    "record": ("deft_gym.experiments.record", "record one episode (optionally renamed topics, headers)"),
+    "extract-eval": ("deft_gym.experiments.extract_eval", "DeFT's research questions on a scenario pool"),
+    "planner-edits": ("deft_gym.experiments.planner_edits", "do generated tests catch small planner edits?"),
+    "log-damage": ("deft_gym.experiments.log_damage", "damage logs on purpose and check what the reader recovers"),
+    "bench-scale": ("deft_gym.cli.bench_scale", "a campaign at 1..N workers, local processes and Ray"),
 }
 GROUPS = (("simulate", ("run", "calibrate", "generate", "bench", "digest")),
           ("look at episodes", ("render", "report")),
           ("DeFT: logs -> planning-module tests", ("extract", "check-planner", "verify")),
-          ("the adversary", ("train", "evaluate", "eval-report", "findings", "bench-env", "profile-env", "standing")),
+          ("the adversary", ("train", "evaluate", "eval-report", "findings", "bench-env", "standing")),
           ("robustness (ASTAA)", ("stress",)),
           ("experiments and tools", ("demo", "record", "extract-eval", "planner-edits", "log-damage", "bench-scale")))
 

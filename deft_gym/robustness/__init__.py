@@ -17,6 +17,9 @@ One concept per module:
 - :mod:`.minimise` - delta debugging over message instances, then over fields;
 - :mod:`.faults` - planted faults modelled on the paper's bugs (off by default);
 - :mod:`.sanitize` and :mod:`.hardening` - sanitisation/consistency wrappers for the modules;
-- :mod:`.campaign` - the campaign loop behind ``python -m agents.stress``;
-- :mod:`.subsystem` - subsystem replay testing of the planner on DeFT-extracted frames.
+- :mod:`.campaign` - the campaign loop behind :mod:`.stress`;
+- :mod:`.subsystem` - subsystem replay testing of the planner on DeFT-extracted frames;
+- :mod:`.stress` - the command (``deft-gym stress``, ``python -m deft_gym.robustness.stress``):
+  the campaign and its ``replay``, ``check``, ``spec``, ``compare`` and ``subsystem``
+  subcommands. The package's library modules never import it.
 """

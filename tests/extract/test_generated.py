@@ -1,0 +1,128 @@
+"""The generated pytest modules, run for real in subprocesses, and the CLI.
+
+A collision episode is recorded and extracted once; its generated tests must pass on the
+unchanged planner (reproduction tests), give identical results run after run, fail on a changed
+planner, and the failure test (oracle transformation) must fail every time until the planner
+stops planning into the collision.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from extract import extract_episode
+from tests.support.extract_support import colliding_episode, run_pytest
+
+FAILURE = "does_not_plan_into_collision"
+
+
+@pytest.fixture(scope="module")
+def collision(tmp_path_factory: pytest.TempPathFactory):
+    root = tmp_path_factory.mktemp("collision")
+    found = colliding_episode(root / "logs")
+    if found is None:
+        pytest.skip("none of the candidate cut-in scenarios collides with the current planner")
+    log, name = found
+    res = extract_episode(log, root / "tests")
+    return res, name
+
+
+def _reproduction(outcomes: dict[str, str]) -> dict[str, str]:
+    return {k: v for k, v in outcomes.items() if "_reproduces[" in k}
+
+
+def test_extraction_finds_the_faulty_plan(collision) -> None:
+    res, _ = collision
+    s = res.summary
+    assert s["outcome"] == "collision" and s["reproduced"]["0"] == s["frames"]
+    f = res.faulty
+    assert f is not None and f["participant"] == s["collision"]["participant"]
+    assert f["publish_time"] <= s["collision"]["time"] and f["distance"] == 0.0
+    assert 0 <= f["replay_from"] <= f["index"]
+    assert res.test_path is not None and FAILURE in res.test_path.read_text()
+
+
+def test_generated_tests_pass_fail_as_expected_and_are_deterministic(collision) -> None:
+    res, _ = collision
+    out_dir = res.test_path.parent
+    code1, first, log1 = run_pytest(out_dir)
+    code2, second, _ = run_pytest(out_dir)
+    assert first == second, "two runs of the generated tests differ"
+    repro = _reproduction(first)
+    assert len(repro) == res.summary["frames"] and set(repro.values()) == {"passed"}, log1[-2000:]
+    failure = {k: v for k, v in first.items() if FAILURE in k}
+    assert list(failure.values()) == ["failed"] and code1 == code2 == 1
+    # names tell scenario, frame, time (and, for the failure test, the participant and collision time)
+    (fname,) = failure
+    f = res.faulty
+    assert f"frame{f['index']:04d}-t{f['time']:.3f}s" in fname and f["participant"] in fname
+    assert res.test_path.stem.removeprefix("test_") in fname
+    assert "the planner still plans into the collision" in log1
+
+
+@pytest.mark.parametrize("runs", [2, pytest.param(10, marks=pytest.mark.slow)])
+def test_failure_test_fails_every_time(collision, runs: int) -> None:
+    res, _ = collision
+    verdicts = [run_pytest(res.test_path.parent, "-k", FAILURE)[1] for _ in range(runs)]
+    assert all(list(v.values()) == ["failed"] for v in verdicts)
+
+
+def test_failure_test_replaying_all_frames_agrees(collision) -> None:
+    res, _ = collision
+    _, minimal, _ = run_pytest(res.test_path.parent, "-k", FAILURE)
+    _, full, _ = run_pytest(res.test_path.parent, "-k", FAILURE, env={"DEFT_FULL_PREFIX": "1"})
+    assert minimal == full and list(full.values()) == ["failed"]
+
+
+def test_changed_planner_fails_once_at_the_first_divergent_frame(collision) -> None:
+    """A small deliberate change (a cost weight) fails the first frame whose output differs, with
+    the differing fields at full precision; every later frame is reported as its consequence."""
+    res, _ = collision
+    _, outcomes, log = run_pytest(res.test_path.parent, "-rx",
+                                  env={"DEFT_PLANNER_PARAMS": json.dumps({"w_speed": 8.5})})
+    repro = _reproduction(outcomes)
+    failed = [k for k, v in repro.items() if v == "failed"]
+    assert len(failed) == 1, log[-1500:]
+    first = sorted(repro).index(failed[0])
+    assert all(v == "passed" for k, v in sorted(repro.items())[:first])
+    assert all(v == "skipped" for k, v in sorted(repro.items())[first + 1:])  # xfail: a consequence
+    assert "the first frame of this episode that does" in log and "consequences:" in log
+    assert "a consequence of frame" in log
+    assert "recorded " in log and "replayed " in log
+
+
+def test_failure_test_passes_once_the_planner_stops_planning_into_it(collision) -> None:
+    res, _ = collision
+    _, outcomes, _ = run_pytest(res.test_path.parent, "-k", FAILURE,
+                                env={"DEFT_PLANNER": "tests.support.extract_support:ElsewherePlanner"})
+    assert list(outcomes.values()) == ["passed"]
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "extract", *args], capture_output=True, text=True)
+
+
+def test_cli_extracts_one_log(collision, tmp_path) -> None:
+    res, _ = collision
+    log = Path(res.summary["log"])
+    proc = _cli(str(log), "--out", str(tmp_path / "cli"), "--theta", "0.1", "--measure", "frechet")
+    assert proc.returncode == 0, proc.stderr
+    s = json.loads((tmp_path / "cli" / "summary.json").read_text())
+    assert s["theta"] == 0.1 and s["measure"] == "frechet" and s["reproduced"]["0"] == s["frames"]
+    assert "P_faulty" in proc.stdout and "pytest" in proc.stdout
+
+
+def test_cli_bad_input_is_one_clear_line(tmp_path) -> None:
+    for args, needle in [((str(tmp_path / "nope.mcap"),), "no such file"),
+                         ((str(tmp_path),), "no .mcap logs"),
+                         ((str(tmp_path), "--mapping", str(tmp_path / "m.yaml")), "cannot read mapping")]:
+        proc = _cli(*args, "--out", str(tmp_path / "o"))
+        assert proc.returncode == 2 and needle in proc.stderr
+        assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("error: ")
+    assert _cli("--help").returncode == 0
+    assert _cli("x.mcap").returncode == 2  # --out is required

@@ -1,0 +1,111 @@
+"""Helpers shared by the extractor tests (no tests here): small real episodes and pytest runs.
+
+Episodes are real deft_gym runs with a fixed jitter seed, shortened where the scenario allows,
+so each costs about a second.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+from deft_gym.experiments.record import record_episode
+from deft_gym.planner.lattice import LatticePlanner
+from deft_gym.scenarios.scenario import load_scenario, scenario_from_dict, scenario_to_dict
+from deft_gym.scenarios.variants import inject_cut_in
+from deft_gym.sim.simulation import reference_path
+
+ROOT = Path(__file__).resolve().parents[2]  # on the path of the subprocesses: tests.support.* imports
+
+#: cut-in variants that collided with the reference planner, tried in order
+COLLISION_CANDIDATES = [("cross_intersection", 0, 1000), ("take_exit", 0, 1000), ("right_turn", 0, 1000),
+                        ("left_turn", 7, 1000), ("blocked_red_light", 0, 1000)]
+
+
+def short_scenario(name: str, duration: float) -> Any:
+    """A seed scenario cut to ``duration`` seconds."""
+    data = scenario_to_dict(load_scenario(name))
+    data["duration"] = duration
+    data["name"] = f"{data['name']}_short"
+    return scenario_from_dict(data, source=f"{name} (short)")
+
+
+def record(out: Path, scenario: Any, seed: int = 7, **kwargs: Any) -> Path:
+    """Record one episode into ``out``; returns the log path."""
+    res = record_episode(scenario, out, jitter_seed=seed, **kwargs)
+    assert res.log_path is not None
+    return Path(res.log_path)
+
+
+def colliding_episode(out: Path) -> tuple[Path, str] | None:
+    """The first candidate cut-in scenario whose run collides: ``(log, scenario name)``."""
+    refs: dict[str, Any] = {}
+    for k, (name, cut, seed) in enumerate(COLLISION_CANDIDATES):
+        sc = load_scenario(name)
+        if name not in refs:
+            refs[name] = reference_path(sc, jitter_seed=0)
+        variant = inject_cut_in(sc, refs[name], seed=cut)
+        res = record_episode(variant, out / f"cand{k}", jitter_seed=seed)
+        if res.outcome.collision is not None:
+            return Path(res.log_path), variant.name
+    return None
+
+
+def run_pytest(path: Path, *args: str, env: dict[str, str] | None = None) -> tuple[int, dict[str, str], str]:
+    """Run pytest on generated tests in a subprocess: ``(returncode, {test name: outcome}, output)``."""
+    xml = path / f"junit-{os.getpid()}-{len(list(path.glob('junit-*.xml')))}.xml"
+    full_env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+                **(env or {})}
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
+                           f"--junitxml={xml}", str(path), *args], capture_output=True, text=True, env=full_env)
+    outcomes: dict[str, str] = {}
+    if xml.exists():
+        for tc in ET.parse(xml).getroot().iter("testcase"):
+            if tc.find("failure") is not None or tc.find("error") is not None:
+                status = "failed"
+            elif tc.find("skipped") is not None:
+                status = "skipped"
+            else:
+                status = "passed"
+            outcomes[tc.get("name", "")] = status
+        xml.unlink()
+    return proc.returncode, outcomes, proc.stdout + proc.stderr
+
+
+class ElsewherePlanner(LatticePlanner):
+    """A deliberately changed planner: plans like the reference one, 100 m to the side (so it
+    never plans into anything the reference planner hit)."""
+
+    def plan(self, frame: Any) -> dict[str, Any] | None:
+        out = super().plan(frame)
+        if out is not None:
+            out["trajectory"]["y"] = [y + 100.0 for y in out["trajectory"]["y"]]
+        return out
+
+
+class HiddenStatePlanner(LatticePlanner):
+    """The reference planner with state kept outside ``self.state``, as CommonRoad's reactive
+    planner keeps its low-speed flag: a low-pass filtered start speed, updated by every call, that
+    shifts the plan by a few millimetres. A clean replay is deterministic; snapshot(), a call with
+    another frame and restore() leave the filter where the other frame put it."""
+
+    def __init__(self, map_spec: dict[str, Any], **params: Any) -> None:
+        super().__init__(map_spec, **params)
+        self._v_filtered = 0.0
+
+    def reset(self) -> None:
+        super().reset()
+        self._v_filtered = 0.0
+
+    def plan(self, frame: Any) -> dict[str, Any] | None:
+        out = super().plan(frame)
+        if out is not None:
+            v0 = out["trajectory"]["v"][0]
+            self._v_filtered = 0.8 * self._v_filtered + 0.2 * v0
+            shift = 0.0025 * (self._v_filtered > 4.0)
+            out["trajectory"]["x"] = [x + shift for x in out["trajectory"]["x"]]
+        return out
