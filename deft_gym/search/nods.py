@@ -293,17 +293,13 @@ def spawned_near(trace: Trace, distance: float = SPAWN_DISTANCE) -> list[int]:
     return bad
 
 
-def invasive_actors(ref: Trace, trace: Trace, clearance: float = CLEARANCE,
-                    window: tuple[float, float] = (EARLY_WINDOW, LATE_WINDOW),
-                    spawn_distance: float = SPAWN_DISTANCE) -> dict[str, str]:
+def invasive_why(ref: Trace, trace: Trace, clear: dict[int, float], clearance: float = CLEARANCE,
+                 spawn_distance: float = SPAWN_DISTANCE) -> dict[str, str]:
     """Participants of ``trace`` that make a mutation invasive, with why: an added one closer
-    than ``clearance`` [m] to the optimal path while it is reserved (:func:`clearances`,
-    ``"path"``) or appearing within ``spawn_distance`` [m] of the live ego (``"spawn"``); a seed
-    one overlapping the reference ego at the same instant (``"seed"``)."""
-    bad: dict[str, str] = {}
-    for i, c in clearances(ref, trace, window).items():
-        if c < clearance:
-            bad[trace.actors[i].id] = "path"
+    than ``clearance`` [m] to the optimal path while it is reserved (``clear``:
+    :func:`clearances`; ``"path"``) or appearing within ``spawn_distance`` [m] of the live ego
+    (``"spawn"``); a seed one overlapping the reference ego at the same instant (``"seed"``)."""
+    bad = {trace.actors[i].id: "path" for i, c in clear.items() if c < clearance}
     for i in spawned_near(trace, spawn_distance):
         bad.setdefault(trace.actors[i].id, "spawn")
     for i in seed_overlaps(ref, trace):
@@ -572,11 +568,7 @@ class DecisionOracle:
         dist = self.distances(xy)  # computed once: f_p, off_length, the finding
         io, fp, fb = self.iou(xy), self.f_p(dist), self.f_b(trace.ego)
         clear = clearances(self.ref, trace, self.window)
-        why = {trace.actors[i].id: "path" for i, c in clear.items() if c < self.clearance}
-        for i in spawned_near(trace, self.spawn_distance):
-            why.setdefault(trace.actors[i].id, "spawn")
-        for i in seed_overlaps(self.ref, trace):
-            why.setdefault(trace.actors[i].id, "seed")
+        why = invasive_why(self.ref, trace, clear, self.clearance, self.spawn_distance)
         is_collision = outcome == "collision"
         nods = outcome == "completed" and io <= self.threshold
         off = self.off_length(xy, dist)
@@ -644,25 +636,16 @@ class DecisionOracle:
             return None
         lane = lane_name(before[start]["lane"])
         for e in reversed(before[:start + 1]):
-            cause = e["causes"].get(lane, {})
-            if lane in e["blocked"]:
-                return list(cause.get("blocked", [])), "blocked", e["t"]
-            if lane in e["tight"]:
-                return list(cause.get("tight", [])), "tight", e["t"]
+            found = _lane_state(e, lane)
+            if found is not None:
+                return found
         return [], "other", before[start]["t"]
 
     @staticmethod
     def _lane_cause(entries: list[dict[str, Any]]) -> tuple[list[int], str, float] | None:
         """The ego's own lane blocked or tight in the last of ``entries`` (an ego that never left
         the optimal path but stopped or crawled)."""
-        for e in reversed(entries):
-            lane = lane_name(e["lane"])
-            cause = e["causes"].get(lane, {})
-            if lane in e["blocked"]:
-                return list(cause.get("blocked", [])), "blocked", e["t"]
-            if lane in e["tight"]:
-                return list(cause.get("tight", [])), "tight", e["t"]
-        return None
+        return _lane_state(entries[-1], lane_name(entries[-1]["lane"])) if entries else None
 
     def _refusal_cause(self, timeline: list[dict[str, Any]], t_event: float, look_back: float = 10.0,
                        look_ahead: float = 3.0) -> tuple[list[int], str, float] | None:
@@ -730,6 +713,15 @@ class DecisionOracle:
         """Planning decisions the run made that the reference run never did (sorted)."""
         ref = self.ref.meta.get("decisions", {})
         return sorted(k for k in trace.meta.get("decisions", {}) if k not in ref)
+
+
+def _lane_state(entry: dict[str, Any], lane: str) -> tuple[list[int], str, float] | None:
+    """``(perception ids, blocked | tight, time)`` when the decision ``entry`` called ``lane``
+    blocked (first) or tight, else None."""
+    for rule in ("blocked", "tight"):
+        if lane in entry[rule]:
+            return list(entry["causes"].get(lane, {}).get(rule, [])), rule, entry["t"]
+    return None
 
 
 def _side(ref_xy: np.ndarray, p: np.ndarray) -> str:
