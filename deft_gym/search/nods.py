@@ -372,7 +372,7 @@ def collision_fault(trace: Trace, collision: dict[str, Any],
     apart = next((k for k in range(tick, max(k0, int(rows[0, 0])) - 1, -1) if not sideways(k)[3]), None)
     if apart is None:  # overlapping across the road all along: a rear-end, one way or the other
         ego0, other0, _, _ = sideways(k0)
-        ahead = other0[0] > ego0[0]
+        ahead = bool(other0[0] > ego0[0])
         return ahead, ("rear_end" if ahead else "rear_ended")
     ego0, other0, h0, _ = sideways(apart)
     ego1 = _intervals(*e1, EGO_LENGTH, EGO_WIDTH, h0)
@@ -380,7 +380,7 @@ def collision_fault(trace: Trace, collision: dict[str, Any],
     side = math.copysign(1.0, other0[2] - ego0[2])  # where the other is, seen from the ego
     ego_move = side * (ego1[2] - ego0[2])  # [m] the ego's lateral move towards the other
     other_move = -side * (other1[2] - other0[2])  # [m] the other's towards the ego
-    at_fault = ego_move >= other_move
+    at_fault = bool(ego_move >= other_move)
     crossing = abs(math.remainder(float(other_at(apart)[2]) - h0, 2 * math.pi)) > math.pi / 4
     return at_fault, ("crossing" if crossing else "lateral" if at_fault else "cut_in")
 

@@ -155,6 +155,9 @@ def test_the_ego_is_at_fault_only_when_it_closed_the_gap():
     assert _fault(ego_lc, [(10.0 * ti + 1.0, 3.5, 0.0) for ti in t]) == (True, "lateral")
     # a car that appeared 1 s before the contact, right in front of the ego
     assert _fault(ego, [(20.0 - 5.0 * ti, 0.0, 0.0) for ti in t], first_tick=20) == (False, "appeared")
+    # plain bools: the verdict goes into JSON records (a numpy bool ended a training run)
+    assert type(_fault(ego, [(20.0 + 4.0 * ti, 0.0, 0.0) for ti in t])[0]) is bool
+    assert type(_fault(ego, [(10.0 * ti + 1.0, 3.5 - 1.5 * ti, -0.15) for ti in t])[0]) is bool
 
 
 # -- the reference path ------------------------------------------------------------------------------
