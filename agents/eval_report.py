@@ -247,22 +247,12 @@ def findings_markdown(summary: dict[str, Any], top: int = 12) -> str:
     out = ["Root cause: `kind:trigger:band:mechanism` (band: the trigger's clearance to the optimal path; in_lane "
            "< 0.75 m, near 0.75-1.0 m, far). Failures summed over the repeats; repeats and scenarios it was found in.", ""]
     order = [m for m in [*summary["methods"], "all"] if m in causes]
-    for m in order:
-        for p in summary["placements"]:
-            cs = causes[m].get(p)
-            if not cs:
-                continue
-            rows = sorted(cs.items(), key=lambda kv: (-kv[1]["failures"], kv[0]))
-            genuine = sum(1 for _, c in rows if c["band"] != stats.IN_LANE)
-            out += [f"**{'All methods' if m == 'all' else _label(m)}, {p}**: {len(rows)} root causes "
-                    f"({genuine} outside the ego's lane)", "",
-                    "| root cause | band | mechanism | failures | repeats | scenarios |", "|---|---|---|---|---|---|"]
-            for sig, c in rows[:top]:
-                scn = ", ".join(c["scenarios"][:3]) + (f" (+{len(c['scenarios']) - 3})" if len(c["scenarios"]) > 3 else "")
-                out.append(f"| `{sig}` | {c['band']} | {c['mechanism']} | {c['failures']} | {c['repeats']} | {scn} |")
-            if len(rows) > top:
-                out.append(f"| ... {len(rows) - top} more | | | {sum(c['failures'] for _, c in rows[top:])} | | |")
-            out.append("")
+    out += _cause_tables(causes, order, summary["placements"], top, "root causes")
+    tasks = f.get("task_root_causes", {})
+    if tasks:
+        out += ["Task failures (timeout, stuck; their own column, not in the headline) by root cause:", ""]
+        out += _cause_tables(tasks, [m for m in [*summary["methods"], "all"] if m in tasks], summary["placements"], top,
+                             "root causes of task failures")
     names = sorted({k for ps in mechs.values() for cs in ps.values() for k in cs})
     if names:
         out += ["Share of each mechanism in the counted failures:", "",
@@ -277,6 +267,28 @@ def findings_markdown(summary: dict[str, Any], top: int = 12) -> str:
                            + " | ".join(f"{100 * cs.get(k, 0) / n:.0f} %" if cs.get(k) else "-" for k in names) + " |")
         out.append("")
     return "\n".join(out) + "\n"
+
+
+def _cause_tables(causes: dict[str, Any], order: list[str], placements: list[str], top: int, what: str) -> list[str]:
+    """One table per method and placement of the ``top`` most frequent root causes."""
+    out: list[str] = []
+    for m in order:
+        for p in placements:
+            cs = causes[m].get(p)
+            if not cs:
+                continue
+            rows = sorted(cs.items(), key=lambda kv: (-kv[1]["failures"], kv[0]))
+            genuine = sum(1 for _, c in rows if c["band"] != stats.IN_LANE)
+            out += [f"**{'All methods' if m == 'all' else _label(m)}, {p}**: {len(rows)} {what} "
+                    f"({genuine} outside the ego's lane)", "",
+                    "| root cause | band | mechanism | failures | repeats | scenarios |", "|---|---|---|---|---|---|"]
+            for sig, c in rows[:top]:
+                scn = ", ".join(c["scenarios"][:3]) + (f" (+{len(c['scenarios']) - 3})" if len(c["scenarios"]) > 3 else "")
+                out.append(f"| `{sig}` | {c['band']} | {c['mechanism']} | {c['failures']} | {c['repeats']} | {scn} |")
+            if len(rows) > top:
+                out.append(f"| ... {len(rows) - top} more | | | {sum(c['failures'] for _, c in rows[top:])} | | |")
+            out.append("")
+    return out
 
 
 def table_markdown(summary: dict[str, Any]) -> str:

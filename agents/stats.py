@@ -151,7 +151,7 @@ class Tally:
         elif r["failure"] and r["valid"]:
             c["unconfirmed"] += 1
         c["nods_local"] += int(bool(r["nods_local"] and r["valid"]))
-        c["task_failures"] += int(bool(r["task_failure"] and r["valid"] and r["confirmed"] is True))
+        c["task_failures"] += int(bool(counted_task_failure(r)))
         self.seconds = None if self.seconds is None or r["seconds"] is None else self.seconds + r["seconds"]
         self.cpu_seconds = (None if self.cpu_seconds is None or r["cpu_seconds"] is None
                             else self.cpu_seconds + r["cpu_seconds"])
@@ -296,17 +296,26 @@ def summarize(records: Iterable[dict[str, Any]], methods: Sequence[str] | None =
     return summary
 
 
+def counted_task_failure(rec: dict[str, Any]) -> str | None:
+    """``"timeout"`` or ``"stuck"`` when the record's task failure counts (valid and confirmed)."""
+    return rec["task_failure"] if rec["task_failure"] and rec["valid"] and rec["confirmed"] is True else None
+
+
 def findings(rows: list[dict[str, Any]], methods: Sequence[str], placements: Sequence[str]) -> dict[str, Any]:
     """The counted failures by root cause and by mechanism: ``root_causes[method][placement]`` ->
     root cause -> ``{failures, repeats, scenarios, band, mechanism}`` (failures summed over the
     repeats, repeats and scenarios it was found in), ``mechanisms[method][placement]`` ->
     mechanism -> failures, and the same over ``all`` methods (identical scenarios found by several
-    methods counted once: the same scenario, participants and root cause)."""
-    causes: dict[str, Any] = {}
-    mechs: dict[str, Any] = {}
+    methods counted once: the same scenario, participants and root cause); ``task_root_causes``:
+    the counted task failures (timeout, stuck) the same way."""
+    out: dict[str, Any] = {"root_causes": {}, "mechanisms": {}, "task_root_causes": {}}
     seen: set[tuple[str, str, str]] = set()
     for r in rows:
-        if not counted_failure(r):
+        if counted_failure(r):
+            where = "root_causes"
+        elif counted_task_failure(r):
+            where = "task_root_causes"
+        else:
             continue
         sig = r["signature"] or "<unsigned>"
         for m in (r["method"], "all"):
@@ -316,18 +325,20 @@ def findings(rows: list[dict[str, Any]], methods: Sequence[str], placements: Seq
                 if key in seen:
                     continue
                 seen.add(key)
-            cell = causes.setdefault(m, {}).setdefault(r["placement"], {}).setdefault(
+            cell = out[where].setdefault(m, {}).setdefault(r["placement"], {}).setdefault(
                 sig, {"failures": 0, "repeats": set(), "scenarios": set(), "band": r["band"], "mechanism": r["mechanism"]})
             cell["failures"] += 1
             cell["repeats"].add(r["repeat"])
             cell["scenarios"].add(r["scenario"])
-            mc = mechs.setdefault(m, {}).setdefault(r["placement"], {})
-            mc[r["mechanism"]] = mc.get(r["mechanism"], 0) + 1
-    for ps in causes.values():
-        for cs in ps.values():
-            for c in cs.values():
-                c["repeats"], c["scenarios"] = len(c["repeats"]), sorted(c["scenarios"])
-    return {"root_causes": causes, "mechanisms": mechs}
+            if where == "root_causes":
+                mc = out["mechanisms"].setdefault(m, {}).setdefault(r["placement"], {})
+                mc[r["mechanism"]] = mc.get(r["mechanism"], 0) + 1
+    for key in ("root_causes", "task_root_causes"):
+        for ps in out[key].values():
+            for cs in ps.values():
+                for c in cs.values():
+                    c["repeats"], c["scenarios"] = len(c["repeats"]), sorted(c["scenarios"])
+    return out
 
 
 def json_key(x: Any) -> str:

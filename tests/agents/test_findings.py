@@ -1,0 +1,38 @@
+"""``deft-gym findings``: a counted failure of an evaluation's records simulated again with its
+jitter seed, checked to fail with the same root cause, drawn, and listed by root cause."""
+
+from __future__ import annotations
+
+import json
+
+import matplotlib.pyplot as plt
+
+from agents import findings
+from agents.search import record_of
+from deft_gym.search.context import seed_context
+from deft_gym.search.episode import run_scenario
+from deft_gym.search.feasible import Layout
+from tests.support.nods_helpers import place_static
+
+
+def test_a_counted_failure_is_simulated_again_drawn_and_listed(tmp_path) -> None:
+    ctx = seed_context("lane_follow_static")
+    added = [place_static(ctx, Layout(ctx.areas), "STATIC_VEHICLE", 40.0, -0.5, "added_0")]  # a NoDS (seed tests)
+    run = run_scenario(ctx, added, 0)
+    v = run.verdict
+    assert v.failure == "nods" and v.signature == "nods:parked:in_lane:blocked"
+    rec = {"method": "decictor", "placement": "closest", "scenario": "lane_follow_static", "repeat": 0,
+           **record_of(v, 3, 1.0, 1.0, 2, True, 0, 1, run.result.sim_time), "scenario_equivalent": run.scenario}
+    (tmp_path / "records.jsonl").write_text(json.dumps(rec) + "\n" + json.dumps({**rec, "index": 4, "failure": None})
+                                             + "\n")
+    assert findings.main([str(tmp_path), "--no-progress"]) == 0
+    text = (tmp_path / "findings" / "findings.md").read_text()
+    assert "| `nods:parked:in_lane:blocked` | 1 |" in text and "again **the same**" in text
+    assert "clearance of the trigger 0.6" in text and "borrow in a-b-0" in text
+    img = plt.imread(next((tmp_path / "findings").glob("*.png")))
+    assert img.shape[0] > 200 and img[..., :3].std() > 0.05
+
+
+def test_no_records_is_a_one_line_error(tmp_path, capsys) -> None:
+    assert findings.main([str(tmp_path)]) == 2
+    assert "records.jsonl: no such file" in capsys.readouterr().err
