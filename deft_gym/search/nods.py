@@ -276,9 +276,11 @@ def seed_overlaps(ref: Trace, trace: Trace) -> list[int]:
 
 def spawned_near(trace: Trace, distance: float = SPAWN_DISTANCE) -> list[int]:
     """Added participants of ``trace`` that appeared during the run closer than ``distance`` [m]
-    (centre to centre) to the live ego - where the ego was the step before they appeared (actor
-    indices). Whatever the method meant, a vehicle that appears beside the ego is no scenario a
-    real road makes. Those present from the start are judged by their clearance alone."""
+    (centre to centre) to the live ego (actor indices). Whatever the method meant, a vehicle that
+    appears beside the ego is no scenario a real road makes. Those present from the start are
+    judged by their clearance alone. A participant's first row is one world step after it
+    appeared: the distance is taken at that step and allowed the step's motion of both (their
+    speeds x the step), so a placement made exactly ``distance`` away is not refused."""
     parts = trace.parts
     bad = []
     for i, a in enumerate(trace.actors):
@@ -287,8 +289,10 @@ def spawned_near(trace: Trace, distance: float = SPAWN_DISTANCE) -> list[int]:
         rows = parts[parts[:, 1] == i]
         if not len(rows) or rows[0, 0] <= trace.ticks[0]:
             continue
-        k = max(int(np.searchsorted(trace.ticks, int(rows[0, 0]))) - 1, 0)
-        if math.hypot(rows[0, 2] - trace.ego[k, 0], rows[0, 3] - trace.ego[k, 1]) < distance:
+        k = int(np.clip(np.searchsorted(trace.ticks, int(rows[0, 0])), 0, len(trace.ticks) - 1))
+        v = math.hypot(rows[1, 2] - rows[0, 2], rows[1, 3] - rows[0, 3]) / trace.world_dt if len(rows) > 1 else 0.0
+        slack = (abs(float(trace.ego[k, 3])) + v) * trace.world_dt
+        if math.hypot(rows[0, 2] - trace.ego[k, 0], rows[0, 3] - trace.ego[k, 1]) < distance - slack:
             bad.append(i)
     return bad
 

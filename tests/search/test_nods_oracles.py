@@ -129,6 +129,12 @@ def test_a_car_appearing_beside_the_live_ego_is_invasive(ctx):
     rows = [(int(ref.ticks[k]) + i, ex + 0.5 * i, ey - 6.0, h) for i in range(40)]
     v = ctx.oracle.judge(_with_car(ref, rows, ego))
     assert v.invasive_why == {"car": "spawn"}
+    # one placed exactly 15 m behind the live ego, faster than it, is first recorded a step later
+    # and 0.5 m closer (the adversary env's placements): not refused
+    gap = [(int(ref.ticks[k]) + 1 + i, ex - 15.0 + 0.5 * (i + 1), ey, h) for i in range(40)]
+    ego_k = ego.copy()
+    ego_k[:, 3] = 0.0  # a standing ego: all of the closing is the car's
+    assert ctx.oracle.judge(_with_car(ref, gap, ego_k)).invasive_why == {}
 
 
 def _fault(ego_rows: list[tuple[float, float, float, float]], car_rows: list[tuple[float, float, float]],
