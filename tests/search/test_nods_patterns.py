@@ -169,3 +169,11 @@ def test_a_follower_that_stays_on_the_optimal_path_is_invasive(change: SeedConte
     e = ref.ego[np.searchsorted(ref.ticks, rows[:, 0].astype(np.int64))]
     gap = box_gap(e[:, 0], e[:, 1], e[:, 2], EGO_LENGTH, EGO_WIDTH, rows[:, 2], rows[:, 3], rows[:, 4], 4.8, 2.0)
     assert gap.min() > 0.5
+
+
+def test_one_threshold_found_anywhere_is_one_root_cause(keep: SeedContext) -> None:
+    """The signature used to carry where along the optimal path (10 m buckets): one designed-in
+    threshold hit 30 m apart, or moved by the jitter, counted twice. The root cause is the
+    trigger, its clearance band and the mechanism only."""
+    sigs = {run(keep, [parked("parked", x, LANE_W - EDGE - 1.0)], 0).verdict.signature for x in (70.0, 100.0)}
+    assert sigs == {"nods:parked:in_lane:blocked"}
