@@ -83,7 +83,8 @@ def leaving_decision(trace: Any, dist: np.ndarray, half_lane: float) -> str:
 
 
 def draw(ctx: Any, run: Any, path: Path, title: str) -> None:
-    """The optimal path, the ego's path, the added objects (the trigger in red) and the collision."""
+    """The optimal path, the ego's path, the added objects (green; the trigger in red), the seed's
+    participants (grey) and the collision."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -102,9 +103,9 @@ def draw(ctx: Any, run: Any, path: Path, title: str) -> None:
     pts = [ref, tr.xy]
     for i, a in enumerate(tr.actors):
         rows = tr.parts[tr.parts[:, 1] == i]
-        if not len(rows) or not a.added:
+        if not len(rows):
             continue
-        color = "#d62728" if a.id in trig else "#2ca02c"
+        color = "#d62728" if a.id in trig else "#2ca02c" if a.added else "0.45"
         if a.kind == "static":
             _box(ax, rows[0, 2], rows[0, 3], rows[0, 4], a.length, a.width, color=color, alpha=0.85)
         else:
@@ -177,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     lines = [f"# Findings of {folder}", "",
              f"{sum(len(v) for v in by_cause.values())} counted failures, {len(causes)} root causes; up to "
              f"{args.per_cause} of each simulated again with their jitter seed and drawn (dashed: the optimal path; "
-             "blue: the ego; red: the trigger).", "",
+             "blue: the ego; red: the trigger; green: other added objects; grey: the seed's participants).", "",
              "| root cause | failures | " + " | ".join(METHOD_LABELS.values()) + " |",
              "|---|---|" + "---|" * len(METHOD_LABELS)]
     for c in causes:

@@ -45,7 +45,7 @@ import shapely
 
 from deft_gym.search.trace import Actor, Trace
 from deft_gym.world.geometry import box_corners, box_gap, box_polygon
-from deft_gym.world.roadmap import RoadMap
+from deft_gym.world.roadmap import RoadMap, lane_surface
 from deft_gym.world.world import EgoVehicle
 
 GRID = 2.0  # [m] cell size
@@ -404,7 +404,8 @@ MOVING_SPEED = 0.3  # [m/s] a vehicle faster than this is moving (not parked)
 def band(clearance: float | None) -> str:
     """The clearance band of a trigger [m]: ``in_lane`` (< 0.75: inside the ego's lane, the
     ego centred in a 3.5 m lane has 0.75 m each side), ``near`` (0.75-1.0) or ``far``; ``-``
-    without one (a seed participant)."""
+    without one (a seed participant). A trigger inside the optimal path's lane is ``in_lane``
+    whatever its clearance (:meth:`DecisionOracle._intrudes`)."""
     if clearance is None:
         return "-"
     return next((name for limit, name in BANDS if clearance < limit), BANDS[-1][1])
@@ -431,10 +432,13 @@ class Finding:
     clearance: float | None = None  # [m] the trigger's clearance to the optimal path (added ones)
     mechanism: str = "other"
     trigger_ids: list[str] = field(default_factory=list)
+    in_lane: bool = False  # the trigger stood (at least 5 cm) inside the lane the optimal path was in
 
     @property
     def band(self) -> str:
-        return band(self.clearance) if self.trigger != "none" and not self.trigger.startswith("seed:") else "-"
+        if self.trigger == "none" or self.trigger.startswith("seed:"):
+            return "-"
+        return IN_LANE if self.in_lane else band(self.clearance)
 
     def key(self, kind: str) -> str:
         """The root cause: ``kind:trigger:band:mechanism``."""
@@ -593,57 +597,97 @@ class DecisionOracle:
         """The root cause of a failure of ``kind`` (collision | nods | local | timeout | stuck):
 
         - a collision: the participant hit and ``collision:<how>`` (:func:`collision_fault`);
-        - otherwise the decision that took the ego off the optimal path (or, never off it, the last
-          one it made): a lane borrow from a lane the planner called ``blocked`` - by one object
-          (``blocked``), by objects on both sides of the lane (``parallel``), by a vehicle that was
-          moving (``predicted_static``: prediction took it for a parked one) - or ``tight``
-          (closer than the comfort gap); a lane change the planner refused, by the gap to a vehicle
-          (``gap:rear``, ``gap:front``, ``gap:alongside``), by a vehicle in the target lane only by
-          its predicted lane change (``intent``), or near a junction (``junction``). ``other``:
+        - otherwise why the ego was not where the reference was when it first got half a lane off
+          the optimal path (or, never off it, at its end): a lane borrow away from the optimal
+          path's lane that the reference did not make, or that lane kept from the ego - called
+          ``blocked`` by one object (``blocked``), by objects on both sides of the path
+          (``parallel``), by a vehicle that was moving (``predicted_static``: prediction took it
+          for a parked one), or ``tight`` (closer than the comfort gap) - or a lane change into
+          it refused, by the gap to a vehicle (``gap:rear``, ``gap:front``, ``gap:alongside``), by
+          a vehicle in that lane only by its predicted lane change (``intent``), near a junction
+          (``junction``); for an ego that never left, its own lane blocked or tight. ``other``:
           none of these (a planner that publishes no decisions always gives ``other``).
 
-        The trigger is the participant(s) the decision names (by perception id), the added ones
-        first; its clearance is their smallest (``clear``: :func:`clearances`)."""
+        Of the causes found, the first that names an added participant wins (a seed's object the
+        reference also went round is no finding); the trigger is the participant(s) the decision
+        names (by perception id), the added ones first; its clearance is their smallest
+        (``clear``: :func:`clearances`)."""
         if collision is not None and kind == "collision":
             try:
                 i = trace.actor_index(str(collision.get("participant", "")))
             except StopIteration:
                 return Finding(mechanism=f"collision:{how or 'unknown'}")
-            return self._finding(trace, [i], f"collision:{how or 'unknown'}", clear)
+            return self._finding(trace, [i], f"collision:{how or 'unknown'}", clear, float(collision["time"]))
         timeline = trace.meta.get("timeline") or []
         off = np.flatnonzero(dist > self.roadmap.spec.lane_width / 2)
         t_event = float(trace.t[off[0]]) if len(off) else float(trace.t[-1])
         before = [e for e in timeline if e["t"] <= t_event + 1e-9]
-        found = (self._borrow_cause(before) or self._refusal_cause(timeline, t_event)
-                 or self._lane_cause(before[-1:]))
-        if found is None:
+        want = self._reference_lanes(t_event - 1.0, t_event + 3.0)
+        candidates = [self._borrow_cause(before, t_event), self._kept_from(timeline, want, t_event),
+                      self._refusal_cause(timeline, t_event), self._lane_cause(before[-1:])]
+        found = [c for c in candidates if c is not None]
+        added = {a.num for a in trace.actors if a.added}
+        best = next((c for c in found if set(c[0]) & added), found[0] if found else None)
+        if best is None:
             k = int(off[0]) if len(off) else len(trace.ticks) - 1
             near = _nearest_added(trace, int(trace.ticks[k]), trace.xy[k])
-            return self._finding(trace, [near] if near is not None else [], "other", clear)
-        nums, mechanism, t_cause = found
+            return self._finding(trace, [near] if near is not None else [], "other", clear, t_event)
+        nums, mechanism, t_cause = best
         idx = [i for i, a in enumerate(trace.actors) if a.num in nums]
         if mechanism == "blocked":
             mechanism = self._blocked_kind(trace, idx, t_cause)
-        return self._finding(trace, idx, mechanism, clear)
+        return self._finding(trace, idx, mechanism, clear, t_cause)
 
-    @staticmethod
-    def _borrow_cause(before: list[dict[str, Any]]) -> tuple[list[int], str, float] | None:
-        """The home lane's state when the last lane borrow before the event began: ``(perception
-        ids, blocked | tight, time)``, looking back from the borrow's start to the latest entry
-        that called the lane blocked or tight."""
+    def _reference_lanes(self, t0: float, t1: float) -> set[str]:
+        """The lanes the reference ego drove in between ``t0`` and ``t1`` [s] (sampled every 0.5 s)."""
+        ref = self.ref
+        k0, k1 = np.searchsorted(ref.t, [max(t0, 0.0), t1])
+        out = set()
+        for k in range(min(int(k0), len(ref.t) - 1), max(min(int(k1), len(ref.t)), int(k0) + 1), 10):
+            loc = self.roadmap.locate(ref.xy[k], float(ref.ego[k, 2]))
+            if loc is not None:
+                out.add(lane_name(loc[0]))
+        return out
+
+    def _borrow_cause(self, before: list[dict[str, Any]], t_event: float,
+                      look_back: float = 10.0) -> tuple[list[int], str, float] | None:
+        """The state of the lane the ego left when its last lane borrow within ``look_back`` s
+        before the event began (``(perception ids, blocked | tight, time)``, looking back from the
+        borrow's start to the latest entry that called that lane blocked or tight), unless the
+        reference made the same borrow within 3 s of it."""
         start = None
         for j in range(len(before) - 1, -1, -1):
+            if before[j]["t"] < t_event - look_back:
+                break
             if before[j]["reason"] == "borrow" and (j == 0 or before[j - 1]["reason"] != "borrow"):
                 start = j
                 break
         if start is None:
             return None
-        lane = lane_name(before[start]["lane"])
+        t_b, lane_b = before[start]["t"], before[start]["lane"]
+        ref_tl = self.ref.meta.get("timeline") or []
+        if any(e["reason"] == "borrow" and e["lane"] == lane_b and abs(e["t"] - t_b) <= 3.0 for e in ref_tl):
+            return None
+        lane = lane_name(lane_b)
         for e in reversed(before[:start + 1]):
             found = _lane_state(e, lane)
             if found is not None:
                 return found
-        return [], "other", before[start]["t"]
+        return [], "other", t_b
+
+    @staticmethod
+    def _kept_from(timeline: list[dict[str, Any]], want: set[str], t_event: float,
+                   window: float = 3.0) -> tuple[list[int], str, float] | None:
+        """A lane the reference drove in (``want``), other than the ego's own, that the ego's
+        planner called blocked or tight nearest in time to the event (within ``window`` s):
+        what kept the ego from it."""
+        near = [e for e in timeline if abs(e["t"] - t_event) <= window]
+        for e in sorted(near, key=lambda e: (abs(e["t"] - t_event), e["t"])):
+            for lane in sorted(want - {lane_name(e["lane"])}):
+                found = _lane_state(e, lane)
+                if found is not None:
+                    return found
+        return None
 
     @staticmethod
     def _lane_cause(entries: list[dict[str, Any]]) -> tuple[list[int], str, float] | None:
@@ -658,18 +702,11 @@ class DecisionOracle:
         5 s: ``(perception ids, gap:<why> | intent | junction, when it began)``. Refusals of
         other lanes (the planner weighs every neighbour every cycle) did not keep the ego off the
         optimal path."""
-        ref = self.ref
         held: dict[tuple[Any, ...], list[float]] = {}  # (ids, mechanism) -> [seconds, first time]
         for n, e in enumerate(timeline):
             if not (t_event - look_back <= e["t"] <= t_event + look_ahead) or not e["refused"]:
                 continue
-            k0, k1 = np.searchsorted(ref.t, [e["t"], e["t"] + 5.0])
-            want = set()
-            for k in range(min(k0, len(ref.t) - 1), min(k1, len(ref.t)), 10):
-                loc = self.roadmap.locate(ref.xy[k], float(ref.ego[k, 2]))
-                if loc is not None:
-                    want.add(lane_name(loc[0]))
-            want.discard(lane_name(e["lane"]))
+            want = self._reference_lanes(e["t"], e["t"] + 5.0) - {lane_name(e["lane"])}
             until = timeline[n + 1]["t"] if n + 1 < len(timeline) else e["t"] + 0.1
             for lane in sorted(want & set(e["refused"])):
                 why = e["refused"][lane]
@@ -703,15 +740,38 @@ class DecisionOracle:
             sides.add(_side(self.ref.xy, rows[j, 2:4]))
         return "parallel" if len(sides) > 1 else "blocked"
 
-    @staticmethod
-    def _finding(trace: Trace, idx: list[int], mechanism: str, clear: dict[int, float]) -> Finding:
+    def _finding(self, trace: Trace, idx: list[int], mechanism: str, clear: dict[int, float], t: float) -> Finding:
+        """The finding of a mechanism whose decision named the participants ``idx`` at ``t`` [s]:
+        the added ones first, the one closest to the optimal path the trigger."""
         if not idx:
             return Finding(mechanism=mechanism)
         added = [i for i in idx if trace.actors[i].added]
         pick = added or idx
         main = min(pick, key=lambda i: (clear.get(i, math.inf), i)) if added else pick[0]
         c = clear.get(main) if added else None
-        return Finding(trigger_type(trace.actors[main]), c, mechanism, [trace.actors[i].id for i in pick])
+        return Finding(trigger_type(trace.actors[main]), c, mechanism, [trace.actors[i].id for i in pick],
+                       bool(added) and self._intrudes(trace, main, t))
+
+    def _intrudes(self, trace: Trace, i: int, t: float, depth: float = 0.05) -> bool:
+        """Whether participant ``i`` stood at least ``depth`` [m] inside the lane the optimal path
+        was in next to it, at ``t`` [s] (a static one: where it stands) - "inside the ego's own
+        lane" also where the reference drove off its lane's centre."""
+        rows = trace.parts[trace.parts[:, 1] == i]
+        if not len(rows):
+            return False
+        j = int(np.clip(np.searchsorted(rows[:, 0], round(t / trace.world_dt)), 0, len(rows) - 1))
+        x, y, h = rows[j, 2:5]
+        ref = self.ref
+        k = int(np.argmin(np.hypot(ref.xy[:, 0] - x, ref.xy[:, 1] - y)))
+        loc = self.roadmap.locate(ref.xy[k], float(ref.ego[k, 2]))
+        if loc is None:
+            return False
+        g, s0 = self.roadmap.geom(loc[0]), float(loc[1])
+        ss = np.linspace(max(s0 - 8.0, 0.0), min(s0 + 8.0, g.length), 9)
+        if ss[-1] - ss[0] < 1e-6:
+            return False
+        a = trace.actors[i]
+        return bool(lane_surface(g, ss, g.width / 2 - depth).intersects(box_polygon(x, y, h, a.length, a.width)))
 
     def decision_change(self, trace: Trace) -> list[str]:
         """Planning decisions the run made that the reference run never did (sorted)."""
