@@ -1,0 +1,144 @@
+"""The way back: an exported ``.xosc`` or CommonRoad ``.xml`` to a scenario YAML whose rerun on
+the same jitter seed reproduces the episode.
+
+The ego starts where and as fast as the file says, towards its destination (the DeFT-Gym
+properties: the scenario's own ego, kept when it starts where the file's ego starts); static
+objects stay where they are; every other participant - scripted or reactive when it ran -
+becomes a scripted vehicle that replays its trajectory. A scripted vehicle moves in straight
+lines between timed waypoints and faces the way it moves, while a reactive one (a kinematic
+bicycle) faces a little off its motion when it steers; so each world step ``t`` gets two
+waypoints: the recorded position at ``t`` and, half a step later, the point the vehicle reaches
+from there along its recorded heading at its recorded speed. The world samples every
+participant only at its steps, where the replay then has the recorded position, heading and
+speed (to rounding). What cannot come back: a static object an adversary added mid-run is there
+from the start (a scenario has no appearance time for static objects), a vehicle's kind
+(reactive or scripted) and its future beyond the recorded end.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from deft_gym.export.episode import Actor
+
+STANDING_SPEED = 1e-4  #: [m/s] the half-step point of a standing vehicle (so the replay keeps its heading)
+MATCH_TOL = 1e-3  #: [m] the scenario's ego (from the file's properties) is used where it starts this close
+
+
+def replay_waypoints(rows: np.ndarray, dt: float) -> list[dict[str, float]]:
+    """Timed waypoints ``{t, x, y}`` (world frame) under which a scripted vehicle has, at each
+    row's time, the row's position, heading and speed (see the module docstring)."""
+    out: list[dict[str, float]] = []
+    for i, (t, x, y, h, v) in enumerate(rows):
+        t, x, y, h, v = float(t), float(x), float(y), float(h), float(v)
+        out.append({"t": t, "x": x, "y": y})
+        gap = (float(rows[i + 1, 0]) - t) if i + 1 < len(rows) else dt
+        half = min(dt, gap) / 2
+        if half <= 0:
+            continue
+        speed = v if abs(v) > STANDING_SPEED else STANDING_SPEED
+        out.append({"t": t + half, "x": x + speed * half * math.cos(h), "y": y + speed * half * math.sin(h)})
+    return out
+
+
+def participant_spec(a: Actor, dt: float) -> dict[str, Any]:
+    """The scenario entry of one imported participant."""
+    if a.kind == "static" or (not a.moves and a.obstacle != "VEHICLE"):
+        _t, x, y, h, _ = (float(v) for v in a.rows[0])
+        spec: dict[str, Any] = {"id": a.id, "type": "static", "x": x, "y": y, "heading": h,
+                                "obstacle": a.obstacle if a.obstacle in ("CONE", "STATIC_VEHICLE") else "STATIC_VEHICLE",
+                                "length": a.length, "width": a.width}
+        return spec
+    return {"id": a.id, "type": "scripted", "length": a.length, "width": a.width,
+            "waypoints": replay_waypoints(a.rows, dt)}
+
+
+def scenario_data(meta: dict[str, Any], ego: Actor, participants: list[Actor], dt: float,
+                  end_time: float | None, name: str | None = None) -> dict[str, Any]:
+    """A scenario (plain data, :func:`deft_gym.scenarios.scenario.scenario_from_dict`) from an
+    imported episode: ``meta`` the file's DeFT-Gym description (:meth:`ExportEpisode.meta`)."""
+    from deft_gym.scenarios.scenario import pose_xyh
+    from deft_gym.world.roadmap import shared_roadmap
+
+    if not meta.get("map"):
+        raise ValueError("the file carries no DeFT-Gym map description (not a DeFT-Gym export); "
+                         "a scenario needs one of the map families (docs/interop.md)")
+    if not len(ego.rows):
+        raise ValueError("the file has no start pose for the ego")
+    roadmap = shared_roadmap(meta["map"])
+    _t0, x0, y0, h0, v0 = (float(v) for v in ego.rows[0])
+    ego_spec = dict(meta.get("ego") or {})
+    if not ego_spec.get("destination"):
+        raise ValueError("the file does not say where the ego was going (its destination)")
+    kept = False
+    if ego_spec.get("lane") is not None or ego_spec.get("x") is not None:
+        from deft_gym.scenarios.scenario import Pose
+
+        pose = Pose.model_validate({k: ego_spec[k] for k in ("lane", "s", "d", "x", "y", "heading") if k in ego_spec})
+        xy, h = pose_xyh(roadmap, pose)
+        kept = math.hypot(xy[0] - x0, xy[1] - y0) < MATCH_TOL and abs(math.remainder(h - h0, math.tau)) < MATCH_TOL
+    if not kept:
+        ego_spec = {"x": x0, "y": y0, "heading": h0, "destination": ego_spec["destination"],
+                    **({"cruise_speed": ego_spec["cruise_speed"]} if ego_spec.get("cruise_speed") else {})}
+    ego_spec["speed"] = max(0.0, v0) if not kept else ego_spec.get("speed", max(0.0, v0))
+    duration = float(meta.get("duration") or ((end_time or 40.0) + 1.0))
+    data: dict[str, Any] = {
+        "name": name or f"{meta.get('scenario_name', 'imported')}-import",
+        "description": f"imported from an export of {meta.get('scenario_name', '?')} ({meta.get('failure') or meta.get('outcome')}"
+                       + (f", jitter seed {meta['jitter_seed']}" if meta.get("jitter_seed") is not None else "") + ")",
+        "map": meta["map"], "ego": ego_spec,
+        "participants": [participant_spec(a, dt) for a in participants if len(a.rows)],
+        "duration": duration, "seed": int(meta.get("scenario_seed", 0)),
+        "stuck_time": float(meta.get("stuck_time", 30.0))}
+    if meta.get("lights"):
+        data["lights"] = meta["lights"]
+    return data
+
+
+def import_file(path: Path | str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(scenario data, meta)`` of an exported ``.xosc`` or CommonRoad ``.xml``."""
+    path = Path(path)
+    if path.suffix == ".xosc":
+        from deft_gym.export.openscenario import read_xosc
+
+        got = read_xosc(path)
+        meta = got["meta"]
+        if got["xodr"] is not None and Path(got["xodr"]).exists():
+            from deft_gym.export.opendrive import read_map_spec
+
+            spec = read_map_spec(got["xodr"])
+            if spec is not None and meta.get("map") and _spec(spec) != _spec(meta["map"]):
+                raise ValueError(f"{path}: its road network ({got['xodr']}) is not the map its properties name")
+            if spec is not None and not meta.get("map"):
+                meta["map"] = spec
+        actors = got["actors"]
+        end = got["end_time"]
+    elif path.suffix == ".xml":
+        from deft_gym.export.commonroad import read_commonroad
+
+        got = read_commonroad(path)
+        meta, actors, end = got["meta"], got["actors"], got["end_time"]
+    else:
+        raise ValueError(f"{path}: expected an OpenSCENARIO .xosc or a CommonRoad .xml file")
+    ego = next((a for a in actors if a.kind == "ego"), None)
+    if ego is None:
+        raise ValueError(f"{path}: no ego in the file")
+    parts = [a for a in actors if a is not ego]
+    order = [p["id"] for p in meta.get("participants") or []]
+    parts.sort(key=lambda a: order.index(a.id) if a.id in order else len(order))
+    dt = float(meta.get("dt") or _median_step(ego.rows))
+    return scenario_data(meta, ego, parts, dt, end), meta
+
+
+def _spec(spec: dict[str, Any]) -> dict[str, Any]:
+    from deft_gym.world.roadmap import MapSpec
+
+    return MapSpec.model_validate(spec).model_dump()
+
+
+def _median_step(rows: np.ndarray) -> float:
+    return float(np.median(np.diff(rows[:, 0]))) if len(rows) > 1 else 0.05
