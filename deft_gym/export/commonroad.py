@@ -223,7 +223,8 @@ def _obstacle(a: Actor, num: int, dt: float, end_step: int) -> Any:
     if a.kind == "static" and steps[0] == 0:
         return StaticObstacle(oid, kind, shape, _state(InitialState, 0, a.rows[0], **extra))
     rows, st = a.rows, steps
-    if a.kind == "static":  # added mid-run: standing from then to the end
+    if a.kind == "static":  # added mid-run: standing from then to the end, a dynamic obstacle's type
+        kind = ObstacleType.CAR if a.obstacle == "STATIC_VEHICLE" else ObstacleType.UNKNOWN
         st = np.arange(steps[0], max(end_step, steps[0] + 1) + 1)
         rows = np.repeat(a.rows[:1], len(st), axis=0)
     if st[0] > 0:  # CommonRoad 2020a starts every obstacle at step 0: it waits far away until it appears

@@ -108,6 +108,7 @@ class ExportEpisode:
         way back needs it: :mod:`.roundtrip`), as plain data."""
         sc = self.scenario
         ego = dict(sc["ego"])
+        specs = {p["id"]: p for p in sc.get("participants", [])}
         out: dict[str, Any] = {
             "format": "deft_gym.export/1", "scenario_name": self.name, "scenario_seed": int(sc.get("seed", 0)),
             "duration": float(sc.get("duration", 40.0)), "stuck_time": float(sc.get("stuck_time", 30.0)),
@@ -115,7 +116,8 @@ class ExportEpisode:
             "ego_size": {"length": self.ego.length, "width": self.ego.width},
             "jitter_seed": self.jitter_seed, "outcome": self.outcome, "sim_time": self.sim_time,
             "collision": self.collision, "failure": self.failure,
-            "participants": [{"id": p.id, "kind": p.kind, "obstacle": p.obstacle, "added": p.added, "appear": p.appear}
+            "participants": [{"id": p.id, "kind": p.kind, "obstacle": p.obstacle, "added": p.added, "appear": p.appear,
+                              **({"spec": specs[p.id]} if p.kind == "reactive" and p.id in specs else {})}
                              for p in self.participants],
             "trajectories": self.source.get("trajectories"),
         }
@@ -154,13 +156,18 @@ class _Tracks:
         e = world.ego
         self.rows["ego"].append((t, float(e.position[0]), float(e.position[1]), float(e.heading), float(e.speed)))
         for p in world.participants:
-            if not p.present(t):
-                continue
-            o = p.obj
-            if p.id not in self.info:
-                self.info[p.id] = (p.kind, p.obstacle_type, float(o.LENGTH), float(o.WIDTH))
-                self.rows[p.id] = []
-            self.rows[p.id].append((t, float(o.position[0]), float(o.position[1]), float(o.heading), float(o.speed)))
+            if p.present(t):
+                self.grab_one(p, t)
+
+    def grab_one(self, p: Any, t: float) -> None:
+        o = p.obj
+        if p.id not in self.info:
+            self.info[p.id] = (p.kind, p.obstacle_type, float(o.LENGTH), float(o.WIDTH))
+            self.rows[p.id] = []
+        rows = self.rows[p.id]
+        if rows and abs(rows[-1][0] - t) < 1e-12:
+            return
+        rows.append((t, float(o.position[0]), float(o.position[1]), float(o.heading), float(o.speed)))
 
     def actors(self, world: Any) -> tuple[Actor, list[Actor]]:
         e = world.ego
@@ -192,8 +199,10 @@ def simulate(scenario: dict[str, Any], ads: Any, jitter_seed: int | None,
         for t, spec in added or []:
             if t > 0.0 and sim.advance(t):
                 break
-            sim.add_participant(spec)
+            part = sim.add_participant(spec)
             tracks.added[spec["id"]] = sim.world.time
+            if part.kind == "static":  # in the world from now on (world time: the last step's)
+                tracks.grab_one(part, sim.world.time)
         sim.advance(sc.duration)
     finally:
         res = sim.finish()

@@ -158,16 +158,16 @@ def rerun(data: dict[str, Any], jitter_seed: int | None, ads: Any = None) -> tup
 def reproduces(meta: dict[str, Any], outcome: dict[str, Any], ego_recorded: np.ndarray | None,
                ego_rerun: np.ndarray) -> dict[str, Any]:
     """Whether a rerun reproduces the logged episode: the same outcome (and collision: participant
-    and time), and - where the recorded ego path is known - the ego within
-    :data:`ROUNDTRIP_POSITION_TOL` of it at every step both have."""
+    and time); and, where the recorded ego path is known, whether the ego also stays within
+    :data:`ROUNDTRIP_POSITION_TOL` of it at every step both have (``same_path``)."""
     from deft_gym.export.episode import same_outcome
 
     same = same_outcome(outcome, {"outcome": meta.get("outcome"), "collision": meta.get("collision")})
     dev = None
     if ego_recorded is not None and len(ego_recorded):
         dev, _, _ = _track_errors(ego_rerun, ego_recorded)
-    ok = same and (dev is None or dev <= ROUNDTRIP_POSITION_TOL)
-    return {"reproduced": ok, "same_outcome": same, "ego_max_deviation": dev, "outcome": outcome.get("outcome"),
+    return {"reproduced": same, "same_path": dev is not None and dev <= ROUNDTRIP_POSITION_TOL,
+            "ego_max_deviation": dev, "outcome": outcome.get("outcome"),
             "collision": (outcome.get("collision") or {}).get("participant"),
             "collision_time": (outcome.get("collision") or {}).get("time")}
 
@@ -192,10 +192,11 @@ def check_export(log: Path, written: dict[str, Path], roundtrip: bool = True) ->
         out["xosc_trajectories"] = trajectory_errors(got["actors"], scene)
         ego_xosc = next(a for a in got["actors"] if a.kind == "ego").rows
         if roundtrip:
-            data, meta = import_file(written["xosc"])
-            t0 = time.perf_counter()
-            o, ego = rerun(data, meta.get("jitter_seed"))
-            out["xosc_roundtrip"] = reproduces(meta, o, ego_xosc, ego) | {"seconds": time.perf_counter() - t0}
+            for key, reactive in (("xosc_roundtrip", False), ("xosc_roundtrip_reactive", True)):
+                data, meta = import_file(written["xosc"], reactive=reactive)
+                t0 = time.perf_counter()
+                o, ego = rerun(data, meta.get("jitter_seed"))
+                out[key] = reproduces(meta, o, ego_xosc, ego) | {"seconds": time.perf_counter() - t0}
     if "commonroad" in written:
         from deft_gym.export.commonroad import first_collision_step, read_commonroad
         from deft_gym.export.roundtrip import import_file

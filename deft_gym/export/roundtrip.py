@@ -10,9 +10,15 @@ bicycle) faces a little off its motion when it steers; so each world step ``t`` 
 waypoints: the recorded position at ``t`` and, half a step later, the point the vehicle reaches
 from there along its recorded heading at its recorded speed. The world samples every
 participant only at its steps, where the replay then has the recorded position, heading and
-speed (to rounding). What cannot come back: a static object an adversary added mid-run is there
-from the start (a scenario has no appearance time for static objects), a vehicle's kind
-(reactive or scripted) and its future beyond the recorded end.
+speed (to rounding) - but before the first world step, where a scripted vehicle stands still
+(DeFT-Gym's scripted vehicles are placed at the steps), so that a reactive vehicle moving at
+t = 0 is seen standing by the first perception frame and predicted static for a second
+(``static_hold``). A static object an adversary added mid-run comes back as a standing scripted
+vehicle of its size from then (a scenario's static objects are there from the start); for a
+parked vehicle that is the same to the planner, a cone is then called a vehicle (a wider berth).
+``reactive=True`` brings reactive participants back as they were (their scenario entry, from the
+file's DeFT-Gym description): a rerun then simulates them again, as the original did. What does
+not come back at all: a vehicle's future beyond the recorded end.
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ def replay_waypoints(rows: np.ndarray, dt: float) -> list[dict[str, float]]:
     out: list[dict[str, float]] = []
     for i, (t, x, y, h, v) in enumerate(rows):
         t, x, y, h, v = float(t), float(x), float(y), float(h), float(v)
-        out.append({"t": t, "x": x, "y": y})
+        out.append({"t": t, "x": x, "y": y, **({"heading": h} if i == 0 else {})})  # the heading before it moves
         gap = (float(rows[i + 1, 0]) - t) if i + 1 < len(rows) else dt
         half = min(dt, gap) / 2
         if half <= 0:
@@ -45,22 +51,29 @@ def replay_waypoints(rows: np.ndarray, dt: float) -> list[dict[str, float]]:
     return out
 
 
-def participant_spec(a: Actor, dt: float) -> dict[str, Any]:
-    """The scenario entry of one imported participant."""
-    if a.kind == "static" or (not a.moves and a.obstacle != "VEHICLE"):
+def participant_spec(a: Actor, dt: float, recorded: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The scenario entry of one imported participant; ``recorded``: its scenario entry as the
+    file's description has it (a reactive vehicle's), used instead of its trajectory."""
+    if recorded is not None:
+        return dict(recorded)
+    if a.kind == "static" and a.appear <= 1e-9:
         _t, x, y, h, _ = (float(v) for v in a.rows[0])
-        spec: dict[str, Any] = {"id": a.id, "type": "static", "x": x, "y": y, "heading": h,
-                                "obstacle": a.obstacle if a.obstacle in ("CONE", "STATIC_VEHICLE") else "STATIC_VEHICLE",
-                                "length": a.length, "width": a.width}
-        return spec
+        return {"id": a.id, "type": "static", "x": x, "y": y, "heading": h,
+                "obstacle": a.obstacle if a.obstacle in ("CONE", "STATIC_VEHICLE") else "STATIC_VEHICLE",
+                "length": a.length, "width": a.width}
+    # a moving participant, or a static one added mid-run (a scenario's static objects are there
+    # from the start): a scripted vehicle from when it appeared
+    rows = a.rows if a.kind != "static" else a.rows[:1]
     return {"id": a.id, "type": "scripted", "length": a.length, "width": a.width,
-            "waypoints": replay_waypoints(a.rows, dt)}
+            "waypoints": replay_waypoints(rows, dt)}
 
 
 def scenario_data(meta: dict[str, Any], ego: Actor, participants: list[Actor], dt: float,
-                  end_time: float | None, name: str | None = None) -> dict[str, Any]:
+                  end_time: float | None, name: str | None = None, reactive: bool = False) -> dict[str, Any]:
     """A scenario (plain data, :func:`deft_gym.scenarios.scenario.scenario_from_dict`) from an
-    imported episode: ``meta`` the file's DeFT-Gym description (:meth:`ExportEpisode.meta`)."""
+    imported episode: ``meta`` the file's DeFT-Gym description (:meth:`ExportEpisode.meta`);
+    ``reactive``: reactive participants come back reactive (their scenario entry from the
+    description) instead of replaying their trajectories."""
     from deft_gym.scenarios.scenario import pose_xyh
     from deft_gym.world.roadmap import shared_roadmap
 
@@ -86,12 +99,14 @@ def scenario_data(meta: dict[str, Any], ego: Actor, participants: list[Actor], d
                     **({"cruise_speed": ego_spec["cruise_speed"]} if ego_spec.get("cruise_speed") else {})}
     ego_spec["speed"] = max(0.0, v0) if not kept else ego_spec.get("speed", max(0.0, v0))
     duration = float(meta.get("duration") or ((end_time or 40.0) + 1.0))
+    recorded = {p["id"]: p["spec"] for p in meta.get("participants") or [] if p.get("spec")}
     data: dict[str, Any] = {
         "name": name or f"{meta.get('scenario_name', 'imported')}-import",
         "description": f"imported from an export of {meta.get('scenario_name', '?')} ({meta.get('failure') or meta.get('outcome')}"
                        + (f", jitter seed {meta['jitter_seed']}" if meta.get("jitter_seed") is not None else "") + ")",
         "map": meta["map"], "ego": ego_spec,
-        "participants": [participant_spec(a, dt) for a in participants if len(a.rows)],
+        "participants": [participant_spec(a, dt, recorded.get(a.id) if reactive else None)
+                         for a in participants if len(a.rows)],
         "duration": duration, "seed": int(meta.get("scenario_seed", 0)),
         "stuck_time": float(meta.get("stuck_time", 30.0))}
     if meta.get("lights"):
@@ -99,8 +114,9 @@ def scenario_data(meta: dict[str, Any], ego: Actor, participants: list[Actor], d
     return data
 
 
-def import_file(path: Path | str) -> tuple[dict[str, Any], dict[str, Any]]:
-    """``(scenario data, meta)`` of an exported ``.xosc`` or CommonRoad ``.xml``."""
+def import_file(path: Path | str, reactive: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(scenario data, meta)`` of an exported ``.xosc`` or CommonRoad ``.xml`` (``reactive``:
+    see :func:`scenario_data`)."""
     path = Path(path)
     if path.suffix == ".xosc":
         from deft_gym.export.openscenario import read_xosc
@@ -131,7 +147,7 @@ def import_file(path: Path | str) -> tuple[dict[str, Any], dict[str, Any]]:
     order = [p["id"] for p in meta.get("participants") or []]
     parts.sort(key=lambda a: order.index(a.id) if a.id in order else len(order))
     dt = float(meta.get("dt") or _median_step(ego.rows))
-    return scenario_data(meta, ego, parts, dt, end), meta
+    return scenario_data(meta, ego, parts, dt, end, reactive=reactive), meta
 
 
 def _spec(spec: dict[str, Any]) -> dict[str, Any]:
