@@ -330,11 +330,8 @@ def read_commonroad(path: Path | str) -> dict[str, Any]:
         if traj is not None:
             states += list(traj.state_list)
         rows = np.array([_row(s, dt) for s in states], float)
-        appear = (info.get(name) or {}).get("appear")
-        if appear is not None:
-            rows = rows[rows[:, 0] >= float(appear) - 1e-9]
-        else:  # no description: the rows far below the map are the wait before it appears
-            rows = rows[np.abs(rows[:, 2] - rows[-1, 2]) < HOLD_DISTANCE / 2]
+        # the rows far below the map are the wait before it appears
+        rows = rows[np.abs(rows[:, 2] - rows[-1, 2]) < HOLD_DISTANCE / 2]
         kind = info.get(name, {}).get("kind") or ("static" if ob.obstacle_type.value in ("parkedVehicle",
                                                                                       "constructionZone") else "scripted")
         obstacle = info.get(name, {}).get("obstacle") or {"parkedVehicle": "STATIC_VEHICLE",

@@ -383,9 +383,10 @@ def from_log(log: Path | str, resimulate: bool = True) -> ExportEpisode:
         except Exception as exc:  # another simulation version, a scenario that no longer loads
             source["check"] = {"error": f"{type(exc).__name__}: {exc}"[:300]}
     if result is None:
-        result = _from_scene(scene, data, added)
-        source["trajectories"] = ("the log's ground-truth samples (scene topic"
-                                  + (f", {1 / result[2]:g} Hz" if result[2] else "") + ")")
+        hz = float((ep.get("ads_config") or {}).get("world_hz") or 20.0)
+        result = _from_scene(scene, data, added, 1.0 / hz)
+        source["trajectories"] = (f"the log's ground-truth samples (scene topic), linear between them at every "
+                                  f"world step ({hz:g} Hz)")
     ego, parts, dt = result
     name = str(ep.get("scenario_name") or data.get("name") or log.parent.name)
     data = dict(data)
@@ -394,23 +395,34 @@ def from_log(log: Path | str, resimulate: bool = True) -> ExportEpisode:
                          failure_of(outcome, collision, verdict), jitter_seed, verdict, source)
 
 
-def _from_scene(scene: dict[str, Any], data: dict[str, Any],
-                added: list[tuple[float, dict[str, Any]]]) -> tuple[Actor, list[Actor], float]:
-    """Tracks from the log's scene samples (obstacle types from the scenario, by id)."""
+def _from_scene(scene: dict[str, Any], data: dict[str, Any], added: list[tuple[float, dict[str, Any]]],
+                dt: float) -> tuple[Actor, list[Actor], float]:
+    """Tracks from the log's scene samples (obstacle types from the scenario, by id), resampled
+    linearly to every world step ``dt`` between an actor's first and last sample (the samples
+    fall on world steps, so they are kept exactly)."""
     specs = {p["id"]: p for p in data.get("participants", [])} | {s["id"]: s for _, s in added}
     when = {s["id"]: t for t, s in added}
+
+    def resample(rows: np.ndarray) -> np.ndarray:
+        if len(rows) < 2:
+            return rows
+        k0, k1 = round(rows[0, 0] / dt), round(rows[-1, 0] / dt)
+        t = np.arange(k0, k1 + 1) * dt
+        h = np.interp(t, rows[:, 0], np.unwrap(rows[:, 3]))
+        return np.column_stack([t, *(np.interp(t, rows[:, 0], rows[:, c]) for c in (1, 2)), h,
+                                np.interp(t, rows[:, 0], rows[:, 4])])
+
     kind, length, width, rows = scene["ego"]
-    ego = Actor("ego", "ego", "EGO", length, width, rows)
+    ego = Actor("ego", "ego", "EGO", length, width, resample(rows))
     parts = []
     for pid, (kind, length, width, rows) in scene.items():
         if pid == "ego":
             continue
         spec = specs.get(pid, {})
         obstacle = spec.get("obstacle", "CONE" if length < 1.0 else "STATIC_VEHICLE") if kind == "static" else "VEHICLE"
-        parts.append(Actor(pid, kind, obstacle, length, width, rows, when.get(pid)))
+        parts.append(Actor(pid, kind, obstacle, length, width, resample(rows), when.get(pid)))
     order = [p["id"] for p in data.get("participants", [])] + [s["id"] for _, s in added]
     parts.sort(key=lambda p: order.index(p.id) if p.id in order else len(order))
-    dt = float(np.median(np.diff(rows[:, 0]))) if len(rows := ego.rows) > 1 else 0.0
     return ego, parts, dt
 
 
