@@ -10,10 +10,11 @@ bicycle) faces a little off its motion when it steers; so each world step ``t`` 
 waypoints: the recorded position at ``t`` and, half a step later, the point the vehicle reaches
 from there along its recorded heading at its recorded speed. The world samples every
 participant only at its steps, where the replay then has the recorded position, heading and
-speed (to rounding) - but before the first world step, where a scripted vehicle stands still
-(DeFT-Gym's scripted vehicles are placed at the steps), so that a reactive vehicle moving at
-t = 0 is seen standing by the first perception frame and predicted static for a second
-(``static_hold``). A static object an adversary added mid-run comes back as a standing scripted
+speed (to rounding) - but before the first world step: DeFT-Gym's scripted vehicles are placed at
+the steps and stand still until the first one, so a vehicle moving at t = 0 would be seen
+standing by the first perception frame and predicted static for a second (``static_hold``); it
+enters the replay at the first world step instead, so that only that first frame (before any step)
+misses it. A static object an adversary added mid-run comes back as a standing scripted
 vehicle of its size from then (a scenario's static objects are there from the start); for a
 parked vehicle that is the same to the planner, a cone is then called a vehicle (a wider berth).
 ``reactive=True`` brings reactive participants back as they were (their scenario entry, from the
@@ -31,6 +32,7 @@ import numpy as np
 
 from deft_gym.export.episode import Actor
 
+MOVING_SPEED = 1e-3  #: [m/s] a vehicle this fast at t = 0 enters the replay at the first world step
 STANDING_SPEED = 1e-4  #: [m/s] the half-step point of a standing vehicle (so the replay keeps its heading)
 MATCH_TOL = 1e-3  #: [m] the scenario's ego (from the file's properties) is used where it starts this close
 
@@ -64,6 +66,8 @@ def participant_spec(a: Actor, dt: float, recorded: dict[str, Any] | None = None
     # a moving participant, or a static one added mid-run (a scenario's static objects are there
     # from the start): a scripted vehicle from when it appeared
     rows = a.rows if a.kind != "static" else a.rows[:1]
+    if len(rows) > 1 and rows[0, 0] <= 1e-9 and abs(rows[0, 4]) > MOVING_SPEED:
+        rows = rows[1:]  # moving at t = 0: it enters at the first world step (see the module docstring)
     return {"id": a.id, "type": "scripted", "length": a.length, "width": a.width,
             "waypoints": replay_waypoints(rows, dt)}
 
