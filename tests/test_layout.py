@@ -26,8 +26,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("extract",),
     # driving-quality metrics of an episode, from its log (planned: issue 33)
     ("deft_gym.metrics",),
-    # the search support; an episode's log drawn (viz) or written in standard formats (export,
-    # planned: issue 37)
+    # the search support; an episode's log drawn (viz) or written in standard formats (export)
     ("deft_gym.search", "deft_gym.viz", "deft_gym.export"),
     ("deft_gym.envs",),
     # ASTAA, and its command (deft_gym.robustness.stress)

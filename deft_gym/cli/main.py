@@ -24,6 +24,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     # look at episodes
     "render": ("deft_gym.cli.render", "plot and video of episodes (LOG, episode.json or a folder)"),
     "report": ("deft_gym.cli.report", "one HTML page for a run folder: numbers, plots, failures"),
+    # failures in standard formats
+    "export": ("deft_gym.cli.export", "failures as OpenSCENARIO + OpenDRIVE and CommonRoad XML, checked"),
+    "import": ("deft_gym.cli.import_scenario", "an exported .xosc / CommonRoad .xml back to a scenario YAML"),
     # DeFT: logs -> planning-module tests
     "extract": ("deft_gym.cli.extract", "deterministic planning-module tests (pytest) from episode logs"),
     "check-planner": ("extract.contract", "check a planner's contract on a log's frames"),
@@ -47,6 +50,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 GROUPS = (("simulate", ("run", "calibrate", "generate", "bench", "digest")),
           ("look at episodes", ("render", "report")),
+          ("failures in standard formats", ("export", "import")),
           ("DeFT: logs -> planning-module tests", ("extract", "check-planner", "verify")),
           ("the adversary", ("train", "evaluate", "eval-report", "findings", "bench-env", "standing")),
           ("robustness (ASTAA)", ("stress",)),

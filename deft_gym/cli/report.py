@@ -177,6 +177,8 @@ def card(page: Page, title: str, log: Path | None, replay: list[str] | None, tes
                          f'<p class="note"><a href="{esc(page.rel(video))}">video</a>'
                          + (f' · <a href="{esc(page.rel(log))}">log (MCAP, opens in Foxglove)</a>' if log else "")
                          + "</p>")
+    if log is not None:
+        parts.append(export_links(page, log))
     if replay:
         parts.append('<p class="note">replay the system-level run:</p>' + cmd(replay))
     if test is not None:
@@ -184,6 +186,19 @@ def card(page: Page, title: str, log: Path | None, replay: list[str] | None, tes
                 else "run its planning-module tests (they replay every frame of this episode):")
         parts.append(f'<p class="note">{what}</p>' + cmd(["pytest", "-q", str(test)]))
     return '<div class="card">' + "".join(parts) + "</div>"
+
+
+def export_links(page: Page, log: Path) -> str:
+    """Links to the failure's exports beside its log (``deft-gym export``), or the command that
+    writes them."""
+    from deft_gym.export.failures import existing_exports
+
+    names = {"xosc": "OpenSCENARIO", "xodr": "OpenDRIVE", "commonroad": "CommonRoad"}
+    have = existing_exports(log)
+    if not have:
+        return '<p class="note">export it (OpenSCENARIO, CommonRoad):</p>' + cmd(["deft-gym", "export", str(log)])
+    links = " · ".join(f'<a href="{esc(page.rel(p))}">{names[k]} ({esc(p.name)})</a>' for k, p in have.items())
+    return f'<p class="note">exported: {links}</p>'
 
 
 def cards(items: list[str], total: int) -> str:
