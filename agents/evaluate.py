@@ -102,7 +102,8 @@ def build_parser() -> common.Parser:
                    "(default: 0)")
     p.add_argument("--placements", nargs="+", action=common.ListAction, default=None, metavar="RULE",
                    help="placement rules, of closest, uniform (default: both)")
-    p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl' (default: none)")
+    p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl', or 'default': the "
+                   "adversary shipped in the package (deft_gym/models/adversary; default: none)")
     p.add_argument("--deterministic", action="store_true", default=None, help="greedy RL actions (default: off)")
     p.add_argument("--workers", type=common.positive_int, default=None, metavar="N",
                    help=f"parallel worker processes (default: the config's, else the CPUs, {common.cpus()} here)")
@@ -136,6 +137,10 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
         if getattr(args, key) is not None:
             data[key] = common.split_list(getattr(args, key))
     data.setdefault("workers", common.cpus())
+    if isinstance(data.get("model"), str):
+        from deft_gym.models import resolve_model
+
+        data["model"] = resolve_model(data["model"])
     cfg = validate(EvalConfig, data, name)
     bad = [m for m in cfg.methods if m not in METHODS]
     if bad:

@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parent.parent
 LAYERS: list[tuple[str, ...]] = [
     # cross-cutting leaves: configuration files, atomic writes, the execution layer, the
     # command-line conventions
-    ("deft_gym.config", "deft_gym.files", "deft_gym.execution", "deft_gym.cli.common"),
+    ("deft_gym.config", "deft_gym.files", "deft_gym.execution", "deft_gym.cli.common", "deft_gym.models"),
     ("deft_gym.world",),
     ("deft_gym.bus",),
     ("deft_gym.record",),

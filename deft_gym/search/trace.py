@@ -191,7 +191,7 @@ def decision_entry(d: dict[str, Any]) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 # not part of what a run computes: this package's own modules, tools and the log writer
 _NOT_SIMULATION_PACKAGES = ("envs", "search", "robustness", "cli", "viz", "execution", "experiments",
-                            "metrics", "export")  # metrics: planned (issue 33)
+                            "metrics", "export", "models")  # metrics: planned (issue 33); models: data
 _NOT_SIMULATION_FILES = ("__init__.py", "record/recorder.py", "scenarios/variants.py")
 _FINGERPRINT: list[str] = []
 
