@@ -85,3 +85,14 @@ def test_redesigned_turns_borrow_through_the_junction(name: str) -> None:
     assert on.any() and np.ptp(s[on]) > 0.9 * geom.length, "the ego did not turn from the other lane"
     ref_s, ref_d = geom.frenet(ctx.ref.xy)
     assert not ((np.abs(ref_d) < half) & (ref_s > 0.0) & (ref_s < geom.length)).any()
+
+
+@pytest.mark.parametrize("name", sorted(MUTATIONS))
+def test_every_seed_reference_is_typical_and_gives_up_no_lane_change(name: str) -> None:
+    """The optimal path of every seed: the most typical of its five jittered runs, and none that
+    begins a lane change and gives it up (the robustness check would refuse such a scenario)."""
+    from deft_gym.search.trace import aborted_changes
+
+    ctx = seed_context(name)
+    assert ctx.ref.meta["reference_of"] == [0, 1, 2, 3, 4] and ctx.ref.meta["jitter_seed"] in range(5)
+    assert aborted_changes(ctx.ref) == []
