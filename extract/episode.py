@@ -42,6 +42,7 @@ from extract.validator import (
 )
 
 SUMMARY_FORMAT = "deft_gym.extraction/1"
+MAX_LAG_S = 3600.0  #: the latest an output may be logged after its frame time [s] for the times to map
 
 
 @dataclass
@@ -183,6 +184,9 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     summary = _summary(elog, log_path, scenario, meta, outcome, cfg, tol, choices, comparisons, engine,
                        faulty, oracle_note, agreement, mp)
     summary["findings"] = findings
+    if choices and len(choices) == findings["outputs_without_replay"]:  # nothing could be replayed: no tests
+        summary["error"] = (f"none of the {len(choices)} planning outputs got a replayed plan; the generated tests "
+                            f"would all fail ({elog.warnings[-1] if elog.warnings else 'see the warnings'})")
     test_path = None
     if emit_tests:
         name = f"test_{slug(scenario)}_{log_id(log_path)}" + (f"_{cfg.mode}" if cfg.mode != "heuristic" else "")
@@ -209,6 +213,16 @@ def _check_fields(mp: TopicMapping, pif: PlanningIOFilter) -> None:
             raise MappingError(f"{mp.source}: {key}: {path!r} is in none of the {len(outputs)} planning outputs "
                                f"of the log (topic {mp.topic('planning')}); expected a dotted path present in "
                                "them, or null")
+    # an output is published shortly after its frame time: when its frame time and its log time
+    # are hours apart, the log's times cannot be mapped onto the frames (every replay would miss)
+    lags = sorted(o.publish_time - o.frame_time for o in outputs if o.frame_time is not None)
+    if lags:
+        lag = lags[len(lags) // 2]
+        if not -1.0 <= lag <= MAX_LAG_S:
+            raise MappingError(f"{pif.log.path}: the planning outputs are logged {lag:.6g} s after their frame times "
+                               f"({mp.frame_time_field}; median of {len(lags)}): the log's message times cannot be "
+                               "mapped onto the frames (a deft_gym log without its deft_gym.episode metadata record, "
+                               "which holds the epoch start of its log times?)")
 
 
 def _findings(elog: EpisodeLog, engine: InputSearch, choices: list[FrameChoice],
@@ -230,23 +244,32 @@ def _findings(elog: EpisodeLog, engine: InputSearch, choices: list[FrameChoice],
         elog.warnings.append(f"the planner raised in {engine.exceptions} of {engine.plan_calls} replays "
                              f"({engine.errors[0] if engine.errors else '?'}); {len(no_output)} output(s) got no "
                              "replayed plan")
+    elif no_output and engine.hang is None:
+        elog.warnings.append(f"{len(no_output)} of {len(choices)} planning output(s) got no replayed plan: the planner "
+                             f"returned None for every candidate frame (first: output {no_output[0]}) - inputs it "
+                             "did not get, or a mapping that does not fit the log")
     found = {"run_failure": failure, "nan_outputs": len(nan), "nan_output_indices": nan[:50],
-             "planner_exceptions": engine.exceptions, "planner_hang": None, "outputs_without_replay": len(no_output)}
+             "planner_exceptions": engine.exceptions, "planner_hang": None, "planner_crash": None,
+             "outputs_without_replay": len(no_output)}
     _hang_finding(elog, engine, found, choices)
     return found
 
 
 def _hang_finding(elog: EpisodeLog, engine: InputSearch, findings: dict[str, Any],
                   choices: list[FrameChoice]) -> None:
-    """A ``plan()`` that ran past the watchdog, as the finding ``planner_hang`` and a warning
-    (once)."""
+    """A ``plan()`` that ran past the watchdog (or the extraction's whole-run cap), as the finding
+    ``planner_hang``, or a planner that could no longer be called - its process ended (``os._exit``,
+    a signal, a segmentation fault) or its ``snapshot()``/``restore()`` raised - as
+    ``planner_crash``; and a warning (once)."""
     hang = engine.hang
-    if hang is None or findings.get("planner_hang") is not None:
+    key = "planner_hang" if hang is not None and hang["kind"] == "hang" else "planner_crash"
+    if hang is None or findings.get(key) is not None:
         return
-    findings["planner_hang"] = hang
+    findings[key] = hang
     at = f" at t={hang['time']:.3f} s" if hang.get("time") is not None else ""
     no_output = sum(1 for c in choices if c.actual is None)
-    elog.warnings.append(f"the planner hung during the {hang['during']}{at} (output {hang['output']}): "
+    what = "hung" if key == "planner_hang" else "failed"
+    elog.warnings.append(f"the planner {what} during the {hang['during']}{at} (output {hang['output']}): "
                          f"{hang['exception']}; no plan() was called after it, {no_output} output(s) got no "
                          "replayed plan")
 
