@@ -159,15 +159,20 @@ def _record(n: int, out: Path) -> list[Path]:
 def main(argv: list[str] | None = None) -> int:
     ap = common.parser("log-damage", "deft_gym.experiments.log_damage", __doc__)
     ap.add_argument("logs", nargs="*", metavar="LOG", help="intact MCAP logs to damage (copies; never changed)")
-    ap.add_argument("--record", type=int, default=0, metavar="N", help="first record N seed-scenario logs into OUT")
+    ap.add_argument("--record", type=common.int_range(0, 1000), default=0, metavar="N", help="first record N seed-scenario logs into OUT")
     common.add_out(ap, common.RUNS / "log_damage")
     common.add_output_flags(ap)
     args = ap.parse_args(argv)
     out = Path(args.out)
     console = common.console(args, width=110)
-    logs = [Path(p) for p in args.logs] + (_record(args.record, out) if args.record else [])
-    if not logs:
+    if not args.logs and not args.record:
         return common.cli_error("LOG: no logs: name some or pass --record N")
+    with common.locked_out(out):
+        return _run(args, console, out)
+
+
+def _run(args: Any, console: Any, out: Path) -> int:
+    logs = [Path(p) for p in args.logs] + (_record(args.record, out) if args.record else [])
     rows = []
     try:
         for p in logs:
