@@ -159,3 +159,47 @@ def _holder(fd: int) -> str:
     if not isinstance(info, dict) or "pid" not in info:
         return "its description is not readable"
     return f"pid {info.get('pid')} on {info.get('host', '?')}, since {info.get('since', '?')}: {info.get('command', '?')}"
+
+
+# -- compiled kernels that match their sources ---------------------------------------------------------
+def file_sha256(path: Path | str) -> str | None:
+    """SHA-256 (hex) of a file's bytes, or None when it cannot be read."""
+    import hashlib
+
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+def stale_kernel(kernel: Any, c_source: Path | str, mirrors: Path | str) -> str | None:
+    """Why a compiled kernel must not be used, or None when it was built from the files beside it:
+    its ``BUILT_FROM`` (setup.py) holds the digests of its C source and of the Python file it stands
+    in for; a build without them, or one older than an edit of either file, would run other code
+    than the source says (an edit of the Python version would have no effect). A C source that is
+    not installed (a wheel) is not compared; the Python file always is."""
+    built = str(getattr(kernel, "BUILT_FROM", "") or "").split()
+    name = getattr(kernel, "__name__", "kernel")
+    if len(built) != 2:
+        return f"{name} records no digests of its sources (built before they were recorded)"
+    c_now, py_now = file_sha256(c_source), file_sha256(mirrors)
+    if py_now is not None and py_now != built[1]:
+        return f"{name} was built before the last edit of {Path(mirrors).name}"
+    if c_now is not None and c_now != built[0]:
+        return f"{name} was built before the last edit of {Path(c_source).name}"
+    return None
+
+
+def checked_kernel(kernel: Any, c_source: Path | str, mirrors: Path | str) -> Any:
+    """``kernel`` when :func:`stale_kernel` finds nothing, else None after a warning (once per
+    kernel) naming why and how to rebuild: the Python version runs, as the source says."""
+    if kernel is None:
+        return None
+    why = stale_kernel(kernel, c_source, mirrors)
+    if why is None:
+        return kernel
+    import warnings
+
+    warnings.warn(f"{why}: using the Python version (the same results, slower); rebuild the kernels with "
+                  "`pip install -e .` (or `make venv`)", RuntimeWarning, stacklevel=2)
+    return None
