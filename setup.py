@@ -42,7 +42,7 @@ def kernel(name: str, c_source: str, mirrors: str) -> Extension:
     compares them with the files beside it when the kernel is loaded: a kernel built before
     either was edited is not used - an edit of the Python version is never silently overridden)."""
     digests = " ".join(hashlib.sha256((HERE / p).read_bytes()).hexdigest() for p in (c_source, mirrors))
-    return Extension(name, [c_source], extra_compile_args=FLAGS, optional=True,
+    return Extension(name, [c_source], extra_compile_args=FLAGS, optional=True, depends=[mirrors],
                      define_macros=[("BUILT_FROM", f'"{digests}"')])
 
 

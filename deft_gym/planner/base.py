@@ -73,6 +73,11 @@ class Planner(ABC):
     #: topic roles the planner reads, its frame: the single source for the planning module's
     #: subscriptions (``planning.subscribe`` in the ADS config) and the extractor's mapping
     inputs: tuple[str, ...] = ("routing", "localization", "traffic_light", "prediction")
+    #: attributes that ``plan()`` may change without them being state: memo caches keyed by what
+    #: they hold and scratch buffers rewritten before every use. ``python -m extract.contract``
+    #: reports a change to any other attribute than ``state`` as hidden state (check
+    #: ``hidden_state``), whether or not the frames at hand make it change an output
+    caches: tuple[str, ...] = ()
 
     def __init__(self, map_spec: Mapping[str, Any], **params: Any) -> None:
         self.map_spec = dict(map_spec)

@@ -252,6 +252,10 @@ class _Lateral:
 class LatticePlanner(Planner):
     """Lane-aware lattice planner along the route; see the module docstring."""
 
+    #: the road map (its geometry caches), memo caches of routes, reference lines and lateral
+    #: profiles, and the kernel's parameter block (rewritten per call): no state
+    caches = ("map", "_route_cache", "_ref_cache", "_lat_cache", "_kernel_params")
+
     def __init__(self, map_spec: dict[str, Any], **params: Any) -> None:
         super().__init__(map_spec, **params)
         self.p = LatticeParams.model_validate(params)
