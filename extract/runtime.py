@@ -175,7 +175,8 @@ class EpisodeReplay:
             marks = []
             if not self.reproduced_at_extraction(f["index"]):
                 d = "no output" if f["distance"] is None else f"position {f['distance']:.3g} m"
-                marks.append(pytest.mark.xfail(reason=f"not reproduced at extraction ({d})", strict=False))
+                why = f"; {f['after_lost']}" if f.get("after_lost") else ""
+                marks.append(pytest.mark.xfail(reason=f"not reproduced at extraction ({d}){why}", strict=False))
             cases.append(pytest.param(f["index"], id=frame_id(f["index"], f["time"]), marks=marks))
         return cases
 
