@@ -25,7 +25,7 @@ from deft_gym.files import write_atomic
 def build_parser() -> common.Parser:
     p = common.parser("run", "deft_gym.cli.run", __doc__)
     p.add_argument("scenario", help="scenario name (configs/scenarios), YAML path or gen:<seed> spec")
-    p.add_argument("--reruns", type=common.positive_int, default=10, help="number of reruns")
+    p.add_argument("--reruns", type=common.int_range(1, 100_000), default=10, help="number of reruns")
     common.add_out(p, None, help="output folder (default: runs/run/<scenario>)")
     common.add_jitter_seed(p)
     common.add_render(p)

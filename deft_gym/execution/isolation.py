@@ -50,7 +50,12 @@ class HostedError(Exception):
 
 
 class HostDied(Exception):
-    """The hosted object's process ended (or was ended) while it was called or before."""
+    """The hosted object's process ended (or was ended) while it was called or before;
+    ``location``: ``path:method`` of the call (the object's source file, when known)."""
+
+    def __init__(self, message: str, location: str = "") -> None:
+        super().__init__(message)
+        self.location = location
 
 
 def _signal_name(sig: int) -> str:
@@ -133,8 +138,9 @@ class Hosted:
     ``what`` names it in messages (``"the planner"``). Construction errors are raised as
     :class:`HostedError` from the constructor."""
 
-    def __init__(self, factory: Callable[[], Any], what: str = "the hosted object") -> None:
+    def __init__(self, factory: Callable[[], Any], what: str = "the hosted object", source: str = "") -> None:
         self.what = what
+        self.source = source  # the hosted object's source file (where a death is located)
         self.pid = 0
         self.owner = os.getpid()
         self.ended: str | None = None  # how the child ended, once it did
@@ -174,7 +180,8 @@ class Hosted:
         :class:`HostDied` when its process is gone. Anything raised in the caller while it
         waits (the watchdog's hang, Ctrl-C) kills the child and propagates."""
         if self.ended is not None:
-            raise HostDied(f"{self.what}: its process had ended ({self.ended}); {method}() not run")
+            raise HostDied(f"{self.what}: its process had ended ({self.ended}); {method}() not run",
+                           f"{self.source}:{method}" if self.source else "")
         try:
             self.conn.send((method, args))
         except (OSError, ValueError):
@@ -195,7 +202,9 @@ class Hosted:
 
     def _died(self, during: str) -> None:
         self.ended = self._reap(block=True)
-        raise HostDied(f"{self.what}: its process {self.ended} during {during}")
+        method = during.removesuffix("()")
+        raise HostDied(f"{self.what}: its process {self.ended} during {during}",
+                       f"{self.source}:{method}" if self.source else "")
 
     def _reap(self, block: bool) -> str:
         try:

@@ -89,6 +89,27 @@ def _count_interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
+class CountingInterrupts:
+    """While it runs (main thread), Ctrl-C is counted (:func:`interrupts`) and still raises
+    KeyboardInterrupt; another handler someone installed is left alone. Nestable."""
+
+    def __enter__(self) -> CountingInterrupts:
+        self.old: Any = None
+        if threading.current_thread() is threading.main_thread():
+            old = signal.getsignal(signal.SIGINT)
+            if old is signal.default_int_handler or old is _count_interrupt:
+                self.old = old
+                signal.signal(signal.SIGINT, _count_interrupt)
+                _INTERRUPTS[1] += 1
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.old is not None:
+            _INTERRUPTS[1] -= 1
+            if _INTERRUPTS[1] == 0:
+                signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def interrupts() -> int:
     """How many Ctrl-C (SIGINT) this process received while a heartbeat counted them."""
     return _INTERRUPTS[0]
@@ -201,15 +222,10 @@ class _Heartbeat:
         self.dog = dog
         self.main = threading.current_thread() is threading.main_thread()
         self.on = (dog.seconds > 0 or dog.total_s > 0) and self.main
+        self.counting = CountingInterrupts()
 
     def __enter__(self) -> None:
-        if self.main:
-            self.old_int = signal.getsignal(signal.SIGINT)
-            if self.old_int is signal.default_int_handler or self.old_int is _count_interrupt:
-                signal.signal(signal.SIGINT, _count_interrupt)
-                _INTERRUPTS[1] += 1
-            else:
-                self.old_int = None  # someone else's handler: left alone
+        self.counting.__enter__()
         if self.on:
             limits = [x for x in (self.dog.seconds, self.dog.total_s) if x > 0]
             tick = min(min(limits) / 4, 1.0)
@@ -222,12 +238,22 @@ class _Heartbeat:
             signal.signal(signal.SIGALRM, self.old if self.old is not None else signal.SIG_DFL)
             if self.old_timer[0] > 0:
                 signal.setitimer(signal.ITIMER_REAL, *self.old_timer)
-        if self.main and self.old_int is not None:
-            _INTERRUPTS[1] -= 1
-            if _INTERRUPTS[1] == 0:
-                signal.signal(signal.SIGINT, signal.default_int_handler)
+        self.counting.__exit__(*exc)
 
 
-__all__ = ["DEFAULT_RUN_WALL_S", "DEFAULT_WATCHDOG_S", "ENV", "RUN_ENV", "ModuleHang", "Watchdog", "apply_env",
-           "carried_env", "describe_exception", "interrupts", "module_fault", "run_wall_seconds",
-           "watchdog_seconds"]
+__all__ = [
+    "DEFAULT_RUN_WALL_S",
+    "DEFAULT_WATCHDOG_S",
+    "ENV",
+    "RUN_ENV",
+    "CountingInterrupts",
+    "ModuleHang",
+    "Watchdog",
+    "apply_env",
+    "carried_env",
+    "describe_exception",
+    "interrupts",
+    "module_fault",
+    "run_wall_seconds",
+    "watchdog_seconds",
+]

@@ -385,7 +385,13 @@ class HostedPlanner(Planner):
         cls = self.hosted_class
         name = f"{cls.__module__}:{cls.__qualname__}"
         try:
-            self._host = Hosted(lambda: cls(map_spec, **params), f"the planner {name}")
+            import inspect
+
+            try:
+                source = inspect.getsourcefile(cls) or ""
+            except TypeError:
+                source = ""
+            self._host = Hosted(lambda: cls(map_spec, **params), f"the planner {name}", source)
         except (HostedError, HostDied) as exc:
             describe = getattr(exc, "describe", None)
             raise ValueError(describe() if callable(describe) else str(exc)) from None
