@@ -1578,3 +1578,10 @@ def test_strict_yaml_keeps_merge_keys_and_refuses_oversized_files(tmp_path):
     path.write_text("#" * 2000)
     with pytest.raises(ConfigError, match=r"at most 0\.001 MB"):
         load_yaml(path, max_bytes=1000)
+
+
+def test_stress_compare_of_a_folder_without_a_campaign_is_one_line(tmp_path, capsys):
+    from deft_gym.robustness import stress
+
+    assert stress.main(["compare", str(tmp_path)]) == 2
+    assert "expected a campaign folder" in one_line(capsys.readouterr().err)

@@ -306,7 +306,16 @@ def compare_cli(argv: list[str]) -> int:
                        "Compare campaign summaries (e.g. hardening off vs on).")
     ap.add_argument("dirs", nargs="+", help="campaign folders")
     args = ap.parse_args(argv)
-    sums = [json.loads((Path(d) / "summary.json").read_text()) for d in args.dirs]
+    sums = []
+    for d in args.dirs:
+        try:
+            s = json.loads((Path(d) / "summary.json").read_text())
+            if not isinstance(s, dict) or "runs" not in s:
+                raise ValueError("not a campaign summary")
+        except (OSError, ValueError) as err:  # no campaign there, or a damaged summary: one line
+            return common.cli_error(f"{Path(d) / 'summary.json'}: {getattr(err, 'strerror', None) or err}; expected "
+                                    "a campaign folder (deft-gym stress --out DIR)")
+        sums.append(s)
     t = Table(box=box.SIMPLE)
     t.add_column("measure")
     for d, s in zip(args.dirs, sums):
