@@ -1585,3 +1585,23 @@ def test_stress_compare_of_a_folder_without_a_campaign_is_one_line(tmp_path, cap
 
     assert stress.main(["compare", str(tmp_path)]) == 2
     assert "expected a campaign folder" in one_line(capsys.readouterr().err)
+
+
+def test_the_run_cap_flag_sets_the_variable_for_the_run_and_a_bad_variable_is_one_line(tmp_path, monkeypatch,
+                                                                                       capsys):
+    import os
+
+    from deft_gym.cli import run
+
+    ads = tmp_path / "ads.yaml"
+    ads.write_text(f"planning:\n  planner:\n    class: {FAULTY}\n    params: {{fault: sleep, after: 0, sleep_s: 0.3}}\n")
+    monkeypatch.setenv("DEFT_GYM_RUN_WALL_S", "600")
+    assert run.main([str(LANE_FOLLOW), "--ads-config", str(ads), "--reruns", "1", "--jitter-seed", "7",
+                     "--run-wall-s", "1.5", "--out", str(tmp_path / "out"), "--quiet", "--render", "none"]) == 0
+    row = json.loads((tmp_path / "out" / "summary.json").read_text())["reruns"][0]
+    assert row["outcome"] == "hang" and log_outcome(row["log"])["failure"]["reason"] == "run wall-clock cap"
+    assert os.environ["DEFT_GYM_RUN_WALL_S"] == "600"
+    monkeypatch.setenv("DEFT_GYM_RUN_WALL_S", "-3")
+    with pytest.raises(SystemExit) as exc:
+        run.main([str(LANE_FOLLOW), "--reruns", "1", "--out", str(tmp_path / "o2")])
+    assert exc.value.code == 2 and "--run-wall-s" in one_line(capsys.readouterr().err)

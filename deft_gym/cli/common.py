@@ -190,19 +190,56 @@ def positive_seconds(text: str) -> float:
     return x
 
 
+RUN_WALL_ENV = "DEFT_GYM_RUN_WALL_S"  # deft_gym.execution.watchdog.RUN_ENV
+
+
 def add_watchdog(p: argparse.ArgumentParser) -> None:
-    """``--watchdog-s SECONDS`` (read by :func:`watchdog_env`)."""
+    """``--watchdog-s SECONDS`` and ``--run-wall-s SECONDS`` (read by :func:`watchdog_env`)."""
     p.add_argument("--watchdog-s", type=positive_seconds, default=None, metavar="SECONDS",
                    help="wall-clock seconds one module call (a module computation, a planner's plan()) may take "
                         f"before it is reported as a hang instead of hanging the program (default: {WATCHDOG_ENV} "
                         "from the environment, else 10)")
+    p.add_argument("--run-wall-s", type=positive_seconds, default=None, metavar="SECONDS",
+                   help="wall-clock seconds all the module calls of one episode (or all the plan() calls of one "
+                        "extraction) may take together before the run is a hang (default: "
+                        f"{RUN_WALL_ENV} from the environment, else 600)")
 
 
 @contextmanager
 def watchdog_env(args: argparse.Namespace) -> Iterator[None]:
-    """While the block runs, ``--watchdog-s`` (when given) is ``DEFT_GYM_WATCHDOG_S`` of this
-    process, and of the worker processes it starts (the execution layer carries it); restored
-    after. A ``DEFT_GYM_WATCHDOG_S`` that is not seconds >= 0 is one line, exit 2, before any work."""
+    """While the block runs, ``--watchdog-s`` and ``--run-wall-s`` (when given) are
+    ``DEFT_GYM_WATCHDOG_S`` and ``DEFT_GYM_RUN_WALL_S`` of this process, and of the worker
+    processes it starts (the execution layer carries them); restored after. A variable that is
+    not seconds >= 0 is one line, exit 2, before any work."""
+    with _run_wall_env(args), _watchdog_env(args):
+        yield
+
+
+@contextmanager
+def _run_wall_env(args: argparse.Namespace) -> Iterator[None]:
+    value = getattr(args, "run_wall_s", None)
+    old = os.environ.get(RUN_WALL_ENV)
+    if value is None:
+        from deft_gym.execution.watchdog import run_wall_seconds
+
+        try:
+            run_wall_seconds()
+        except ValueError as err:
+            raise SystemExit(cli_error(f"{err}; or give --run-wall-s SECONDS")) from None
+        yield
+        return
+    os.environ[RUN_WALL_ENV] = repr(float(value))
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(RUN_WALL_ENV, None)
+        else:
+            os.environ[RUN_WALL_ENV] = old
+
+
+@contextmanager
+def _watchdog_env(args: argparse.Namespace) -> Iterator[None]:
     value = getattr(args, "watchdog_s", None)
     old = os.environ.get(WATCHDOG_ENV)
     if value is None:

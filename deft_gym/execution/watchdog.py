@@ -14,7 +14,7 @@ The limit: ``--watchdog-s`` of the programs (:func:`deft_gym.cli.common.add_watc
 ``DEFT_GYM_WATCHDOG_S`` environment variable, else :data:`DEFAULT_WATCHDOG_S`. The execution
 layer carries the variable to every worker process (:func:`carried_env`, :func:`apply_env`).
 
-A whole run has a cap too (``total_s``: ``--run-wall-s``, ``DEFT_GYM_RUN_WALL_S``, else
+A whole run has a cap too (``total_s``: ``--run-wall-s`` of the programs, ``DEFT_GYM_RUN_WALL_S``, else
 :data:`DEFAULT_RUN_WALL_S`): once the calls watched by one :class:`Watchdog` (an episode's module
 calls, an extraction's ``plan()`` calls) have run that long in all, the call in progress gets
 :class:`ModuleHang` and :attr:`Watchdog.expired` says so, so that a module slow enough never to
