@@ -27,7 +27,12 @@ check-python:
 	  echo "error: $(VENV) was made with Python $$($(PY) -c 'import platform; print(platform.python_version())'), not 3.11:" \
 	       "remove it (make clean) and run make again" >&2; exit 2; fi
 
-$(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules/_control_c.c deft_gym/record/_snapshot_c.c | check-python
+# the kernels record their C sources and the Python files they stand in for: an edit of either
+# rebuilds them (a stale kernel is not loaded: deft_gym.files.checked_kernel)
+KERNEL_SOURCES := deft_gym/planner/_lattice_c.c deft_gym/planner/lattice.py deft_gym/modules/_control_c.c \
+                  deft_gym/modules/control.py deft_gym/record/_snapshot_c.c deft_gym/record/worker.py
+
+$(STAMP): pyproject.toml setup.py $(KERNEL_SOURCES) | check-python
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -qq --upgrade pip
 	$(PY) -m pip install -qq torch==2.13.0

@@ -6,9 +6,12 @@ predicted obstacles (and their relevance test) and its longitudinal profiles in 
 its nearest-point search; ``deft_gym.record._snapshot_c`` is the recorder's payload snapshot (pickle
 is used without it). All are bit-identical to the Python and numpy versions (which are
 used when an extension is missing: ``optional=True`` turns a failed build into a warning). IEEE
-semantics are kept: no fast-math, no FMA contraction.
+semantics are kept: no fast-math, no FMA contraction. Each records the digests of its C source and
+of the Python file it stands in for (``BUILT_FROM``): a kernel older than an edit of either is not
+loaded (a warning says to rebuild: ``pip install -e .`` or ``make venv``).
 """
 
+import hashlib
 import shutil
 from pathlib import Path
 
@@ -30,14 +33,24 @@ class BuildPyWithConfigs(build_py):
             shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
 
 FLAGS = ["-O2", "-std=c99", "-fno-fast-math", "-ffp-contract=off"]
+HERE = Path(__file__).resolve().parent
+
+
+def kernel(name: str, c_source: str, mirrors: str) -> Extension:
+    """A compiled kernel that records what it was built from: BUILT_FROM is the SHA-256 of its C
+    source and of the Python file whose code it stands in for (``deft_gym.files.stale_kernel``
+    compares them with the files beside it when the kernel is loaded: a kernel built before
+    either was edited is not used - an edit of the Python version is never silently overridden)."""
+    digests = " ".join(hashlib.sha256((HERE / p).read_bytes()).hexdigest() for p in (c_source, mirrors))
+    return Extension(name, [c_source], extra_compile_args=FLAGS, optional=True, depends=[mirrors],
+                     define_macros=[("BUILT_FROM", f'"{digests}"')])
+
 
 setup(
     cmdclass={"build_py": BuildPyWithConfigs},
     ext_modules=[
-        Extension("deft_gym.planner._lattice_c", ["deft_gym/planner/_lattice_c.c"],
-                  extra_compile_args=FLAGS, optional=True),
-        Extension("deft_gym.modules._control_c", ["deft_gym/modules/_control_c.c"],
-                  extra_compile_args=FLAGS, optional=True),
-        Extension("deft_gym.record._snapshot_c", ["deft_gym/record/_snapshot_c.c"], extra_compile_args=FLAGS, optional=True),
+        kernel("deft_gym.planner._lattice_c", "deft_gym/planner/_lattice_c.c", "deft_gym/planner/lattice.py"),
+        kernel("deft_gym.modules._control_c", "deft_gym/modules/_control_c.c", "deft_gym/modules/control.py"),
+        kernel("deft_gym.record._snapshot_c", "deft_gym/record/_snapshot_c.c", "deft_gym/record/worker.py"),
     ]
 )

@@ -8,9 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from deft_gym.config import load_mapping, validate
+from deft_gym.config import load_mapping, validate_with_flags
 
 if TYPE_CHECKING:  # imported on first use (it loads the whole simulation): ``--help`` stays fast
     from deft_gym.envs.adversary import AdversaryConfig
@@ -23,20 +23,40 @@ class TrainConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    name: str = "adversary"
+    name: str = Field("adversary", pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$",
+                      description="the run's name: its default folder runs/adversary/<name> (one folder name)")
     algo: Literal["ppo", "a2c"] = "ppo"
-    policy: str = "MlpPolicy"
-    timesteps: int = Field(100_000, ge=1)
+    policy: Literal["MlpPolicy"] = "MlpPolicy"
+    timesteps: int = Field(100_000, ge=1, le=10**10)
     seed: int = 0
     n_envs: int = Field(2, ge=1, le=64)
     vec_env: Literal["subproc", "dummy"] = "subproc"
     checkpoint_every: int = Field(10_000, ge=1, description="env steps between checkpoints")
     algo_kwargs: dict[str, Any] = Field(default_factory=dict)
     policy_kwargs: dict[str, Any] = Field(default_factory=lambda: {"net_arch": [128, 128]})
-    generated: int = Field(0, ge=0, description="robust generated scenarios gen:<seed> (seeds from 0 on) "
+    generated: int = Field(0, ge=0, le=10_000, description="robust generated scenarios gen:<seed> (seeds from 0 on) "
                            "added to env.scenarios for training; held-out evaluation seeds start at 1000000")
     env: AdversaryConfig = Field(default_factory=lambda: _env_config()())
     log_episodes: bool = Field(True, description="record every episode's MCAP log (failures -> extractor)")
+
+    @field_validator("policy_kwargs")
+    @classmethod
+    def _net_arch(cls, v: dict[str, Any]) -> dict[str, Any]:
+        """``net_arch``: layer widths 1..4096 (at most 16 layers), a list or ``{pi: [...], vf: [...]}``
+        (torch would raise deep in the model's construction on a width of -5)."""
+        arch = v.get("net_arch")
+        if arch is None:
+            return v
+        lists = {"": arch} if isinstance(arch, list) else arch if isinstance(arch, dict) else None
+        if lists is None or (isinstance(arch, dict) and (set(arch) - {"pi", "vf"} or not arch)):
+            raise ValueError("net_arch: expected a list of layer widths or {pi: [...], vf: [...]}")
+        for key, widths in lists.items():
+            ok = isinstance(widths, list) and len(widths) <= 16 and all(
+                isinstance(w, int) and not isinstance(w, bool) and 1 <= w <= 4096 for w in widths)
+            if not ok:
+                raise ValueError(f"net_arch{'.' + key if key else ''}: {widths!r}; expected at most 16 layer widths, "
+                                 "each an integer in 1..4096")
+        return v
 
 
 def _env_config() -> type:
@@ -52,13 +72,12 @@ def complete() -> None:
 
 
 def load_train_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None) -> TrainConfig:
-    """Load ``path`` (or the defaults) with ``overrides`` on top; errors name file and field."""
+    """Load ``path`` (or the defaults) with ``overrides`` on top; errors name file and field, or
+    the flag of an override (``--timesteps``, ``--n-envs``: a field name ``n_envs`` is ``--n-envs``)."""
     complete()
     data = load_mapping(path) if path is not None else {}
-    for key, value in (overrides or {}).items():
-        if value is not None:
-            data[key] = value
-    return validate(TrainConfig, data, path if path is not None else "<defaults>")
+    flags = {key: ("--" + key.replace("_", "-"), value) for key, value in (overrides or {}).items()}
+    return validate_with_flags(TrainConfig, data, path if path is not None else "<defaults>", flags)
 
 
 # bounds of the SB3 hyper-parameters a config commonly sets: (low, low inclusive, high)
@@ -95,6 +114,14 @@ def check_train_settings(cfg: TrainConfig, source: Path | str | None) -> None:
             if not ok:
                 raise ConfigError(f"{name}: algo_kwargs.{key}: expected a number {'>=' if inclusive else '>'} {low:g} "
                                   f"and <= {high:g}, got {value!r}")
+    from stable_baselines3.common.policies import ActorCriticPolicy
+
+    policy_params = set(inspect.signature(ActorCriticPolicy.__init__).parameters) - {
+        "self", "observation_space", "action_space", "lr_schedule"}
+    for key in cfg.policy_kwargs:
+        if key not in policy_params:
+            raise ConfigError(f"{name}: policy_kwargs.{key}: not a parameter of SB3's MlpPolicy; expected one of "
+                              f"{sorted(policy_params)}")
     if cfg.algo_kwargs.get("n_steps", params["n_steps"].default) * cfg.n_envs < 2:
         raise ConfigError(f"{name}: algo_kwargs.n_steps: n_steps x n_envs must be at least 2")
     from deft_gym.search.context import resolve_scenario  # names, paths, gen:<seed>, <name>~v<seed>

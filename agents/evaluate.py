@@ -46,7 +46,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.cli import common
-from deft_gym.config import ConfigError, load_mapping, validate
+from deft_gym.config import ConfigError, load_mapping, validate_with_flags
 from deft_gym.execution import Executor, add_backend_arguments, backend_from_args
 from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
 from deft_gym.record.recorder import init_pool_worker
@@ -68,19 +68,19 @@ class EvalConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    methods: list[str] = Field(default_factory=lambda: list(DEFAULT_METHODS))
-    budget: int = Field(50, ge=1)
-    repeats: int = Field(1, ge=1)
-    scenarios: list[str] = Field(default_factory=lambda: _seed_scenarios())
-    held_out: int = Field(10, ge=0, description="held-out generated scenarios gen:<seed> (seeds from "
+    methods: list[str] = Field(default_factory=lambda: list(DEFAULT_METHODS), min_length=1)
+    budget: int = Field(50, ge=1, le=100_000)
+    repeats: int = Field(1, ge=1, le=1000)
+    scenarios: list[str] = Field(default_factory=lambda: _seed_scenarios(), max_length=10_000)
+    held_out: int = Field(10, ge=0, le=10_000, description="held-out generated scenarios gen:<seed> (seeds from "
                           "1000000 on, never trained on; the first robust ones)")
-    variants: int = Field(0, ge=0, description="held-out perturbed variants per seed scenario")
+    variants: int = Field(0, ge=0, le=1000, description="held-out perturbed variants per seed scenario")
     model: str | None = None
     deterministic: bool = False
-    workers: int = Field(2, ge=1)
+    workers: int = Field(2, ge=1, le=4096)
     seed: int = 0
     log_failures: bool = False
-    max_added: int = Field(8, ge=1)
+    max_added: int = Field(8, ge=1, le=100)
     placements: list[Literal["closest", "uniform"]] = Field(
         default_factory=lambda: ["closest", "uniform"], min_length=1,
         description="placement rules every method runs under (one table row per method and placement)")
@@ -92,13 +92,14 @@ def build_parser() -> common.Parser:
                    "given here override it; default: the built-in defaults)")
     p.add_argument("--methods", nargs="+", action=common.ListAction, default=None, metavar="METHOD",
                    help=f"of {', '.join(METHODS)} (default: {' '.join(DEFAULT_METHODS)})")
-    p.add_argument("--budget", type=int, default=None, help="simulated scenarios per method, scenario and repeat "
-                   "(default: 50)")
-    p.add_argument("--repeats", type=int, default=None, help="repeats with other seeds (default: 1)")
+    p.add_argument("--budget", type=common.int_range(1, 100_000), default=None,
+                   help="simulated scenarios per method, scenario and repeat (default: 50)")
+    p.add_argument("--repeats", type=common.int_range(1, 1000), default=None,
+                   help="repeats with other seeds (default: 1)")
     common.add_scenarios(p, help="seed scenarios: names or YAML paths (default: the seven seeds)")
-    p.add_argument("--held-out", type=int, default=None, dest="held_out",
+    p.add_argument("--held-out", type=common.int_range(0, 10_000), default=None, dest="held_out",
                    help="held-out generated scenarios (default: 10)")
-    p.add_argument("--variants", type=int, default=None, help="held-out perturbed variants per seed scenario "
+    p.add_argument("--variants", type=common.int_range(0, 1000), default=None, help="held-out perturbed variants per seed scenario "
                    "(default: 0)")
     p.add_argument("--placements", nargs="+", action=common.ListAction, default=None, metavar="RULE",
                    help="placement rules, of closest, uniform (default: both)")
@@ -130,27 +131,64 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
     if args.config is not None:
         name = str(args.config)
         data = load_mapping(args.config)
+    flags: dict[str, tuple[str, Any]] = {}
     for key in ("budget", "repeats", "held_out", "variants", "model", "deterministic", "workers", "seed", "log_failures"):
-        if getattr(args, key) is not None:
-            data[key] = getattr(args, key)
+        flags[key] = ("--" + key.replace("_", "-"), getattr(args, key))
     for key in ("methods", "scenarios", "placements"):
-        if getattr(args, key) is not None:
-            data[key] = common.split_list(getattr(args, key))
+        value = getattr(args, key)
+        flags[key] = ("--" + key, common.split_list(value) if value is not None else None)
     data.setdefault("workers", common.cpus())
-    if isinstance(data.get("model"), str):
-        from deft_gym.models import resolve_model
+    from deft_gym.models import resolve_model  # --model default: the adversary shipped in the package
 
+    if isinstance(data.get("model"), str):
         data["model"] = resolve_model(data["model"])
-    cfg = validate(EvalConfig, data, name)
+    if isinstance(flags["model"][1], str):
+        flags["model"] = (flags["model"][0], resolve_model(flags["model"][1]))
+    cfg = validate_with_flags(EvalConfig, data, name, flags)
+
+    def where(key: str) -> str:  # a problem names the flag that set the value, else the file's field
+        return flags[key][0] if flags[key][1] is not None else f"{name}: {key}"
+
     bad = [m for m in cfg.methods if m not in METHODS]
     if bad:
-        raise ConfigError(f"{name}: methods: unknown {bad}; expected some of {list(METHODS)}")
+        raise ConfigError(f"{where('methods')}: unknown {bad}; expected some of {list(METHODS)}")
     if "rl" in cfg.methods and not cfg.model:
-        raise ConfigError(f"{name}: model: method 'rl' needs --model (a trained model.zip)")
+        raise ConfigError(f"{where('methods')}: method 'rl' needs --model (a trained model.zip)")
     # the baselines may run while the model trains: its run folder's config.yaml is enough
     if cfg.model and not Path(cfg.model).exists() and ("rl" in cfg.methods or not model_env_config(cfg.model)):
-        raise ConfigError(f"{name}: model: {cfg.model} does not exist")
+        raise ConfigError(f"{where('model')}: {cfg.model} does not exist")
+    if cfg.model and "rl" in cfg.methods:
+        check_model(cfg.model, where("model"))
+    jobs = len(cfg.scenarios) * cfg.repeats * len(cfg.methods) * len(cfg.placements) * cfg.budget
+    if jobs > MAX_SIMULATIONS:
+        raise ConfigError(f"{name if args.config else 'the command line'}: {jobs:,} simulated scenarios (scenarios x repeats x methods x placements x "
+                          f"budget); at most {MAX_SIMULATIONS:,} in one evaluation")
+    from deft_gym.search.context import resolve_scenario  # names, paths, gen:<seed>, <name>~v<seed>
+
+    for i, scenario in enumerate(dict.fromkeys(cfg.scenarios)):  # each resolves, before any worker starts
+        try:
+            resolve_scenario(scenario)
+        except (ConfigError, ValueError, OSError) as err:
+            at = "--scenarios" if flags["scenarios"][1] is not None else f"{name}: scenarios.{i}"
+            raise ConfigError(f"{at}: {scenario!r} does not resolve ({str(err).splitlines()[0][:300]})") from None
     return cfg
+
+
+MAX_SIMULATIONS = 10_000_000  # simulated scenarios of one evaluation (checked before any work)
+
+
+def check_model(path: str, where: str) -> None:
+    """ConfigError (one line) unless ``path`` is a readable SB3 model with a policy (an empty,
+    truncated or foreign file is refused here, not in a worker's traceback)."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    try:
+        data, params, _ = load_from_zip_file(path, device="cpu", load_data=True)
+    except Exception as exc:
+        raise ConfigError(f"{where}: {path} is not a readable SB3 model ({type(exc).__name__}: "
+                          f"{str(exc).splitlines()[0][:200] if str(exc) else ''})") from None
+    if not isinstance(data, dict) or not params or "policy" not in params:
+        raise ConfigError(f"{where}: {path} holds no policy (expected a model.zip written by agents.train)")
 
 
 def model_env_config(model: str | None) -> dict[str, Any]:
@@ -237,9 +275,24 @@ def scenario_key(spec: str) -> str:
 
 
 def _log_root(job: dict[str, Any]) -> Path:
-    """Where one job's episode logs go: ``OUT/logs/<method>-<placement>/<scenario>/r<repeat>``."""
-    name = job["scenario"].replace("~", "_").replace(":", "_")
-    return Path(job["out"]) / "logs" / f"{job['method']}-{job['placement']}" / name / f"r{job['repeat']}"
+    """Where one job's episode logs go: ``OUT/logs/<method>-<placement>/<scenario>/r<repeat>``,
+    always inside ``OUT`` (:func:`folder_name`: a scenario given by a path, absolute or with
+    ``..``, is one folder name)."""
+    return Path(job["out"]) / "logs" / f"{job['method']}-{job['placement']}" / folder_name(job["scenario"]) / \
+        f"r{job['repeat']}"
+
+
+def folder_name(spec: str) -> str:
+    """A scenario spec (a name, ``gen:7``, ``name~v3``, a YAML path) as one safe folder name: the
+    name itself when it is one, else its file stem and a short hash of the whole spec."""
+    import hashlib
+    import re
+
+    name = re.sub(r"[^A-Za-z0-9._-]+", "_", spec.replace("~", "_").replace(":", "_")).strip("._") or "scenario"
+    if name == spec.replace("~", "_").replace(":", "_") and len(name) <= 100:
+        return name
+    stem = re.sub(r"[^A-Za-z0-9_-]+", "_", Path(spec).stem).strip("_")[:60] or "scenario"
+    return f"{stem}-{hashlib.sha256(spec.encode()).hexdigest()[:8]}"
 
 
 def _keep_or_drop(d: Path | None, rec: dict[str, Any]) -> None:
@@ -347,6 +400,11 @@ def _main(args: argparse.Namespace) -> int:
         backend = backend_from_args(args, cfg.workers)
     except ConfigError as err:
         return common.cli_error(str(err))
+    with common.locked_out(args.out):
+        return _evaluate(args, con, cfg, backend)
+
+
+def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     seeds = list(cfg.scenarios)

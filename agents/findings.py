@@ -170,12 +170,18 @@ def main(argv: list[str] | None = None) -> int:
     if not by_cause:
         con.print("no counted failures in the records")
         return 0
+    with common.locked_out(out):
+        return _draw(args, con, out, by_cause, counts)
+
+
+def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any]]],
+          counts: dict[str, dict[str, int]]) -> int:
     out.mkdir(parents=True, exist_ok=True)
     causes = sorted(by_cause, key=lambda c: (-len(by_cause[c]), c))
     sample = [(c, r) for c in causes
               for r in sorted(by_cause[c], key=lambda r: (r["scenario"], r["repeat"], r["index"], r["method"]))[
                   : args.per_cause]]
-    lines = [f"# Findings of {folder}", "",
+    lines = [f"# Findings of {args.folder}", "",
              f"{sum(len(v) for v in by_cause.values())} counted failures, {len(causes)} root causes; up to "
              f"{args.per_cause} of each simulated again with their jitter seed and drawn (dashed: the optimal path; "
              "blue: the ego; red: the trigger; green: other added objects; grey: the seed's participants).", "",

@@ -441,6 +441,14 @@ def _main(args: argparse.Namespace) -> int:
         print(f"error: {out} already holds a training run (episodes-*.jsonl); continue it with --resume "
               f"{out}/checkpoints/<checkpoint>.zip or train into another --out", file=sys.stderr)
         return 2
+    with common.locked_out(out):
+        if args.resume is None and any(out.glob("episodes-*.jsonl")):  # (another run began meanwhile)
+            print(f"error: {out} already holds a training run (episodes-*.jsonl)", file=sys.stderr)
+            return 2
+        return _train(args, con, cfg, backend, out, step0, timesteps0)
+
+
+def _train(args: argparse.Namespace, con: Any, cfg: Any, backend: Any, out: Path, step0: int, timesteps0: int) -> int:
     out.mkdir(parents=True, exist_ok=True)
     write_atomic(out / "config.yaml", yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
 

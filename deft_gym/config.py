@@ -76,21 +76,114 @@ def format_validation_error(path: Path | str, err: ValidationError) -> str:
 # libyaml's parser when PyYAML has it (the same documents, parsed about 3x faster), else PyYAML's
 _SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
+MAX_YAML_BYTES = 16 * 1024 * 1024  #: the largest configuration file read (scenarios have their own, lower bound)
+MAX_YAML_VALUES = 1_000_000  #: values a document may expand to through aliases (``*name``)
 
-def load_yaml(path: Path | str) -> Any:
-    """Read a YAML file (``configs/...`` paths found in the shipped configs too), turning I/O
-    and syntax errors into :class:`ConfigError`."""
-    path = resolve_config_path(path)
+
+class StrictLoader(_SAFE_LOADER):  # type: ignore[misc, valid-type]
+    """The safe loader, refusing a mapping that names one key twice (YAML says keys are unique;
+    PyYAML silently keeps the last). Merge keys (``<<: *base``) may still be overridden."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, Any] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node)
+                except TypeError:  # an unhashable key: the constructor says so
+                    continue
+                if first is not key_node:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"duplicate key {str(key)[:80]!r} (first at line {first.start_mark.line + 1})",
+                        key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+
+StrictLoader.add_constructor("tag:yaml.org,2002:map", StrictLoader.construct_yaml_map)
+
+
+def _expanded_size(data: Any, limit: int) -> int | None:
+    """How many values ``data`` holds once every alias is expanded (each shared object counted as
+    often as it is referenced), or None when that passes ``limit`` or an alias refers to its own
+    ancestor (a recursive document); memoised, so a YAML bomb is measured without expanding it."""
+    sizes: dict[int, int] = {}
+    active: set[int] = set()
+
+    def size(x: Any) -> int:
+        if not isinstance(x, dict | list):
+            return 1
+        key = id(x)
+        if key in sizes:
+            return sizes[key]
+        if key in active:
+            raise RecursionError
+        active.add(key)
+        items = [*x.keys(), *x.values()] if isinstance(x, dict) else x
+        n = 1
+        for v in items:
+            n += size(v)
+            if n > limit:
+                raise OverflowError
+        active.discard(key)
+        sizes[key] = n
+        return n
+
     try:
-        text = path.read_text()
+        return size(data)
+    except (OverflowError, RecursionError):
+        return None
+
+
+def read_config_text(path: Path, max_bytes: int = MAX_YAML_BYTES) -> str:
+    """The text of a configuration file: ConfigError (one line) when it cannot be read, is not a
+    regular file (a FIFO or a device would block or never end) or is larger than ``max_bytes``."""
+    import os
+    import stat
+
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO, socket or device)"
+            raise ConfigError(f"{path}: cannot read: {kind}")
+        if st.st_size > max_bytes:
+            raise ConfigError(f"{path}: {st.st_size / 1e6:.1f} MB; expected a file of at most {max_bytes / 1e6:g} MB")
+        with open(path, "rb") as fh:
+            data = fh.read(max_bytes + 1)
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if len(data) > max_bytes:
+        raise ConfigError(f"{path}: expected a file of at most {max_bytes / 1e6:g} MB")
+    if b"\x00" in data:
+        raise ConfigError(f"{path}: not a text file (it holds a NUL byte)")
     try:
-        return yaml.load(text, Loader=_SAFE_LOADER)
+        return data.decode()
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+
+
+def load_yaml(path: Path | str, max_bytes: int = MAX_YAML_BYTES) -> Any:
+    """Read a YAML file (``configs/...`` paths found in the shipped configs too), turning I/O
+    and syntax errors into :class:`ConfigError`. Strict: a regular file of at most ``max_bytes``
+    (:func:`read_config_text`), no key twice in a mapping, and aliases that expand the document
+    to at most :data:`MAX_YAML_VALUES` values (a "billion laughs" bomb is refused before anything
+    expands it, and its values are never printed)."""
+    path = resolve_config_path(path)
+    text = read_config_text(path, max_bytes)
+    try:
+        data = yaml.load(text, Loader=StrictLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark else ""
         raise ConfigError(f"{path}: invalid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: invalid YAML: nested too deeply") from None
+    if "*" in text and _expanded_size(data, MAX_YAML_VALUES) is None:
+        raise ConfigError(f"{path}: its aliases (*name) expand it to more than {MAX_YAML_VALUES:,} values or refer "
+                          "to themselves; refused (a YAML bomb?)")
+    return data
 
 
 def load_mapping(path: Path | str) -> dict[str, Any]:
@@ -120,6 +213,28 @@ def validate(model: type[M] | TypeAdapter[Any], data: Any, source: Path | str) -
         return model.model_validate(data)
     except ValidationError as err:
         raise ConfigError(format_validation_error(source, err)) from None
+
+
+def validate_with_flags(model: type[M], data: dict[str, Any], source: Path | str,
+                        flags: dict[str, tuple[str, Any]]) -> M:
+    """``model`` validated from a file's ``data`` (named ``source`` in errors) with command-line
+    values on top: ``flags`` maps a field to ``(flag, value)`` (a value of None: the flag was not
+    given). A problem with a field a flag set names the flag (``--budget: ...``), not the file."""
+    given = {field: (flag, value) for field, (flag, value) in flags.items() if value is not None}
+    merged = {**data, **{field: value for field, (_, value) in given.items()}}
+    try:
+        return model.model_validate(merged)
+    except ValidationError as err:
+        lines = []
+        for e in err.errors():
+            loc = [str(p) for p in e["loc"]]
+            msg = "unknown key" if e["type"] == "extra_forbidden" else e["msg"]
+            if loc and loc[0] in given:
+                rest = ".".join(loc[1:])
+                lines.append(f"{given[loc[0]][0]}: {rest + ': ' if rest else ''}{msg}")
+            else:
+                lines.append(f"{source}: {'.'.join(loc) or '<root>'}: {msg}")
+        raise ConfigError("\n".join(lines)) from None
 
 
 def deep_merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:

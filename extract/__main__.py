@@ -42,7 +42,7 @@ def build_parser() -> common.Parser:
     ap.add_argument("--mode", choices=MODES, default="heuristic",
                     help="input search: heuristic (DeFT TISE), last (baseline), headers "
                          "(inputs named by the output's debug.input_seqs)")
-    ap.add_argument("--theta", type=float, default=0.0, metavar="T",
+    ap.add_argument("--theta", type=common.finite_float(0.0, 1e6), default=0.0, metavar="T",
                     help="reproduction threshold [m] of the generated tests (0 = exact)")
     ap.add_argument("--measure", choices=MEASURES, default="lsed", help="trajectory distance")
     ap.add_argument("--tolerance", action="append", default=[], metavar="FIELD=VALUE",
@@ -103,14 +103,16 @@ def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
         logs = find_logs(root)
         if not logs:
             raise LogError(f"{root}: no .mcap logs found")
-        if root.is_file():
-            with common.bar(args, None, f"frames of {root.parent.name or root.name}") as bar:
-                res = extract_episode(root, args.out, **kwargs, on_frame=lambda done, total: bar.set(done, total))
-            results = [res]
-        else:
-            with common.bar(args, len(logs), "logs") as bar, Executor(backend, run_dir=args.out) as ex:
-                results = extract_directory(root, args.out, workers=args.workers, force=args.force,
-                                            on_episode=lambda _: bar.update(), executor=ex, **kwargs)
+        with common.locked_out(args.out):
+            if root.is_file():
+                with common.bar(args, None, f"frames of {root.parent.name or root.name}") as bar:
+                    res = extract_episode(root, args.out, **kwargs,
+                                          on_frame=lambda done, total: bar.set(done, total))
+                results = [res]
+            else:
+                with common.bar(args, len(logs), "logs") as bar, Executor(backend, run_dir=args.out) as ex:
+                    results = extract_directory(root, args.out, workers=args.workers, force=args.force,
+                                                on_episode=lambda _: bar.update(), executor=ex, **kwargs)
     except (LogError, MappingError) as err:
         return common.cli_error(str(err)), []
     console.print(_table(results, args, root))

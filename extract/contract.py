@@ -27,7 +27,11 @@ Checks (:mod:`deft_gym.planner.base` states the contract):
     the live state breaks it);
 ``none_keeps_state``
     a frame with no inputs, on which the planner returns None, changes nothing: the outputs
-    that follow are those of a clean replay.
+    that follow are those of a clean replay;
+``hidden_state``
+    ``plan()`` changes no attribute of the planner but ``state`` and the caches it declares
+    (:attr:`deft_gym.planner.base.Planner.caches`) - whether or not the frames at hand make the
+    change show in an output (hidden state the frames never exercise passed the other checks).
 
 Each violation names the frame (index and time) and what differed. Exit status: 0 when the
 contract holds, 1 when it is violated, 2 on bad input.
@@ -53,7 +57,8 @@ from deft_gym.bus.codec import encode
 from deft_gym.planner.base import Frame, Planner, load_planner, validate_output
 from extract.validator import compare
 
-CHECKS = ("output", "deterministic", "no_clock_or_global_rng", "snapshot_restore", "none_keeps_state")
+CHECKS = ("output", "deterministic", "no_clock_or_global_rng", "snapshot_restore", "none_keeps_state",
+          "hidden_state")
 
 _CLOCKS = {time.time, time.time_ns, time.monotonic, time.monotonic_ns, time.perf_counter, time.perf_counter_ns,
            time.process_time, time.process_time_ns, time.thread_time, time.thread_time_ns, time.clock_gettime,
@@ -163,6 +168,7 @@ def _clean_run(make_planner: Callable[[], Planner], frames: Sequence[Frame], rep
 
     outs: list[dict[str, Any] | None] = []
     bad_output = crashed = False
+    hidden = _Attributes(planner)
     for i, fr in enumerate(frames):
         current[0] = i
         sys.setprofile(hook)
@@ -171,6 +177,10 @@ def _clean_run(make_planner: Callable[[], Planner], frames: Sequence[Frame], rep
         finally:
             sys.setprofile(None)
         outs.append(out)
+        if (changed := hidden.changed()) and "hidden_state" not in report.checks:
+            report.add("hidden_state", i, fr.time, f"plan() changed {', '.join(f'self.{a}' for a in changed)}, "
+                       "outside self.state: state that snapshot()/restore() and seeding do not carry (declare "
+                       "memo caches and scratch buffers in the class's `caches`)")
         if exc is not None and not crashed:
             crashed = True
             report.add("output", i, fr.time, f"plan() raised {type(exc).__name__}: {exc}")
@@ -179,12 +189,54 @@ def _clean_run(make_planner: Callable[[], Planner], frames: Sequence[Frame], rep
             bad_output = True
             report.add("output", i, fr.time, "; ".join(problems))
     report.checks.setdefault("output", "ok")
+    report.checks.setdefault("hidden_state", "ok")
     for what, i in seen.items():
         report.add("no_clock_or_global_rng", i, frames[i].time,
                    f"plan() called {what}; anything time-dependent must come from frame.time, randomness from "
                    "a generator the planner seeds itself")
     report.checks.setdefault("no_clock_or_global_rng", "ok")
     return outs
+
+
+class _Attributes:
+    """The planner's attributes but ``state`` and its declared caches, as bytes, to tell which
+    ones a call changed."""
+
+    def __init__(self, planner: Planner) -> None:
+        self.planner = planner
+        self.skip = {"state", *getattr(type(planner), "caches", ())}
+        self.last = self._now()
+
+    def _now(self) -> dict[str, bytes]:
+        import io
+        import pickle
+
+        planner, state = self.planner, getattr(self.planner, "state", None)
+        # a helper's reference back to the planner, its state or one of its caches: a name
+        named = {id(planner): "planner", **({id(state): "state"} if state is not None else {}),
+                 **{id(v): f"cache {n}" for n in self.skip - {"state"} if (v := getattr(planner, n, None)) is not None}}
+
+        class Pickler(pickle.Pickler):
+            def persistent_id(self, obj: Any) -> str | None:
+                return named.get(id(obj))
+
+        out = {}
+        for name, value in vars(planner).items():
+            if name in self.skip:
+                continue
+            buf = io.BytesIO()
+            try:
+                Pickler(buf, protocol=pickle.HIGHEST_PROTOCOL).dump(value)
+                out[name] = buf.getvalue()
+            except Exception:  # an attribute that cannot be pickled: its identity
+                out[name] = f"{type(value).__qualname__}@{id(value)}".encode()
+        return out
+
+    def changed(self) -> list[str]:
+        now = self._now()
+        names = sorted(n for n in set(now) | set(self.last) if now.get(n) != self.last.get(n))
+        self.last = now
+        return names
 
 
 def _forbidden(fn: Any) -> str | None:
@@ -321,8 +373,9 @@ def check_path(path: Path | str, planner: str | None = None, params: dict[str, A
     spec, frames = load_contract_frames(path, mapping, max_frames)
     cls = planner or spec["class"]
     prm = dict(spec.get("params") or {}) if params is None else dict(params)
-    load_planner(cls, spec["map"], prm)  # a bad class or parameter fails here, once
-    return check_contract(lambda: load_planner(cls, spec["map"], prm), frames, cls)
+    # in this process (isolation inline): the checks watch the planner's calls and attributes
+    load_planner(cls, spec["map"], prm, isolation="inline")  # a bad class or parameter fails here, once
+    return check_contract(lambda: load_planner(cls, spec["map"], prm, isolation="inline"), frames, cls)
 
 
 def assert_contract(make_planner: Callable[[], Planner], frames: Sequence[Frame] | Path | str,

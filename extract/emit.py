@@ -98,7 +98,8 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
         def test_{name}_reproduces(index: int) -> None:
             """The planner's whole output for this frame is the recorded one: positions within
             THETA m, every other trajectory field and the decision within their tolerances. The
-            first frame that differs fails; later frames xfail as its consequences."""
+            first frame that differs fails; the frames right after it that differ too xfail as its
+            consequences; a frame that replays equal passes, and a difference after it fails again."""
             EPISODE.check(index)
         '''
     if faulty:

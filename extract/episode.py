@@ -42,6 +42,7 @@ from extract.validator import (
 )
 
 SUMMARY_FORMAT = "deft_gym.extraction/1"
+MAX_LAG_S = 3600.0  #: the latest an output may be logged after its frame time [s] for the times to map
 
 
 @dataclass
@@ -103,6 +104,7 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     planner_spec = _planner_spec(elog, mp)
     pif = PlanningIOFilter(elog, mp, planner_spec["class"])
     _check_fields(mp, pif)
+    _check_tolerances(tol, pif)
     t_setup = time.perf_counter()
     try:
         planner = load_planner(planner_spec["class"], planner_spec["map"], planner_spec["params"])
@@ -165,6 +167,8 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
         return mini[-1].replay_from, None
 
     reproduced = [c.reproduced for c in comparisons]
+    after_lost = _after_lost_outputs(elog, mp, choices, reproduced)
+    findings["after_lost_outputs"] = len(after_lost)
     faulty, oracle, oracle_note = _oracle(elog, mp, outcome, choices, distances, reproduced, ego, theta,
                                           minimize if minimize_failure and engine.hang is None else None)
 
@@ -174,7 +178,9 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
         "mode": cfg.mode, "theta": theta, "measure": cfg.measure, "tolerances": tol.as_dict(),
         "outcome": outcome.get("outcome"),
         "frames_index": [{"index": c.output.index, "time": c.time, "distance": finite_or_none(c.distance),
-                          "reproduced": cmp.reproduced} for c, cmp in zip(choices, comparisons)],
+                          "reproduced": cmp.reproduced,
+                          **({"after_lost": after_lost[c.output.index]} if c.output.index in after_lost else {})}
+                         for c, cmp in zip(choices, comparisons)],
         "oracle": oracle, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     out.mkdir(parents=True, exist_ok=True)
@@ -183,6 +189,9 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     summary = _summary(elog, log_path, scenario, meta, outcome, cfg, tol, choices, comparisons, engine,
                        faulty, oracle_note, agreement, mp)
     summary["findings"] = findings
+    if choices and len(choices) == findings["outputs_without_replay"]:  # nothing could be replayed: no tests
+        summary["error"] = (f"none of the {len(choices)} planning outputs got a replayed plan; the generated tests "
+                            f"would all fail ({elog.warnings[-1] if elog.warnings else 'see the warnings'})")
     test_path = None
     if emit_tests:
         name = f"test_{slug(scenario)}_{log_id(log_path)}" + (f"_{cfg.mode}" if cfg.mode != "heuristic" else "")
@@ -209,6 +218,70 @@ def _check_fields(mp: TopicMapping, pif: PlanningIOFilter) -> None:
             raise MappingError(f"{mp.source}: {key}: {path!r} is in none of the {len(outputs)} planning outputs "
                                f"of the log (topic {mp.topic('planning')}); expected a dotted path present in "
                                "them, or null")
+    # an output is published shortly after its frame time: when its frame time and its log time
+    # are hours apart, the log's times cannot be mapped onto the frames (every replay would miss)
+    lags = sorted(o.publish_time - o.frame_time for o in outputs if o.frame_time is not None)
+    if lags:
+        lag = lags[len(lags) // 2]
+        if not -1.0 <= lag <= MAX_LAG_S:
+            raise MappingError(f"{pif.log.path}: the planning outputs are logged {lag:.6g} s after their frame times "
+                               f"({mp.frame_time_field}; median of {len(lags)}): the log's message times cannot be "
+                               "mapped onto the frames (a deft_gym log without its deft_gym.episode metadata record, "
+                               "which holds the epoch start of its log times?)")
+
+
+def _after_lost_outputs(elog: EpisodeLog, mp: TopicMapping, choices: list[FrameChoice],
+                        reproduced: list[bool]) -> dict[int, str]:
+    """Outputs that do not reproduce because planning outputs before them were lost in a damaged
+    part of the log (output index -> why): the planner did not plan the lost outputs' frames in
+    the replay, so its state (its previous plan, its decisions) differs from the recorded run's
+    although their own inputs are intact. From each gap in the planning outputs' sequence
+    numbers, the outputs that follow it without reproducing, up to the first that does; stated
+    as a warning (they are no fault of the planner) and as the reason of their tests' xfail."""
+    topic = mp.topic("planning")
+    lost = sorted({s for d in elog.integrity.damage for s in d.lost.get(topic or "", []) if s >= 0})
+    if not lost or not choices:
+        return {}
+    out: dict[int, str] = {}
+    gaps = []
+    for k in range(len(choices)):
+        prev = choices[k - 1].output.seq if k else -1
+        cur = choices[k].output.seq
+        missing = [s for s in lost if prev < s < cur]
+        if not missing:
+            continue
+        why = (f"{len(missing)} planning output(s) before it were lost in a damaged part of the log (seq "
+               f"{missing[0]}-{missing[-1]}): the replay did not plan their frames, so the planner's state differs")
+        start = k
+        while k < len(choices) and not reproduced[k]:
+            out[choices[k].output.index] = why
+            k += 1
+        if k > start:
+            gaps.append((missing, start, k - 1))
+    for missing, a, b in gaps:
+        elog.warnings.append(f"{b - a + 1} output(s) after {len(missing)} lost planning output(s) (seq "
+                             f"{missing[0]}-{missing[-1]}) do not reproduce (frames {a}-{b}): the replay did not plan "
+                             "the lost outputs' frames, so the planner's state differs from the recorded run's though "
+                             "these frames' inputs are intact - a consequence of the damage, not of the planner; "
+                             "their tests xfail saying so")
+    return out
+
+
+def _check_tolerances(tol: Tolerances, pif: PlanningIOFilter) -> None:
+    """MappingError (one line) for a tolerance of a field no planning output of the log has: a
+    typo (``--tolerance vv=0.1``) would otherwise leave the real field exact without a word."""
+    if not tol.fields or not pif.outputs:
+        return
+    have: set[str] = set()
+    for o in pif.outputs[:50]:
+        tr = o.payload.get("trajectory") if isinstance(o.payload, dict) else None
+        if isinstance(tr, dict):
+            have.update(tr)
+    unknown = sorted(set(tol.fields) - have)
+    if unknown:
+        raise MappingError(f"tolerance {', '.join(map(repr, unknown))}: no trajectory field of that name in the log's "
+                           f"planning outputs (they have {', '.join(sorted(have)) or 'none'}; decision=... and "
+                           "default=... are the other keys)")
 
 
 def _findings(elog: EpisodeLog, engine: InputSearch, choices: list[FrameChoice],
@@ -230,23 +303,32 @@ def _findings(elog: EpisodeLog, engine: InputSearch, choices: list[FrameChoice],
         elog.warnings.append(f"the planner raised in {engine.exceptions} of {engine.plan_calls} replays "
                              f"({engine.errors[0] if engine.errors else '?'}); {len(no_output)} output(s) got no "
                              "replayed plan")
+    elif no_output and engine.hang is None:
+        elog.warnings.append(f"{len(no_output)} of {len(choices)} planning output(s) got no replayed plan: the planner "
+                             f"returned None for every candidate frame (first: output {no_output[0]}) - inputs it "
+                             "did not get, or a mapping that does not fit the log")
     found = {"run_failure": failure, "nan_outputs": len(nan), "nan_output_indices": nan[:50],
-             "planner_exceptions": engine.exceptions, "planner_hang": None, "outputs_without_replay": len(no_output)}
+             "planner_exceptions": engine.exceptions, "planner_hang": None, "planner_crash": None,
+             "outputs_without_replay": len(no_output)}
     _hang_finding(elog, engine, found, choices)
     return found
 
 
 def _hang_finding(elog: EpisodeLog, engine: InputSearch, findings: dict[str, Any],
                   choices: list[FrameChoice]) -> None:
-    """A ``plan()`` that ran past the watchdog, as the finding ``planner_hang`` and a warning
-    (once)."""
+    """A ``plan()`` that ran past the watchdog (or the extraction's whole-run cap), as the finding
+    ``planner_hang``, or a planner that could no longer be called - its process ended (``os._exit``,
+    a signal, a segmentation fault) or its ``snapshot()``/``restore()`` raised - as
+    ``planner_crash``; and a warning (once)."""
     hang = engine.hang
-    if hang is None or findings.get("planner_hang") is not None:
+    key = "planner_hang" if hang is not None and hang["kind"] == "hang" else "planner_crash"
+    if hang is None or findings.get(key) is not None:
         return
-    findings["planner_hang"] = hang
+    findings[key] = hang
     at = f" at t={hang['time']:.3f} s" if hang.get("time") is not None else ""
     no_output = sum(1 for c in choices if c.actual is None)
-    elog.warnings.append(f"the planner hung during the {hang['during']}{at} (output {hang['output']}): "
+    what = "hung" if key == "planner_hang" else "failed"
+    elog.warnings.append(f"the planner {what} during the {hang['during']}{at} (output {hang['output']}): "
                          f"{hang['exception']}; no plan() was called after it, {no_output} output(s) got no "
                          "replayed plan")
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import itertools
 import json
 import struct
 import zlib
@@ -104,6 +105,7 @@ class Damage:
     end_ns: int | None = None
     lost: dict[str, list[int]] = field(default_factory=dict)
     unreadable: int = 0  #: further messages lost whose topic could not be read
+    partial: bool = False  #: the damaged content stopped parsing before its end: it may have held more
 
     @property
     def messages(self) -> int:
@@ -210,6 +212,13 @@ def _meta_values(md: Metadata) -> dict[str, Any]:
     return out
 
 
+class _Lost(dict):  # type: ignore[type-arg]
+    """Lost messages per topic, and whether the damaged content they were read from parsed to
+    its end (when it did not, it may have held more)."""
+
+    partial = False
+
+
 class _Scan:
     """A direct scan of MCAP records in a buffer: messages of the wanted channels are sliced out
     with one ``struct.unpack_from`` each (the generic reader parses every record into objects,
@@ -230,6 +239,9 @@ class _Scan:
         self.data_end: tuple[int, int] | None = None  # (offset, data section CRC)
         self.integrity = Integrity(summary=summary is not None)
         self.top_messages = 0  # messages outside chunks (unchunked logs: no CRCs)
+        self.last_ok = -1  # offset of the last chunk that verified
+        self.last_damage = -1  # offset of the last damaged record
+        self.tail_unknown = False  # a damaged record may have held messages no later one shows
 
     # -- the data section ------------------------------------------------------------------------
     def run(self, buf: bytes, pos: int, end: int) -> str | None:
@@ -344,6 +356,7 @@ class _Scan:
             self._note(pos, "crc", f"chunk content does not parse ({why})", t0, t1)
             return False
         self.integrity.chunks_ok += 1
+        self.last_ok = max(self.last_ok, pos)
         return True
 
     def _records(self, data: bytes) -> str | None:
@@ -445,12 +458,16 @@ class _Scan:
         return f" (its {len(taken)} channel record(s) kept: their topics match the episode record)" if taken else ""
 
     def _lost_in(self, data: bytes) -> dict[str, list[int]]:
-        """Topics and sequence numbers of the messages in a damaged chunk, as far as they read."""
-        lost: dict[str, list[int]] = {}
+        """Topics and sequence numbers of the messages in a damaged chunk, as far as they read
+        (``.partial``: its records stopped parsing before the end)."""
+        lost = _Lost()
+        last = 0
         for op, body, stop in walk_records(data):
+            last = stop
             if op == _MESSAGE and stop - body >= 22:
                 cid, seq = struct.unpack_from("<HI", data, body)
                 lost.setdefault(self.chan_topic.get(cid, f"channel {cid}"), []).append(seq)
+        lost.partial = last != len(data)
         return lost
 
     def _peek_lost(self, buf: bytes, body: int, stop: int) -> dict[str, list[int]] | None:
@@ -459,7 +476,10 @@ class _Scan:
 
     def _note(self, pos: int, kind: str, detail: str, t0: int | None = None, t1: int | None = None,
               lost: dict[str, list[int]] | None = None) -> None:
-        self.integrity.damage.append(Damage(pos, kind, detail, t0, t1, lost or {}))
+        self.integrity.damage.append(Damage(pos, kind, detail, t0, t1, lost or {},
+                                            partial=bool(getattr(lost, "partial", False))))
+        if pos >= 0:
+            self.last_damage = max(self.last_damage, pos)
 
     def _cut(self, pos: int, end: int, why: str, buf: bytes | None = None) -> str:
         """The file ends at ``end`` inside the record at ``pos`` (a chunk header still tells the
@@ -630,6 +650,8 @@ def read_log(path: Path | str, topics: list[str], seq_field: str | None = None) 
         why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
         scan._note(-1, "unknown-record", f"reading stopped: {why}")
     _check_totals(scan, buf, summary)
+    if integ.expected is None and integ.damage:
+        _sequence_gaps(scan)
     start = log_start_ns(scan.metadata.get("deft_gym.episode"))  # log_time = epoch start + sim time
     for d in integ.damage:
         d.start_ns = None if d.start_ns is None else d.start_ns - start
@@ -687,6 +709,46 @@ def _check_totals(scan: _Scan, buf: bytes, summary: _Summary | None) -> None:
                                        "metadata record)"))
 
 
+def _sequence_gaps(scan: _Scan) -> None:
+    """Without the summary's statistics, what a damaged record held is known only as far as its
+    content still parses (a damaged message header in a chunk hides every message after it: 3
+    reported lost where 46 were). A topic whose messages carry consecutive sequence numbers
+    tells the rest: the numbers missing between those read are lost messages too - noted as one
+    more problem (``count``) so that the loss stated is every message missing inside the log
+    (what a truncation cut from its end stays unknown)."""
+    counted: dict[str, set[int]] = {}
+    for d in scan.integrity.damage:
+        for t, v in d.lost.items():
+            counted.setdefault(t, set()).update(s for s in v if s >= 0)
+    missing: dict[str, list[int]] = {}
+    bus = "deft_gym.episode" in scan.metadata  # a deft_gym log: every bus topic is numbered from 0
+    for topic, (_, seq, _) in scan.rows.items():
+        s = np.unique(np.asarray(seq, dtype=np.int64))
+        numbered = bus and (bool(scan.roles.get(topic)) or topic in VIEWER_TOPICS)  # from 0, one by one
+        if numbered and not len(s) and not counted.get(topic):
+            missing[topic] = [0]  # a topic of which nothing was read: its first message at least is lost
+            continue
+        if len(s) < (1 if numbered else 3):
+            continue
+        d = np.diff(s)
+        if len(d) and (np.mean(d == 1) < 0.9 or int(d.max()) > 100_000):  # not numbered one by one
+            continue
+        if numbered and 0 < s[0] <= 100_000:
+            s = np.concatenate([[-1], s])  # the numbers before the first one read
+        extra = [int(x) for a, b in itertools.pairwise(s) if b - a > 1 for x in range(int(a) + 1, int(b))
+                 if int(x) not in counted.get(topic, ())]
+        if extra:
+            missing[topic] = extra
+    if missing:
+        scan.integrity.damage.append(Damage(-1, "count", "messages missing from their topic's consecutive sequence "
+                                            "numbers, which no damaged record showed (a damaged record's content "
+                                            "hid them)", lost=missing))
+    if scan.last_damage > scan.last_ok and any(d.partial for d in scan.integrity.damage):
+        # a damaged record after the last intact chunk whose content stopped parsing: what it held
+        # after that point has no later message to show it
+        scan.tail_unknown = True
+
+
 def _status(integ: Integrity, scan: _Scan) -> str:
     if not integ.damage and not scan.footer:
         integ.damage.append(Damage(-1, "truncated", "no footer: the file ends without the end of the log"))
@@ -695,7 +757,7 @@ def _status(integ: Integrity, scan: _Scan) -> str:
     kinds = sorted({d.kind for d in integ.damage})
     head = "truncated" if "truncated" in kinds else "damaged"
     n = sum(integ.lost().values())
-    unknown = integ.expected is None and any(d.kind == "truncated" or (d.kind in ("crc", "record-length")
-                                                                          and not d.messages and "dropped" in d.detail)
-                                             for d in integ.damage)
+    unknown = integ.expected is None and (getattr(scan, "tail_unknown", False) or any(
+        d.kind == "truncated" or (d.kind in ("crc", "record-length") and not d.messages and "dropped" in d.detail)
+        for d in integ.damage))
     return f"{head}: {len(integ.damage)} problem(s) ({', '.join(kinds)}); {n}{'+' if unknown else ''} message(s) lost"

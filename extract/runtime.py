@@ -117,8 +117,10 @@ class EpisodeReplay:
     ``output(i)`` advances the planner through frames ``0..i`` as needed, so a single test can
     run alone (``pytest -k``) and still see the right planner state. :meth:`check` is the
     reproduction test: the first frame (in time order) whose whole replayed output differs from
-    the recorded one fails with the fields, values and decision that differ; every later frame
-    is reported as its consequence (xfail), since one stateful planner replays them all."""
+    the recorded one fails with the fields, values and decision that differ; the frames after it
+    that differ too, one after the other, are reported as its consequence (xfail), since one
+    stateful planner replays them all; a later frame that replays equal passes, and a difference
+    after it fails again (a second regression is never hidden behind the first)."""
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
@@ -173,7 +175,8 @@ class EpisodeReplay:
             marks = []
             if not self.reproduced_at_extraction(f["index"]):
                 d = "no output" if f["distance"] is None else f"position {f['distance']:.3g} m"
-                marks.append(pytest.mark.xfail(reason=f"not reproduced at extraction ({d})", strict=False))
+                why = f"; {f['after_lost']}" if f.get("after_lost") else ""
+                marks.append(pytest.mark.xfail(reason=f"not reproduced at extraction ({d}){why}", strict=False))
             cases.append(pytest.param(f["index"], id=frame_id(f["index"], f["time"]), marks=marks))
         return cases
 
@@ -203,40 +206,68 @@ class EpisodeReplay:
                 return j
         return None
 
+    def divergence_start(self, index: int) -> int | None:
+        """Where the divergence that frame ``index`` belongs to began: the first frame of the run
+        of consecutive differing frames (among those reproduced at extraction) that ends at
+        ``index``; None when ``index`` replays equal. A frame that replays equal ends a run: a
+        difference after it is a divergence of its own (a second regression), not a consequence."""
+        if self.comparison(index).reproduced:
+            return None
+        start = index
+        for j in sorted((k for k in self.index if k < index and self.reproduced_at_extraction(k)), reverse=True):
+            if self.comparison(j).reproduced:
+                break
+            start = j
+        return start
+
     def check(self, index: int) -> None:
-        """The reproduction test of frame ``index``: passes, fails as the first divergent frame
-        (the primary failure), or xfails as a consequence of an earlier one."""
+        """The reproduction test of frame ``index``: passes when its replay is the recorded output
+        (also after an earlier divergence: the planner came back), fails when it is the first
+        frame of a divergence, and xfails as a consequence of the divergence it continues (every
+        frame between them differs too)."""
         import pytest
 
         __tracebackhide__ = True  # pytest then reports the test's line only (cheap for many xfails)
-        j = self.first_divergence(index)
+        j = self.divergence_start(index)
         if j is None:
             return
         if j < index:
             fields = ", ".join(dict.fromkeys(d.field for d in self.comparison(j).diffs))
-            pytest.xfail(f"a consequence of {self._where(j)}, the first frame that differs ({fields}); "
-                         "this frame replays after it")
+            pytest.xfail(f"a consequence of {self._where(j)}, where a divergence began ({fields}); every frame "
+                         "since differs too")
         pytest.fail(self.explain(index), pytrace=False)
 
     def explain(self, index: int) -> str:
         """Why frame ``index`` is not reproduced: every field beyond its tolerance at full
-        precision, the decision diff, and how many later frames differ as a consequence."""
+        precision, the decision diff, and what became of the later frames."""
         c = self.comparison(index)
-        j = self.first_divergence(index)
-        lines = [self._notes() + f"{self._where(index)}: the replayed output differs from the recorded one"
-                 + (" - the first frame of this episode that does" if j == index else "")]
+        j = self.divergence_start(index)
+        first = self.first_divergence(index)
+        what = (" - the first frame of this episode that does" if first == index else
+                " - a divergence of its own: the frames before it replay equal" if j == index else "")
+        lines = [self._notes() + f"{self._where(index)}: the replayed output differs from the recorded one" + what]
         lines += ["  " + d.text() for d in c.diffs]
         same = [k for k, v in c.deviations.items() if v == 0.0]
         if same:
             lines.append(f"  identical: {', '.join(same)}")
         if j == index:
             later = [k for k in sorted(self.index) if k > index and self.reproduced_at_extraction(k)]
-            differ = [k for k in later if not self.comparison(k).reproduced]
-            if differ:
-                lines.append(f"consequences: {len(differ)} of the {len(later)} later frames differ too "
-                             f"(frames {differ[0]}-{differ[-1]}); their tests xfail as consequences of this one")
+            run = []
+            for k in later:
+                if self.comparison(k).reproduced:
+                    break
+                run.append(k)
+            back = [k for k in later[len(run):] if self.comparison(k).reproduced]
+            again = [k for k in later[len(run):] if not self.comparison(k).reproduced]
+            if run:
+                lines.append(f"consequences: the next {len(run)} of the {len(later)} later frames differ too "
+                             f"(frames {run[0]}-{run[-1]}); their tests xfail as consequences of this one")
             elif later:
-                lines.append(f"consequences: none - the {len(later)} later frames reproduce")
+                lines.append(f"consequences: none - the next frame replays equal again ({len(later)} later frames)")
+            if back:
+                lines.append(f"after them {len(back)} frame(s) replay equal again (they pass)"
+                             + (f"; {len(again)} differ again later (first: frame {again[0]}) and fail as "
+                                "divergences of their own" if again else ""))
         return "\n".join(lines)
 
     def _where(self, index: int) -> str:

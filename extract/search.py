@@ -53,7 +53,15 @@ import numpy as np
 
 from deft_gym.bus.codec import encode
 from deft_gym.bus.messages import NS_PER_S
-from deft_gym.execution.watchdog import ModuleHang, Watchdog, watchdog_seconds
+from deft_gym.execution.isolation import HostDied
+from deft_gym.execution.watchdog import (
+    ModuleHang,
+    Watchdog,
+    describe_exception,
+    interrupts,
+    module_fault,
+    watchdog_seconds,
+)
 from deft_gym.planner.base import Frame, Planner
 from extract.io_filter import Output, PlanningIOFilter
 from extract.mapping import get_field
@@ -199,14 +207,25 @@ class InputSearch:
     def _snapshot(self) -> Any:
         """A token to return to the planner's current state (the number of chosen frames when
         snapshots are not trusted)."""
-        return len(self._chosen) if self._fresh else self.planner.snapshot()
+        if self.hang is not None:  # the planner is gone: nothing to return to
+            return None
+        try:
+            return len(self._chosen) if self._fresh else self.planner.snapshot()
+        except Exception as exc:  # a snapshot() that raises, a planner process that died
+            self.note_failure(exc, "snapshot()")
+            return None
 
     def _restore(self, snap: Any) -> None:
+        if self.hang is not None:
+            return
         self.restores += 1
-        if self._fresh:
-            self.planner = self._replayed(snap)
-        else:
-            self.planner.restore(snap)
+        try:
+            if self._fresh:
+                self.planner = self._replayed(snap)
+            else:
+                self.planner.restore(snap)
+        except Exception as exc:
+            self.note_failure(exc, "restore()")
 
     def _plan(self, t: float, choice: Choice) -> dict[str, Any] | None:
         return self._call(self.planner, t, choice)
@@ -224,6 +243,16 @@ class InputSearch:
                          "time": t, "output": output, "during": where or "search"}
             self.errors.append(f"planner hung: {self.hang['exception']} at t={t if t is None else round(t, 3)}")
 
+    def note_failure(self, exc: BaseException, call: str, t: float | None = None) -> None:
+        """Record that the planner can no longer be called - its process died
+        (:class:`~deft_gym.execution.isolation.HostDied`) or its ``snapshot()``/``restore()``
+        raised - as the finding ``planner_crash`` (the first one is kept); like a hang, no
+        ``plan()`` is called after it."""
+        if self.hang is None:
+            self.hang = {"kind": "crash", "module": "planning", "exception": describe_exception(exc),
+                         "time": t, "output": self._at, "during": f"search ({call})"}
+            self.errors.append(f"planner failed in {call}: {self.hang['exception']}")
+
     def _call(self, planner: Planner, t: float, choice: Choice) -> dict[str, Any] | None:
         if self.hang is not None:  # after a hang no plan() is called again
             return None
@@ -235,15 +264,21 @@ class InputSearch:
                 self.errors.append(f"{', '.join(bad) or 'an input'}: payload is not valid JSON")
             return None
         t0 = time.perf_counter()
+        before = interrupts()
         try:
             return self.dog.call(planner.plan, Frame(t, inputs))
         except ModuleHang:
             self.note_hang(t, self._at)
             return None
-        except Exception as exc:  # a candidate frame may be garbage to the planner: counted, reported
+        except HostDied as exc:  # its process ended (os._exit, a signal, a segfault): nothing more to replay
+            self.note_failure(exc, "plan()", t)
+            return None
+        except BaseException as exc:  # a candidate frame may be garbage to the planner: counted, reported
+            if not module_fault(exc, before):
+                raise  # the user's Ctrl-C
             self.exceptions += 1
             if len(self.errors) < 20:
-                self.errors.append(f"planner raised {type(exc).__name__}: {exc} at t={t:.3f}")
+                self.errors.append(f"planner raised {describe_exception(exc)} at t={t:.3f}")
             return None
         finally:
             self.planner_s += time.perf_counter() - t0

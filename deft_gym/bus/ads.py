@@ -27,6 +27,8 @@ def _known_roles(cls: type, v: list[str]) -> list[str]:
 
 
 MAX_HZ = 1000.0  #: highest rate of any timer [Hz] (a bound: 1e9 Hz would never finish)
+MIN_HZ = 1.0  #: lowest rate of a module's timer and of the chassis [Hz]
+MIN_WORLD_HZ = 5.0  #: lowest world rate [Hz]: a step longer than 0.2 s is not a simulation of driving
 MAX_MS = 60_000.0  #: longest mean processing or delivery time [ms]
 
 class Duration(Strict):
@@ -65,7 +67,7 @@ def _known_trigger(cls: type, v: str | None) -> str | None:
 class ModuleConfig(Strict):
     """A bus node: either periodic (``rate_hz``) or triggered by a topic role (``trigger``)."""
 
-    rate_hz: float | None = Field(default=None, gt=0.0, le=MAX_HZ)
+    rate_hz: float | None = Field(default=None, ge=MIN_HZ, le=MAX_HZ)
     trigger: str | None = None
     processing: Duration = Duration(mean_ms=1.0)
     params: dict[str, Any] = Field(default_factory=dict)
@@ -73,6 +75,31 @@ class ModuleConfig(Strict):
                              "class (same constructor arguments), e.g. a fault-injecting or hardened variant")
 
     _trigger = field_validator("trigger")(_known_trigger)
+
+    @field_validator("node")
+    @classmethod
+    def _a_node(cls, v: str | None) -> str | None:
+        """A replacement node must be importable and a bus node (a planner class named here, or a
+        module that does not import, is refused with the config, not a traceback at the run)."""
+        if v is None:
+            return v
+        import importlib
+
+        from deft_gym.bus.bus import Node
+
+        mod, sep, name = v.partition(":")
+        if not sep or not mod or not name:
+            raise ValueError(f"expected 'module:Class', got {v!r}")
+        try:
+            obj = getattr(importlib.import_module(mod), name)
+        except (ImportError, AttributeError) as exc:
+            raise ValueError(f"cannot import {v!r}: {exc}") from None
+        except Exception as exc:  # the module itself fails while it is imported
+            raise ValueError(f"cannot import {v!r}: {type(exc).__name__}: {exc}") from None
+        if not (isinstance(obj, type) and issubclass(obj, Node)):
+            raise ValueError(f"{v} is not a deft_gym.bus.bus.Node subclass (a module of the bus; a planner goes in "
+                             "planning.planner.class)")
+        return v
 
 
 class PlannerSpec(Strict):
@@ -97,8 +124,8 @@ class PlanningConfig(ModuleConfig):
 class AdsConfig(Strict):
     """The whole ADS: world step, module timing, topic names, planner."""
 
-    world_hz: float = Field(default=20.0, gt=0.0, le=MAX_HZ)
-    chassis_hz: float = Field(default=20.0, gt=0.0, le=MAX_HZ)
+    world_hz: float = Field(default=20.0, ge=MIN_WORLD_HZ, le=MAX_HZ)
+    chassis_hz: float = Field(default=20.0, ge=MIN_HZ, le=MAX_HZ)
     topics: dict[str, str] = Field(default_factory=lambda: dict(DEFAULT_TOPICS))
     jitter: JitterConfig = JitterConfig()
     routing: ModuleConfig = ModuleConfig(processing=Duration(mean_ms=5.0))

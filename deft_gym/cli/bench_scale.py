@@ -60,9 +60,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--campaign", choices=("evaluate", "calibrate"), default="evaluate", help="campaign to scale")
     ap.add_argument("--workers", default="1,2", help="comma-separated worker counts")
     ap.add_argument("--backends", default="local,ray", help="comma-separated, of local,ray")
-    ap.add_argument("--budget", type=int, default=4, help="evaluate: scenarios per job")
-    ap.add_argument("--repeats", type=int, default=2, help="evaluate: repeats")
-    ap.add_argument("--reruns", type=int, default=8, help="calibrate: reruns per variant (8: 256 runs)")
+    ap.add_argument("--budget", type=common.int_range(1, 100_000), default=4, help="evaluate: scenarios per job")
+    ap.add_argument("--repeats", type=common.int_range(1, 1000), default=2, help="evaluate: repeats")
+    ap.add_argument("--reruns", type=common.int_range(1, 10_000), default=8,
+                    help="calibrate: reruns per variant (8: 256 runs)")
     ap.add_argument("--scenarios", default=None, help="comma-separated seed scenarios (default: four)")
     common.add_out(ap, common.RUNS / "bench_scale")
     common.add_output_flags(ap)
@@ -81,6 +82,11 @@ def main(argv: list[str] | None = None) -> int:
     if "ray" in backends and not ray_installed():
         print("error: --backends: ray needs Ray: pip install 'deft-gym[ray]'", file=sys.stderr)
         return 2
+    with common.locked_out(a.out):
+        return _scale(a, counts, backends)
+
+
+def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
     rows: list[dict[str, Any]] = []
     reference = None
     env = {**os.environ, "RAY_DEDUP_LOGS": "1"}

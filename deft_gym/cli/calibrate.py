@@ -70,14 +70,21 @@ def _variants(args: tuple[str, int, float, int, int, str | None]) -> list[tuple[
     return out
 
 
+MAX_PER_SEED = 10_000  # variants of one kind per seed scenario
+MAX_RUNS = 1_000_000  # runs of one calibration (variants x reruns x seed scenarios)
+
+
 def build_parser() -> common.Parser:
     ap = common.parser("calibrate", "deft_gym.cli.calibrate", __doc__)
     common.add_scenarios(ap, help="seed scenarios (default: all in configs/scenarios except bench_*)")
-    ap.add_argument("--variants", type=int, default=10, help="perturbed variants per seed")
+    ap.add_argument("--variants", type=common.int_range(0, MAX_PER_SEED), default=10,
+                    help="perturbed variants per seed (the seed scenario itself is variant 0)")
     ap.add_argument("--reruns", type=common.positive_int, default=10, help="reruns per variant")
-    ap.add_argument("--strength", type=float, default=1.0, help="perturbation strength")
-    ap.add_argument("--cut-ins", type=int, default=6, help="cut-in variants per seed")
-    ap.add_argument("--brakes", type=int, default=6, help="hard-braking-leader variants per seed")
+    ap.add_argument("--strength", type=common.finite_float(0.0, 100.0), default=1.0,
+                    help="perturbation strength, 0..100 (1: the calibrated size of a perturbation)")
+    ap.add_argument("--cut-ins", type=common.int_range(0, MAX_PER_SEED), default=6, help="cut-in variants per seed")
+    ap.add_argument("--brakes", type=common.int_range(0, MAX_PER_SEED), default=6,
+                    help="hard-braking-leader variants per seed")
     common.add_jitter_seed(ap, "jitter seed of each scenario's initial execution S0; rerun i uses S+i "
                                "(a resumed calibration keeps its seeds)")
     common.add_workers(ap)
@@ -106,12 +113,24 @@ def _main(args: argparse.Namespace) -> int:
     from deft_gym.sim.simulation import build_planner
 
     paths = args.scenarios or [str(p) for p in list_scenarios() if not p.name.startswith("bench")]
+    per_seed = args.variants + args.cut_ins + args.brakes
+    if per_seed < 1:
+        return common.cli_error("--variants, --cut-ins and --brakes are all 0: nothing to run")
+    if len(paths) * per_seed * args.reruns > MAX_RUNS:  # bounded before any work, not a growing list
+        return common.cli_error(f"{len(paths)} scenario(s) x {per_seed} variants x {args.reruns} reruns = "
+                                f"{len(paths) * per_seed * args.reruns:,} runs; at most {MAX_RUNS:,} in one "
+                                "calibration (lower --variants, --cut-ins, --brakes or --reruns)")
     try:  # a bad ADS config or scenario: one line, before any run (not a worker's traceback)
         ads = load_ads_config(args.ads_config)
         scenarios = [load_scenario(p) for p in paths]
         build_planner(ads, scenarios[0])
     except (ConfigError, ValueError) as err:
         return common.cli_error(str(err))
+    with common.locked_out(args.out):
+        return _calibrate(args, console, backend, paths)
+
+
+def _calibrate(args: argparse.Namespace, console: Any, backend: Any, paths: list[str]) -> int:
     if args.jitter_seed is None:  # resuming: the seeds of the runs already there; else fresh ones
         prior = read_jsonl(Path(args.out) / "runs.jsonl")
         args.jitter_seed = min((r["seed"] for r in prior), default=None)

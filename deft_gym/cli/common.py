@@ -190,19 +190,56 @@ def positive_seconds(text: str) -> float:
     return x
 
 
+RUN_WALL_ENV = "DEFT_GYM_RUN_WALL_S"  # deft_gym.execution.watchdog.RUN_ENV
+
+
 def add_watchdog(p: argparse.ArgumentParser) -> None:
-    """``--watchdog-s SECONDS`` (read by :func:`watchdog_env`)."""
+    """``--watchdog-s SECONDS`` and ``--run-wall-s SECONDS`` (read by :func:`watchdog_env`)."""
     p.add_argument("--watchdog-s", type=positive_seconds, default=None, metavar="SECONDS",
                    help="wall-clock seconds one module call (a module computation, a planner's plan()) may take "
                         f"before it is reported as a hang instead of hanging the program (default: {WATCHDOG_ENV} "
                         "from the environment, else 10)")
+    p.add_argument("--run-wall-s", type=positive_seconds, default=None, metavar="SECONDS",
+                   help="wall-clock seconds all the module calls of one episode (or all the plan() calls of one "
+                        "extraction) may take together before the run is a hang (default: "
+                        f"{RUN_WALL_ENV} from the environment, else 600)")
 
 
 @contextmanager
 def watchdog_env(args: argparse.Namespace) -> Iterator[None]:
-    """While the block runs, ``--watchdog-s`` (when given) is ``DEFT_GYM_WATCHDOG_S`` of this
-    process, and of the worker processes it starts (the execution layer carries it); restored
-    after. A ``DEFT_GYM_WATCHDOG_S`` that is not seconds >= 0 is one line, exit 2, before any work."""
+    """While the block runs, ``--watchdog-s`` and ``--run-wall-s`` (when given) are
+    ``DEFT_GYM_WATCHDOG_S`` and ``DEFT_GYM_RUN_WALL_S`` of this process, and of the worker
+    processes it starts (the execution layer carries them); restored after. A variable that is
+    not seconds >= 0 is one line, exit 2, before any work."""
+    with _run_wall_env(args), _watchdog_env(args):
+        yield
+
+
+@contextmanager
+def _run_wall_env(args: argparse.Namespace) -> Iterator[None]:
+    value = getattr(args, "run_wall_s", None)
+    old = os.environ.get(RUN_WALL_ENV)
+    if value is None:
+        from deft_gym.execution.watchdog import run_wall_seconds
+
+        try:
+            run_wall_seconds()
+        except ValueError as err:
+            raise SystemExit(cli_error(f"{err}; or give --run-wall-s SECONDS")) from None
+        yield
+        return
+    os.environ[RUN_WALL_ENV] = repr(float(value))
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop(RUN_WALL_ENV, None)
+        else:
+            os.environ[RUN_WALL_ENV] = old
+
+
+@contextmanager
+def _watchdog_env(args: argparse.Namespace) -> Iterator[None]:
     value = getattr(args, "watchdog_s", None)
     old = os.environ.get(WATCHDOG_ENV)
     if value is None:
@@ -224,6 +261,51 @@ def watchdog_env(args: argparse.Namespace) -> Iterator[None]:
             os.environ[WATCHDOG_ENV] = old
 
 
+# the errors of a disk that cannot take the output: one line naming the file, never a traceback
+DISK_ERRNOS = frozenset({"ENOSPC", "EDQUOT", "EROFS", "EACCES", "EPERM", "EIO", "EFBIG", "ENAMETOOLONG"})
+
+
+@contextmanager
+def locked_out(folder: str | Path, what: str | None = None) -> Iterator[Path]:
+    """Hold the output folder ``folder`` (created if needed) while the block runs: every program
+    that writes an ``--out`` folder does its work inside this block (:func:`deft_gym.files.folder_lock`).
+
+    - another process already writing the folder: one line naming the folder and that process
+      (pid, command, start time), exit 2, nothing written;
+    - a folder that cannot be created or written (read-only, no permission) before or while the
+      block runs, or a disk that fills up while it runs: one line naming the file and the reason,
+      exit 1 (what is already on disk stays; the append-only records resume where they stopped).
+
+    The lock goes with the process that holds it (``kill -9`` included): a killed run never
+    blocks the next one."""
+    import errno
+
+    from deft_gym.files import FolderBusy, folder_lock
+
+    try:
+        cm = folder_lock(folder, what)
+        path = cm.__enter__()
+    except FolderBusy as err:
+        raise SystemExit(cli_error(str(err))) from None
+    except OSError as err:
+        raise SystemExit(cli_error(f"{err.filename or folder}: cannot write the output folder: "
+                                   f"{err.strerror or err}")) from None
+    try:
+        yield path
+    except OSError as err:
+        if errno.errorcode.get(err.errno or -1) not in DISK_ERRNOS:
+            cm.__exit__(type(err), err, err.__traceback__)
+            raise
+        cm.__exit__(None, None, None)
+        print(f"error: {err.filename or folder}: cannot write: {err.strerror or err}", file=sys.stderr)
+        raise SystemExit(1) from None
+    except BaseException as err:
+        cm.__exit__(type(err), err, err.__traceback__)
+        raise
+    else:
+        cm.__exit__(None, None, None)
+
+
 def positive_int(text: str) -> int:
     """argparse type: an integer >= 1."""
     try:
@@ -233,6 +315,39 @@ def positive_int(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
     return n
+
+
+def int_range(lo: int, hi: int) -> Any:
+    """argparse type: an integer in ``lo..hi`` (a count bounded before any work starts)."""
+
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if not lo <= n <= hi:
+            raise argparse.ArgumentTypeError(f"expected an integer in {lo}..{hi:,}, got {n:,}")
+        return n
+
+    parse.__name__ = "integer"
+    return parse
+
+
+def finite_float(lo: float = float("-inf"), hi: float = float("inf")) -> Any:
+    """argparse type: a finite number in ``lo..hi`` (NaN and infinities refused)."""
+    import math
+
+    def parse(text: str) -> float:
+        try:
+            x = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(x) or not lo <= x <= hi:
+            raise argparse.ArgumentTypeError(f"expected a finite number in {lo:g}..{hi:g}, got {text!r}")
+        return x
+
+    parse.__name__ = "number"
+    return parse
 
 
 def fresh_seed() -> int:

@@ -210,6 +210,11 @@ def _main(args: argparse.Namespace) -> int:
     if not marker.exists() and any((out / part).exists() for part in ("flaky", "train", "eval")):
         return common.cli_error(f"--out {out}: holds flaky/, train/ or eval/ that deft_gym.cli.demo did not write "
                                 f"(no {MARKER}); choose another --out")
+    with common.locked_out(out):
+        return _demo(args, con, out, marker)
+
+
+def _demo(args: argparse.Namespace, con: Any, out: Path, marker: Path) -> int:
     out.mkdir(parents=True, exist_ok=True)
     marker.write_text("written by deft_gym.cli.demo; a new demo into this folder replaces flaky/, train/ and eval/\n")
     t0 = time.perf_counter()

@@ -170,7 +170,7 @@ def _main(args: argparse.Namespace) -> int:
         args.jitter_seed = common.fresh_seed()
     try:
         seeds = parse_seeds(args.seeds)
-        from deft_gym.scenarios.generate import NAME_PREFIX, GeneratorConfig, build
+        from deft_gym.scenarios.generate import GeneratorConfig, build
 
         cfg = validate(GeneratorConfig, load_mapping(args.config), args.config) if args.config else GeneratorConfig()
         gens = [build(s, cfg) for s in seeds]
@@ -180,6 +180,13 @@ def _main(args: argparse.Namespace) -> int:
     if args.jitter_seed < 0:
         console.print(f"[red]error:[/red] --jitter-seed {args.jitter_seed}: expected an integer >= 0", highlight=False)
         return 2
+    with common.locked_out(args.out):
+        return _write(args, console, out, gens, cfg)
+
+
+def _write(args: argparse.Namespace, console: Any, out: Any, gens: list[Any], cfg: Any) -> int:
+    from deft_gym.scenarios.generate import NAME_PREFIX
+
     for g in gens:
         write_atomic(args.out / f"{NAME_PREFIX}{g.seed}.yaml", scenario_yaml(g))
     rows = [row_of(g) for g in gens]

@@ -85,8 +85,13 @@ def main(argv: list[str] | None = None) -> int:
         hint = f"; did you mean {', '.join(close)}?" if close else ""
         return common.cli_error(f"unknown command {name!r}{hint} (deft-gym --help lists them)")
     common.INVOKED_AS = "deft-gym"
-    module = importlib.import_module(COMMANDS[name][0])
-    return int(module.main(args[1:]) or 0)
+    try:
+        module = importlib.import_module(COMMANDS[name][0])
+        return int(module.main(args[1:]) or 0)
+    except KeyboardInterrupt:  # the user's Ctrl-C: one line, never a traceback
+        print(f"deft-gym {name}: interrupted; what is on disk stays (run the same command again to resume "
+              "where it resumes)", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -13,8 +13,10 @@ the video follows the ego with the time, speeds and ids. They go beside each log
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
+from typing import Any
 
 from deft_gym.cli import common
 
@@ -41,14 +43,17 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:
         return common.cli_error(f"LOG|episode.json|DIR: {err}")
     out = Path(args.out) if args.out else None
-    done = []
-    with common.bar(args, len(logs), "render") as b:
+    done: list[dict[str, Any]] = []
+    failed: list[Path] = []
+    with common.locked_out(out) if out else contextlib.nullcontext(), common.bar(args, len(logs), "render") as b:
         for log in logs:
             try:
                 r = render_log(log, out, root if root.is_dir() else None, video=not args.no_video,
                                only_failures=args.only == "failures")
-            except ValueError as err:
-                con.print(f"[yellow]skipped[/yellow] {err}", soft_wrap=True)
+            except (ValueError, OverflowError, OSError) as err:  # a damaged log, a full disk: named, counted
+                failed.append(log)
+                print(f"error: {log}: not drawn: {str(err).splitlines()[0] if str(err) else type(err).__name__}",
+                      file=sys.stderr)
                 r = None
             if r:
                 done.append(r)
@@ -56,9 +61,9 @@ def main(argv: list[str] | None = None) -> int:
     for r in done:
         con.print(f"{r['title']}\n  plot  {r['plot']}" + (f"\n  video {r['video']}" if r["video"] else ""),
                   soft_wrap=True)
-    if not args.quiet:
-        print(f"{len(done)} of {len(logs)} episode(s) drawn")
-    return 0
+    if not args.quiet or failed:
+        print(f"{len(done)} of {len(logs)} episode(s) drawn" + (f"; {len(failed)} could not be" if failed else ""))
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ from deft_gym.files import write_atomic
 def build_parser() -> common.Parser:
     p = common.parser("run", "deft_gym.cli.run", __doc__)
     p.add_argument("scenario", help="scenario name (configs/scenarios), YAML path or gen:<seed> spec")
-    p.add_argument("--reruns", type=common.positive_int, default=10, help="number of reruns")
+    p.add_argument("--reruns", type=common.int_range(1, 100_000), default=10, help="number of reruns")
     common.add_out(p, None, help="output folder (default: runs/run/<scenario>)")
     common.add_jitter_seed(p)
     common.add_render(p)
@@ -44,16 +44,30 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def divergence_stats(ref: list[dict[str, Any]], other: list[dict[str, Any]]) -> dict[str, Any]:
-    """How far ``other``'s planning outputs are from ``ref``'s, lock-step."""
+    """How far ``other``'s planning outputs are from ``ref``'s, lock-step. A pair that cannot be
+    compared - a plan without a trajectory, an empty one, series of other lengths or not numbers
+    (a planner that breaks its output contract) - is counted in ``incomparable``, not compared."""
     import numpy as np
 
-    from deft_gym.planner.trajectory import lockstep_divergence
+    from deft_gym.planner.trajectory import lsed
 
-    d = np.array(lockstep_divergence(ref, other)) if ref and other else np.zeros(0)
+    dists, incomparable = [], 0
+    with np.errstate(all="ignore"):
+        for a, b in zip(ref, other):
+            try:
+                d = lsed(a, b)
+            except (KeyError, IndexError, TypeError, ValueError, AttributeError):
+                incomparable += 1
+                continue
+            if d == d:  # NaN: a non-finite plan
+                dists.append(d)
+            else:
+                incomparable += 1
+    d = np.array(dists)
     if d.size == 0:
-        return {"paired": 0, "identical": 0, "median": None, "max": None}
+        return {"paired": 0, "identical": 0, "median": None, "max": None, "incomparable": incomparable}
     return {"paired": int(d.size), "identical": int((d == 0.0).sum()),
-            "median": float(np.median(d)), "max": float(d.max())}
+            "median": float(np.median(d)), "max": float(d.max()), "incomparable": incomparable}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -69,7 +83,7 @@ def _main(args: argparse.Namespace) -> int:
     from deft_gym.modules.planning import frame_roles
     from deft_gym.planner.base import planner_class
     from deft_gym.scenarios.scenario import load_scenario
-    from deft_gym.sim.simulation import Simulation, build_planner
+    from deft_gym.sim.simulation import build_planner
 
     try:
         scenario = load_scenario(args.scenario)
@@ -81,7 +95,13 @@ def _main(args: argparse.Namespace) -> int:
         console.print(f"[red]error:[/red] {err}", highlight=False, soft_wrap=True)
         return 2
     out = Path(args.out or common.RUNS / "run" / scenario.name)
-    out.mkdir(parents=True, exist_ok=True)
+    with common.locked_out(out):
+        return _reruns(args, console, scenario, ads, out)
+
+
+def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out: Path) -> int:
+    from deft_gym.sim.simulation import Simulation
+
     rows: list[dict[str, Any]] = []
     ref_plans: list[dict[str, Any]] = []
     sim_total = wall_total = 0.0

@@ -27,12 +27,17 @@ from deft_gym.sim.simulation import run_episode
 def main(argv: list[str] | None = None) -> int:
     ap = common.parser("seeds", "deft_gym.cli.seeds", __doc__)
     common.add_out(ap, common.RUNS / "demo" / "seeds", help="output folder (logs per scenario and rerun)")
-    ap.add_argument("--reruns", type=common.positive_int, default=3, help="reruns per seed scenario")
+    ap.add_argument("--reruns", type=common.int_range(1, 10_000), default=3, help="reruns per seed scenario")
     common.add_jitter_seed(ap, "jitter seed of rerun 0 of every scenario; rerun i uses S+i")
     common.add_output_flags(ap)
     args = ap.parse_args(argv)
     console = common.console(args, width=110)
     out = Path(args.out)
+    with common.locked_out(out):
+        return _run(args, console, out)
+
+
+def _run(args: Any, console: Any, out: Path) -> int:
     seeds = [p for p in list_scenarios() if not p.name.startswith("bench")]
     rows: list[dict[str, Any]] = []
     with common.bar(args, len(seeds) * args.reruns, "seed scenarios") as progress:

@@ -14,6 +14,16 @@ The limit: ``--watchdog-s`` of the programs (:func:`deft_gym.cli.common.add_watc
 ``DEFT_GYM_WATCHDOG_S`` environment variable, else :data:`DEFAULT_WATCHDOG_S`. The execution
 layer carries the variable to every worker process (:func:`carried_env`, :func:`apply_env`).
 
+A whole run has a cap too (``total_s``: ``--run-wall-s`` of the programs, ``DEFT_GYM_RUN_WALL_S``, else
+:data:`DEFAULT_RUN_WALL_S`): once the calls watched by one :class:`Watchdog` (an episode's module
+calls, an extraction's ``plan()`` calls) have run that long in all, the call in progress gets
+:class:`ModuleHang` and :attr:`Watchdog.expired` says so, so that a module slow enough never to
+trip the per-call limit (a planner sleeping 5 s per 0.1 s cycle) still ends as a hang.
+
+While a heartbeat runs, Ctrl-C is counted (:func:`interrupts`), so that a ``KeyboardInterrupt``
+that a module *raised* (a fault of the module: :func:`module_fault`) is told from the user's
+interrupt (which always ends the program).
+
 Layer 0: the standard library only.
 """
 
@@ -29,6 +39,8 @@ from typing import Any
 
 DEFAULT_WATCHDOG_S = 10.0  #: wall-clock seconds one module call may take before it is a hang
 ENV = "DEFT_GYM_WATCHDOG_S"
+DEFAULT_RUN_WALL_S = 600.0  #: wall-clock seconds all the watched calls of one run may take
+RUN_ENV = "DEFT_GYM_RUN_WALL_S"
 
 
 class ModuleHang(BaseException):
@@ -52,9 +64,84 @@ def watchdog_seconds(value: float | None = None) -> float:
     return float(value)
 
 
+def run_wall_seconds(value: float | None = None) -> float:
+    """The whole-run cap: ``value``, else ``DEFT_GYM_RUN_WALL_S``, else the default (0 = off);
+    ValueError (one line) when it is not finite seconds >= 0."""
+    if value is None:
+        env = os.environ.get(RUN_ENV, "")
+        try:
+            value = float(env) if env.strip() else DEFAULT_RUN_WALL_S
+        except ValueError:
+            raise ValueError(f"{RUN_ENV}: expected seconds >= 0, got {env!r}") from None
+        if not (value >= 0 and math.isfinite(value)):
+            raise ValueError(f"{RUN_ENV}: expected finite seconds >= 0 (0 = off), got {env!r}")
+    if not (value >= 0 and math.isfinite(value)):
+        raise ValueError(f"run_wall_s: expected finite seconds >= 0 (0 = off), got {value}")
+    return float(value)
+
+
+# -- the user's interrupt, told from a KeyboardInterrupt a module raises ------------------------------
+_INTERRUPTS = [0, 0]  # Ctrl-C received while counted; heartbeats counting them
+
+
+def _count_interrupt(signum: int, frame: Any) -> None:
+    _INTERRUPTS[0] += 1
+    raise KeyboardInterrupt
+
+
+class CountingInterrupts:
+    """While it runs (main thread), Ctrl-C is counted (:func:`interrupts`) and still raises
+    KeyboardInterrupt; another handler someone installed is left alone. Nestable."""
+
+    def __enter__(self) -> CountingInterrupts:
+        self.old: Any = None
+        if threading.current_thread() is threading.main_thread():
+            old = signal.getsignal(signal.SIGINT)
+            if old is signal.default_int_handler or old is _count_interrupt:
+                self.old = old
+                signal.signal(signal.SIGINT, _count_interrupt)
+                _INTERRUPTS[1] += 1
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self.old is not None:
+            _INTERRUPTS[1] -= 1
+            if _INTERRUPTS[1] == 0:
+                signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def interrupts() -> int:
+    """How many Ctrl-C (SIGINT) this process received while a heartbeat counted them."""
+    return _INTERRUPTS[0]
+
+
+def module_fault(exc: BaseException, interrupts_before: int) -> bool:
+    """Whether ``exc``, raised out of a module call that started when :func:`interrupts` was
+    ``interrupts_before``, is the module's own fault (then an outcome) rather than the program's
+    end: everything but the watchdog's :class:`ModuleHang` and the user's interrupt - a
+    ``KeyboardInterrupt`` is the user's when a Ctrl-C arrived during the call, or when none can
+    be counted here (no heartbeat, off the main thread)."""
+    if isinstance(exc, ModuleHang):
+        return False
+    if isinstance(exc, KeyboardInterrupt):
+        return _INTERRUPTS[1] > 0 and _INTERRUPTS[0] == interrupts_before
+    return True
+
+
+def describe_exception(exc: BaseException, limit: int = 300) -> str:
+    """``Type: first line of the message``, the type and message a hosted object raised
+    (:class:`deft_gym.execution.isolation.HostedError`) when it is one; at most ``limit`` chars."""
+    describe = getattr(exc, "describe", None)
+    if callable(describe):
+        return str(describe())[:limit]
+    text = str(exc).strip()
+    msg = text.splitlines()[0] if text else ""
+    return (f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__)[:limit]
+
+
 def carried_env() -> dict[str, str | None]:
-    """The watchdog setting of this process, as worker processes must get it."""
-    return {ENV: os.environ.get(ENV)}
+    """The watchdog settings of this process, as worker processes must get them."""
+    return {ENV: os.environ.get(ENV), RUN_ENV: os.environ.get(RUN_ENV)}
 
 
 def apply_env(env: dict[str, str | None] | None) -> None:
@@ -68,45 +155,80 @@ def apply_env(env: dict[str, str | None] | None) -> None:
 
 class Watchdog:
     """Watches calls made through :meth:`call` while :meth:`armed`: one that runs ``seconds`` of
-    wall clock gets :class:`ModuleHang` raised in it (once per call)."""
+    wall clock gets :class:`ModuleHang` raised in it (once per call); so does the call in progress
+    once all of them together ran ``total_s`` (None: :func:`run_wall_seconds`; 0: no cap), and
+    :attr:`expired` is then True."""
 
-    def __init__(self, seconds: float) -> None:
+    def __init__(self, seconds: float, total_s: float | None = None) -> None:
         self.seconds = seconds
+        self.total_s = run_wall_seconds(total_s)
         self._active = False
         self._t0 = 0.0
+        self._used = 0.0  # wall seconds of finished top-level calls
+        self.expired = False  #: the whole-run cap was reached
+        self._cause = "call"
 
     def call(self, fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(*args)``, watched; :class:`ModuleHang` propagates out of it."""
+        if self.expired:
+            self._cause = "total"
+            raise ModuleHang()
         outer, t0 = self._active, self._t0
-        self._active, self._t0 = True, time.perf_counter()
+        start = time.perf_counter()
+        self._active, self._t0 = True, start
         try:
             return fn(*args)
         finally:
             self._active, self._t0 = outer, t0
+            if not outer:
+                self._used += time.perf_counter() - start
+
+    @property
+    def used(self) -> float:
+        """Wall seconds the watched calls took so far (the one in progress included)."""
+        now = time.perf_counter()
+        return self._used + (now - self._t0 if self._active and self._t0 != float("inf") else 0.0)
 
     def message(self, what: str = "no return") -> str:
         """What a hang is reported as."""
+        if self._cause == "total":
+            return f"ModuleHang: the run's calls took {self.total_s:g} s of wall clock in all (its whole-run cap)"
         return f"ModuleHang: {what} within the {self.seconds:g} s wall-clock watchdog"
 
     def _beat(self, signum: int, frame: Any) -> None:
-        if self._active and time.perf_counter() - self._t0 >= self.seconds:
+        if not self._active:
+            return
+        now = time.perf_counter()
+        if self.total_s and not self.expired and self._t0 != float("inf") and \
+                self._used + now - self._t0 >= self.total_s:
+            self.expired = True
+            self._cause = "total"
+            self._t0 = float("inf")
+            raise ModuleHang()
+        if self.seconds and now - self._t0 >= self.seconds:
+            self._cause = "call"
             self._t0 = float("inf")  # one interruption per call
             raise ModuleHang()
 
     def armed(self) -> _Heartbeat:
-        """A context manager running the heartbeat (a no-op when off, or off the main thread);
-        nested use keeps the outer heartbeat's handler and timer."""
+        """A context manager running the heartbeat (a no-op when both limits are off, or off the
+        main thread); nested use keeps the outer heartbeat's handler and timer. Ctrl-C is counted
+        while it runs (:func:`interrupts`)."""
         return _Heartbeat(self)
 
 
 class _Heartbeat:
     def __init__(self, dog: Watchdog) -> None:
         self.dog = dog
-        self.on = dog.seconds > 0 and threading.current_thread() is threading.main_thread()
+        self.main = threading.current_thread() is threading.main_thread()
+        self.on = (dog.seconds > 0 or dog.total_s > 0) and self.main
+        self.counting = CountingInterrupts()
 
     def __enter__(self) -> None:
+        self.counting.__enter__()
         if self.on:
-            tick = min(self.dog.seconds / 4, 1.0)
+            limits = [x for x in (self.dog.seconds, self.dog.total_s) if x > 0]
+            tick = min(min(limits) / 4, 1.0)
             self.old = signal.signal(signal.SIGALRM, self.dog._beat)
             self.old_timer = signal.setitimer(signal.ITIMER_REAL, tick, tick)
 
@@ -116,6 +238,22 @@ class _Heartbeat:
             signal.signal(signal.SIGALRM, self.old if self.old is not None else signal.SIG_DFL)
             if self.old_timer[0] > 0:
                 signal.setitimer(signal.ITIMER_REAL, *self.old_timer)
+        self.counting.__exit__(*exc)
 
 
-__all__ = ["DEFAULT_WATCHDOG_S", "ENV", "ModuleHang", "Watchdog", "apply_env", "carried_env", "watchdog_seconds"]
+__all__ = [
+    "DEFAULT_RUN_WALL_S",
+    "DEFAULT_WATCHDOG_S",
+    "ENV",
+    "RUN_ENV",
+    "CountingInterrupts",
+    "ModuleHang",
+    "Watchdog",
+    "apply_env",
+    "carried_env",
+    "describe_exception",
+    "interrupts",
+    "module_fault",
+    "run_wall_seconds",
+    "watchdog_seconds",
+]

@@ -357,12 +357,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = common.parser("extract-eval", "deft_gym.experiments.extract_eval", __doc__,
                        epilog="\n\n".join(__doc__.split("\n\n")[1:3]))
     common.add_scenarios(ap, help="seed scenarios (default: all in configs/scenarios except bench_*)")
-    ap.add_argument("--variants", type=int, default=1, help="perturbed variants per seed")
-    ap.add_argument("--cut-ins", type=int, default=8, help="cut-in variants per seed")
-    ap.add_argument("--extra-cut-ins", type=int, default=0,
+    ap.add_argument("--variants", type=common.int_range(0, 10_000), default=1, help="perturbed variants per seed")
+    ap.add_argument("--cut-ins", type=common.int_range(0, 10_000), default=8, help="cut-in variants per seed")
+    ap.add_argument("--extra-cut-ins", type=common.int_range(0, 10_000), default=0,
                     help="further cut-ins per seed that join only when their S0 collides (default 0)")
-    ap.add_argument("--reruns", type=int, default=10, help="system runs per scenario incl. S0")
-    ap.add_argument("--test-runs", type=int, default=10, help="executions of the generated tests")
+    ap.add_argument("--reruns", type=common.int_range(2, 10_000), default=10, help="system runs per scenario incl. S0")
+    ap.add_argument("--test-runs", type=common.int_range(1, 10_000), default=10,
+                    help="executions of the generated tests")
     ap.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES), help="input-search modes")
     common.add_jitter_seed(ap, "S_k uses jitter seed S+k (a resumed evaluation keeps its seeds)")
     common.add_workers(ap, "parallel processes for S0, extraction, reruns")
@@ -387,7 +388,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)  # --help and bad input answered here, before the simulation loads
-    with common.watchdog_env(args):
+    with common.watchdog_env(args), common.locked_out(args.out):
         return _main(args)
 
 

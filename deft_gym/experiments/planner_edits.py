@@ -202,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = common.parser("planner-edits", "deft_gym.experiments.planner_edits", __doc__)
     common.add_out(ap, common.RUNS / "planner_edits")
     common.add_scenarios(ap, default=SCENARIOS, help="seed scenarios of the episodes")
-    ap.add_argument("--duration", type=float, default=12.0, help="episode length [s]")
+    ap.add_argument("--duration", type=common.finite_float(1.0, 600.0), default=12.0, help="episode length [s]")
     common.add_jitter_seed(ap, "jitter seed of every episode")
     ap.add_argument("--edits", nargs="*", default=None, help="names of the edits to run (default: all)")
     common.add_output_flags(ap)
@@ -216,6 +216,11 @@ def main(argv: list[str] | None = None) -> int:
         known = ", ".join(e.name for e in EDITS)
         print(f"error: unknown edit(s) in {args.edits}; expected some of {known}", file=sys.stderr)
         return 2
+    with common.locked_out(out):
+        return _run(args, console, out, edits)
+
+
+def _run(args: Any, console: Any, out: Path, edits: tuple[Any, ...]) -> int:
     os.environ["DEFT_GYM_PURE_PYTHON"] = "1"
     dirs = record_and_extract(out, tuple(args.scenarios), args.duration, args.jitter_seed)
     paths, skipped = pin_edits(out, edits)

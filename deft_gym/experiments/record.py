@@ -81,8 +81,10 @@ def _record(args: argparse.Namespace) -> int:
         params = json.loads(args.planner_params) if args.planner_params else None
         if params is not None and not isinstance(params, dict):
             raise ValueError("--planner-params: expected a JSON object")
-        res = record_episode(load_scenario(args.scenario), args.out, jitter_seed=args.jitter_seed, topics=topics,
-                             planner_params=params, headers=args.headers, planner_class=args.planner)
+        scenario = load_scenario(args.scenario)
+        with common.locked_out(args.out):
+            res = record_episode(scenario, args.out, jitter_seed=args.jitter_seed, topics=topics,
+                                 planner_params=params, headers=args.headers, planner_class=args.planner)
     except (ConfigError, MappingError, ValueError) as err:
         return common.cli_error(str(err))
     s = res.summary()

@@ -150,6 +150,13 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
+/* the SHA-256 digests of the sources this build was made from (setup.py defines BUILT_FROM as
+   "<digest of this file> <digest of the Python file it mirrors>"); the module that loads it
+   refuses a build whose digests differ from the files beside it (a stale kernel) */
+#ifndef BUILT_FROM
+#define BUILT_FROM ""
+#endif
+
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_control_c",
                                     "Compiled trajectory conversion and nearest point of the control module.", -1,
                                     methods, NULL, NULL, NULL, NULL};
@@ -159,5 +166,7 @@ PyMODINIT_FUNC PyInit__control_c(void)
     for (int c = 0; c < N_COLS; c++)
         if (!(KEYS[c] = PyUnicode_InternFromString(NAMES[c]))) return NULL;
     if (!(KEY_S = PyUnicode_InternFromString("s"))) return NULL;
-    return PyModule_Create(&module);
+    PyObject *m = PyModule_Create(&module);
+    if (m && PyModule_AddStringConstant(m, "BUILT_FROM", BUILT_FROM) < 0) Py_CLEAR(m);
+    return m;
 }

@@ -11,6 +11,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,7 @@ import numpy as np
 from deft_gym.bus.ads import ModuleConfig
 from deft_gym.bus.bus import Node, header
 from deft_gym.bus.messages import NS_PER_S
+from deft_gym.files import checked_kernel
 from deft_gym.world.interp import interp1
 
 try:  # the plan conversion compiled (setup.py): _trajectory_lists' result for the usual case, None
@@ -27,6 +29,7 @@ except ImportError:  # pragma: no cover - the build is optional
     _control_c = None
 if os.environ.get("DEFT_GYM_PURE_PYTHON"):
     _control_c = None
+_control_c = checked_kernel(_control_c, Path(__file__).with_name("_control_c.c"), Path(__file__))
 
 WHEELBASE_HALF = 2.4  # [m] highway-env's bicycle: half the vehicle length
 

@@ -822,6 +822,13 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
+/* the SHA-256 digests of the sources this build was made from (setup.py defines BUILT_FROM as
+   "<digest of this file> <digest of the Python file it mirrors>"); the module that loads it
+   refuses a build whose digests differ from the files beside it (a stale kernel) */
+#ifndef BUILT_FROM
+#define BUILT_FROM ""
+#endif
+
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_lattice_c",
                                     "Compiled evaluation step, obstacle resampling and profiles of the lattice planner.", -1,
                                     methods, NULL, NULL, NULL, NULL};
@@ -833,5 +840,7 @@ PyMODINIT_FUNC PyInit__lattice_c(void)
         !(KEY_LENGTH = PyUnicode_InternFromString("length")) ||
         !(KEY_WIDTH = PyUnicode_InternFromString("width")) || !(KEY_V = PyUnicode_InternFromString("v")))
         return NULL;
-    return PyModule_Create(&module);
+    PyObject *m = PyModule_Create(&module);
+    if (m && PyModule_AddStringConstant(m, "BUILT_FROM", BUILT_FROM) < 0) Py_CLEAR(m);
+    return m;
 }

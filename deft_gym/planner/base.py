@@ -35,6 +35,7 @@ import functools
 import importlib
 import itertools
 import math
+import os
 import sys
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
@@ -72,6 +73,11 @@ class Planner(ABC):
     #: topic roles the planner reads, its frame: the single source for the planning module's
     #: subscriptions (``planning.subscribe`` in the ADS config) and the extractor's mapping
     inputs: tuple[str, ...] = ("routing", "localization", "traffic_light", "prediction")
+    #: attributes that ``plan()`` may change without them being state: memo caches keyed by what
+    #: they hold and scratch buffers rewritten before every use. ``python -m extract.contract``
+    #: reports a change to any other attribute than ``state`` as hidden state (check
+    #: ``hidden_state``), whether or not the frames at hand make it change an output
+    caches: tuple[str, ...] = ()
 
     def __init__(self, map_spec: Mapping[str, Any], **params: Any) -> None:
         self.map_spec = dict(map_spec)
@@ -124,20 +130,143 @@ def import_object(path: str) -> Any:
 
 
 def planner_fingerprint(cls_path: str) -> str:
-    """SHA-256 of the source file defining a planner class: a log records it, so a test can tell
-    that the planner it was extracted for has changed."""
+    """SHA-256 of every source a planner class runs (:func:`source_digest`): a log records it, so
+    a test can tell that the planner it was extracted for has changed."""
     return source_digest(import_object(cls_path)) or ""
 
 
-def source_digest(cls: type) -> str | None:
-    """SHA-256 of the source file defining a class (None when it has none)."""
-    import hashlib
+def hosted_class(cls: type) -> type:
+    """The planner class itself, also when ``cls`` is its :class:`HostedPlanner` stand-in."""
+    return getattr(cls, "hosted_class", None) or cls
+
+
+def planner_sources(cls: type) -> list[Path]:
+    """(See :func:`_planner_sources`; the list is computed once per class.)"""
+    return list(_planner_sources(hosted_class(cls)))
+
+
+@functools.cache
+def _planner_sources(cls: type) -> tuple[Path, ...]:
+    """The source files a planner class runs: the file that defines it and, transitively, every
+    module it imports (statically, ``import``/``from ... import`` anywhere in the file) that lives
+    in its own package tree or in ``deft_gym`` - not the standard library or installed
+    third-party packages, whose versions the provenance records - and, for a compiled extension
+    among them (``_lattice_c``), its C source beside it (``_lattice_c.c``). Sorted."""
+    import ast
+    import importlib.util
     import inspect
 
     try:
-        path = inspect.getsourcefile(cls)
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest() if path else None
+        first = inspect.getsourcefile(cls)
     except (OSError, TypeError):
+        return ()
+    if not first:
+        return ()
+    top = cls.__module__.split(".")[0]
+    first_path = Path(first).resolve()
+    roots = {Path(__file__).resolve().parents[1]}  # deft_gym/
+    root = _root_of(first_path, cls.__module__)
+    if root is not None:
+        roots.add((root / top) if (root / top).is_dir() else first_path.parent)
+    venv = Path(sys.prefix).resolve()
+
+    def ours(path: Path) -> bool:
+        return any(path.is_relative_to(r) for r in roots) and not path.is_relative_to(venv) \
+            and "site-packages" not in path.parts
+
+    def origin(name: str) -> Path | None:
+        mod = sys.modules.get(name)
+        file = getattr(mod, "__file__", None) if mod is not None else None
+        if file is None:
+            try:
+                spec = importlib.util.find_spec(name)
+            except (ImportError, ValueError, AttributeError):
+                return None
+            file = spec.origin if spec is not None and spec.has_location else None
+        return Path(file).resolve() if file else None
+
+    def imported(path: Path, package: str) -> set[Path]:
+        try:
+            tree = ast.parse(path.read_bytes())
+        except (OSError, SyntaxError, ValueError):
+            return set()
+        names: list[str] = []
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names += [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    parts = package.split(".")
+                    base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
+                names += [base] + [f"{base}.{a.name}" for a in node.names]
+        found = set()
+        for name in names:
+            if not name or name.split(".")[0] not in {top, "deft_gym"}:
+                continue
+            f = origin(name)
+            if f is None or not ours(f):
+                continue
+            if f.suffix in (".so", ".pyd"):  # a compiled kernel: its C source (what it was built from)
+                c = f.with_name(f.name.split(".")[0] + ".c")
+                if c.exists():
+                    found.add(c)
+                continue
+            if f.suffix == ".py":
+                found.add(f)
+        return found
+
+    seen: set[Path] = set()
+    todo = [(first_path, cls.__module__.rpartition(".")[0] if first_path.name != "__init__.py" else cls.__module__)]
+    if first_path.suffix != ".py":
+        return ()
+    while todo:
+        path, package = todo.pop()
+        if path in seen:
+            continue
+        seen.add(path)
+        if path.suffix != ".py":
+            continue
+        for f in imported(path, package):
+            if f not in seen:
+                pkg = _module_of(f, roots)
+                todo.append((f, pkg))
+    return tuple(sorted(seen))
+
+
+def _module_of(path: Path, roots: set[Path]) -> str:
+    """The package a source file is in (dotted), for its relative imports."""
+    for r in roots:
+        if path.is_relative_to(r.parent):
+            parts = list(path.relative_to(r.parent).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                return ".".join(parts[:-1])
+            return ".".join(parts[:-1])
+    return ""
+
+
+@functools.cache
+def _digest_of(paths: tuple[tuple[str, int, int], ...]) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for p, _, _ in paths:
+        h.update(Path(p).name.encode() + b"\0")
+        h.update(Path(p).read_bytes())
+    return h.hexdigest()
+
+
+def source_digest(cls: type) -> str | None:
+    """SHA-256 of every source a planner class runs (:func:`planner_sources`: its file, the
+    modules of its package and of ``deft_gym`` it imports, the C sources of its compiled kernels);
+    None when it has no source file. A change to any of them - ``decision.py`` of the lattice
+    planner, its kernel ``_lattice_c.c`` - changes it."""
+    try:
+        files = planner_sources(cls)
+        if not files:
+            return None
+        return _digest_of(tuple((str(f), f.stat().st_mtime_ns, f.stat().st_size) for f in files))
+    except OSError:
         return None
 
 
@@ -153,6 +282,7 @@ def planner_provenance(cls: type) -> dict[str, Any]:
 
     from packaging.requirements import Requirement
 
+    cls = hosted_class(cls)
     module = sys.modules.get(cls.__module__) or importlib.import_module(cls.__module__)
     try:
         src = inspect.getsourcefile(cls)
@@ -199,9 +329,120 @@ def _root_of(path: Path, module: str) -> Path | None:
     return root if root.exists() else None
 
 
-def load_planner(cls_path: str, map_spec: Mapping[str, Any], params: Mapping[str, Any] | None = None) -> Planner:
-    """Instantiate a planner from its class path, the map spec and its parameters."""
-    return planner_class(cls_path)(map_spec, **dict(params or {}))
+ISOLATION_ENV = "DEFT_GYM_PLANNER_ISOLATION"
+ISOLATION_MODES = ("auto", "process", "inline")
+
+
+def isolation_mode(value: str | None = None) -> str:
+    """How planners run: ``value``, else ``DEFT_GYM_PLANNER_ISOLATION``, else ``auto``
+    (ValueError naming the variable when it is not one of :data:`ISOLATION_MODES`)."""
+    mode = value if value is not None else (os.environ.get(ISOLATION_ENV, "").strip() or "auto")
+    if mode not in ISOLATION_MODES:
+        raise ValueError(f"{ISOLATION_ENV}={mode!r}: expected one of {', '.join(ISOLATION_MODES)}")
+    return mode
+
+
+def runs_isolated(cls: type, mode: str | None = None) -> bool:
+    """Whether a planner class runs in a process of its own (:class:`HostedPlanner`):
+    ``process`` - every planner; ``inline`` - none; ``auto`` (the default) - every planner but
+    those shipped in ``deft_gym.planner`` (the reference lattice planner keeps the fast path:
+    calls in the simulation's process, nothing pickled)."""
+    mode = isolation_mode(mode)
+    if mode == "auto":
+        return not hosted_class(cls).__module__.startswith("deft_gym.planner.")
+    return mode == "process"
+
+
+def load_planner(cls_path: str, map_spec: Mapping[str, Any], params: Mapping[str, Any] | None = None,
+                 isolation: str | None = None) -> Planner:
+    """Instantiate a planner from its class path, the map spec and its parameters; in a process
+    of its own (:class:`HostedPlanner`) when :func:`runs_isolated` says so (``isolation``: a mode
+    of :func:`isolation_mode`, e.g. ``inline`` for a checker that must see the planner's calls)."""
+    cls = planner_class(cls_path)
+    if runs_isolated(cls, isolation):
+        return hosted(cls)(map_spec, **dict(params or {}))
+    return cls(map_spec, **dict(params or {}))
+
+
+class HostedPlanner(Planner):
+    """A planner that runs in a child process of its own (:class:`deft_gym.execution.isolation.Hosted`)
+    behind the same interface, so that nothing it does ends the program that calls it: whatever
+    it raises (``SystemExit`` and ``KeyboardInterrupt`` included) comes back as an exception of
+    type :class:`~deft_gym.execution.isolation.HostedError` naming what it raised; ending its
+    process (``os._exit``, a segmentation fault, a signal) is a
+    :class:`~deft_gym.execution.isolation.HostDied`; blocking is the caller's watchdog's hang (the
+    child is then killed). Its outputs are the planner's, bit for bit (pickled). Built with
+    :func:`hosted` (one subclass per planner class, carrying its ``inputs``); construction errors
+    are ValueErrors. :meth:`close` ends the process (also when the object is collected)."""
+
+    hosted_class: type[Planner] = Planner
+
+    def __init__(self, map_spec: Mapping[str, Any], **params: Any) -> None:
+        from deft_gym.execution.isolation import HostDied, Hosted, HostedError
+
+        self.map_spec = dict(map_spec)
+        self.params = params
+        cls = self.hosted_class
+        name = f"{cls.__module__}:{cls.__qualname__}"
+        try:
+            import inspect
+
+            try:
+                source = inspect.getsourcefile(cls) or ""
+            except TypeError:
+                source = ""
+            self._host = Hosted(lambda: cls(map_spec, **params), f"the planner {name}", source)
+        except (HostedError, HostDied) as exc:
+            describe = getattr(exc, "describe", None)
+            raise ValueError(describe() if callable(describe) else str(exc)) from None
+
+    @property
+    def state(self) -> Any:  # type: ignore[override]
+        """A copy of the hosted planner's state (:meth:`snapshot`)."""
+        return self.snapshot()
+
+    def reset(self) -> None:
+        self._host.call("reset")
+
+    def plan(self, frame: Frame) -> dict[str, Any] | None:
+        return self._host.call("plan", Frame(frame.time, dict(frame.inputs)))
+
+    def snapshot(self) -> Any:
+        return self._host.call("snapshot")
+
+    def restore(self, snapshot: Any) -> None:
+        self._host.call("restore", snapshot)
+
+    def export_state(self) -> dict[str, Any] | None:
+        return self._host.call("export_state")
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        from deft_gym.execution.isolation import HostedError
+
+        try:
+            self._host.call("load_state", dict(state))
+        except HostedError as exc:
+            if exc.type_name in ("ValueError", "TypeError", "KeyError"):
+                raise ValueError(exc.describe()) from None
+            raise
+
+    @classmethod
+    def hard_clearance(cls, params: Mapping[str, Any]) -> float:
+        return cls.hosted_class.hard_clearance(params)
+
+    def close(self) -> None:
+        """End the planner's process."""
+        host = getattr(self, "_host", None)
+        if host is not None:
+            host.close()
+
+
+@functools.cache
+def hosted(cls: type[Planner]) -> type[HostedPlanner]:
+    """The :class:`HostedPlanner` subclass standing for planner class ``cls`` (same ``inputs``)."""
+    return type(f"Hosted{cls.__name__}", (HostedPlanner,),
+                {"hosted_class": cls, "inputs": tuple(cls.inputs), "__doc__": cls.__doc__,
+                 "__module__": HostedPlanner.__module__})
 
 
 def planner_class(cls_path: str) -> type[Planner]:

@@ -27,11 +27,13 @@ import math
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from deft_gym.files import checked_kernel
 from deft_gym.planner.base import Frame, Planner, from_plain, to_plain
 from deft_gym.planner.decision import LaneDecider
 from deft_gym.world.geometry import ReferenceLine, wrap_angle
@@ -52,6 +54,8 @@ except ImportError:  # pragma: no cover - the build is optional
     _lattice_c = None
 if os.environ.get("DEFT_GYM_PURE_PYTHON"):
     _lattice_c = None
+# a kernel built before lattice.py or _lattice_c.c was edited is not used (the edit must count)
+_lattice_c = checked_kernel(_lattice_c, Path(__file__).with_name("_lattice_c.c"), Path(__file__))
 
 _FLIP = np.array([[1.0], [-1.0]])  # see _perp
 
@@ -247,6 +251,10 @@ class _Lateral:
 
 class LatticePlanner(Planner):
     """Lane-aware lattice planner along the route; see the module docstring."""
+
+    #: the road map (its geometry caches), memo caches of routes, reference lines and lateral
+    #: profiles, and the kernel's parameter block (rewritten per call): no state
+    caches = ("map", "_route_cache", "_ref_cache", "_lat_cache", "_kernel_params")
 
     def __init__(self, map_spec: dict[str, Any], **params: Any) -> None:
         super().__init__(map_spec, **params)

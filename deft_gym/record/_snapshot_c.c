@@ -497,6 +497,13 @@ static PyMethodDef methods[] = {
     {NULL, NULL, 0, NULL},
 };
 
+/* the SHA-256 digests of the sources this build was made from (setup.py defines BUILT_FROM as
+   "<digest of this file> <digest of the Python file it mirrors>"); the module that loads it
+   refuses a build whose digests differ from the files beside it (a stale kernel) */
+#ifndef BUILT_FROM
+#define BUILT_FROM ""
+#endif
+
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_snapshot_c", NULL, -1, methods};
 
 PyMODINIT_FUNC PyInit__snapshot_c(void)
@@ -515,5 +522,6 @@ PyMODINIT_FUNC PyInit__snapshot_c(void)
     if (PyType_Ready(&BatchType) < 0) return NULL;
     PyObject *m = PyModule_Create(&module);
     if (m && PyModule_AddObjectRef(m, "Batch", (PyObject *)&BatchType) < 0) Py_CLEAR(m);
+    if (m && PyModule_AddStringConstant(m, "BUILT_FROM", BUILT_FROM) < 0) Py_CLEAR(m);
     return m;
 }

@@ -36,12 +36,15 @@ from mcap.writer import CompressionType, IndexType, Writer
 
 from deft_gym.bus.codec import encode
 from deft_gym.bus.messages import SCENE_TOPIC
+from deft_gym.files import checked_kernel
 from deft_gym.record.scene import expand
 
 try:  # the payload snapshot compiled (setup.py), 3x faster than pickle for plain payloads
     from deft_gym.record import _snapshot_c
 except ImportError:  # pragma: no cover - the build is optional
     _snapshot_c = None
+# a kernel built before worker.py or _snapshot_c.c was edited is not used (the edit must count)
+_snapshot_c = checked_kernel(_snapshot_c, Path(__file__).with_name("_snapshot_c.c"), Path(__file__))
 
 FRAME = struct.Struct("<I")
 _TOPIC = struct.Struct("=q")  # a batch entry: topic length, the topic (UTF-8),

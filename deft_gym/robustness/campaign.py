@@ -41,24 +41,25 @@ DEFAULT_CAMPAIGN = CONFIG_DIR / "stress" / "default.yaml"
 
 
 class MinimiseConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    max_signatures: int = Field(default=30, ge=0)
-    max_replays: int = Field(default=100, ge=1)
+    max_signatures: int = Field(default=30, ge=0, le=100_000)
+    max_replays: int = Field(default=100, ge=1, le=100_000)
 
 
 class CampaignConfig(BaseModel):
     """``configs/stress/*.yaml``."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # an infinite horizon: refused
 
-    scenarios: list[str] = Field(min_length=1, default_factory=lambda: ["configs/scenarios/left_turn.yaml"])
-    seeds_per_scenario: int = Field(default=3, ge=1)
+    scenarios: list[str] = Field(min_length=1, max_length=10_000,
+                                 default_factory=lambda: ["configs/scenarios/left_turn.yaml"])
+    seeds_per_scenario: int = Field(default=3, ge=1, le=10_000)
     invariants: str | None = None
-    deadline_s: float = Field(default=1.0, gt=0.0)
-    hang_periods: int = Field(default=10, ge=1)
-    grace_s: float = Field(default=2.0, ge=0.0)
-    horizon_s: float | None = Field(default=8.0, gt=0.0, description="end a test this long after its last "
+    deadline_s: float = Field(default=1.0, gt=0.0, le=3600.0)
+    hang_periods: int = Field(default=10, ge=1, le=1_000_000)
+    grace_s: float = Field(default=2.0, ge=0.0, le=3600.0)
+    horizon_s: float | None = Field(default=8.0, gt=0.0, le=3600.0, description="end a test this long after its last "
                                     "policy window (None: run the whole episode)")
     generation: GenerationConfig = GenerationConfig()
     minimise: MinimiseConfig = MinimiseConfig()

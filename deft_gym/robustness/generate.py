@@ -21,6 +21,7 @@ from deft_gym.robustness.spec import CONSUMED_ROLES, FieldSpec, TestSpecificatio
 from deft_gym.robustness.testcase import Assignment, Policy
 
 ONE_SHOT_ROLES = ("routing",)  # published once at start-up: windows start at 0
+MAX_PER_TEST = 100  # policies per test, fields per policy
 
 
 class Range(BaseModel):
@@ -41,7 +42,7 @@ class Range(BaseModel):
 class GenerationConfig(BaseModel):
     """How tests are drawn."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     roles: list[str] = Field(default_factory=lambda: list(CONSUMED_ROLES))
     brittle: bool = Field(default=False, description="also target brittle fields (stamps, sequence numbers)")
@@ -54,6 +55,22 @@ class GenerationConfig(BaseModel):
     window_s: Range = Range(min=0.1, max=5.0)
     start_s: Range = Range(min=1.0, max=15.0)
     inject_delay_ms: Range = Range(min=0.0, max=150.0)
+
+    @field_validator("policies", "fields_per_policy")
+    @classmethod
+    def _counts(cls, v: Range) -> Range:
+        if v.min < 1 or v.max > MAX_PER_TEST:
+            raise ValueError(f"min {v.min:g}, max {v.max:g}; expected 1 <= min <= max <= {MAX_PER_TEST} "
+                             "(a test has at least one policy, a policy at least one field)")
+        return v
+
+    @field_validator("window_s")
+    @classmethod
+    def _window(cls, v: Range) -> Range:
+        if v.min <= 0:
+            raise ValueError(f"min {v.min:g} s; expected a window longer than 0 s (one-message policies are "
+                             "single_share's)")
+        return v
 
     @field_validator("roles")
     @classmethod

@@ -25,7 +25,13 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from deft_gym.bus.messages import NS_PER_S
-from deft_gym.execution.watchdog import ENV, watchdog_seconds
+from deft_gym.execution.watchdog import (
+    ENV,
+    CountingInterrupts,
+    interrupts,
+    module_fault,
+    watchdog_seconds,
+)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -140,6 +146,14 @@ def location(tb: Any) -> str:
     return f"{path}:{f.name}"
 
 
+def _relative(where: str) -> str:
+    """``path:function`` of a frame named elsewhere, as :func:`location` names it."""
+    path, _, fn = where.rpartition(":")
+    if path.startswith(ROOT):
+        return f"{os.path.relpath(path, ROOT)}:{fn}"
+    return f"{os.path.basename(path)}:{fn}"
+
+
 def _valid_outputs(out: Any) -> bool:
     if out is None:
         return True
@@ -166,6 +180,7 @@ class GuardedSupervisor:
 
     # -- watchdog ---------------------------------------------------------------------------
     def __enter__(self) -> GuardedSupervisor:
+        self._counting = CountingInterrupts().__enter__()  # a KeyboardInterrupt a module raises: a crash
         if self._armed:
             self._old_handler = signal.signal(_SIGNAL, _raise_deadline)
             self._old_wall = signal.signal(signal.SIGALRM, _raise_wall_deadline)
@@ -176,6 +191,7 @@ class GuardedSupervisor:
             self._disarm()
             signal.signal(_SIGNAL, self._old_handler or signal.SIG_DFL)
             signal.signal(signal.SIGALRM, self._old_wall or signal.SIG_DFL)
+        self._counting.__exit__(*exc)
 
     def _disarm(self) -> None:
         signal.setitimer(_TIMER, 0)
@@ -186,6 +202,7 @@ class GuardedSupervisor:
         if not node.alive:
             return None
         t0 = time.perf_counter()
+        before = interrupts()
         try:
             if self._armed:
                 signal.setitimer(_TIMER, self.deadline_s)
@@ -207,15 +224,16 @@ class GuardedSupervisor:
                                      f"computation overran {self.deadline_s} s", location(exc.__traceback__),
                                      time.perf_counter() - t0))
             return None
-        except KeyboardInterrupt:
+        except BaseException as exc:  # any failure of a module is a finding (SystemExit too)
             if self._armed:
                 self._disarm()
-            raise
-        except BaseException as exc:  # any failure of a module is a finding
-            if self._armed:
-                self._disarm()
-            self._fail(node, Failure("crash", node.name, "exception", self.bus.now, type(exc).__name__,
-                                     str(exc)[:300], location(exc.__traceback__), time.perf_counter() - t0))
+            if not module_fault(exc, before):
+                raise  # the user's Ctrl-C
+            # a planner in a process of its own: what it raised there, and where (isolation.HostedError)
+            where = _relative(exc.location) if getattr(exc, "location", "") else location(exc.__traceback__)
+            self._fail(node, Failure("crash", node.name, "exception", self.bus.now,
+                                     getattr(exc, "type_name", type(exc).__name__),
+                                     str(getattr(exc, "message", exc))[:300], where, time.perf_counter() - t0))
             return None
         wall = time.perf_counter() - t0
         if wall > self.max_wall.get(node.name, 0.0):

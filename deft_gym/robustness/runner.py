@@ -180,6 +180,30 @@ class _Fingerprint:
             self.errors.append(f"fingerprint: {msg.topic}: {type(exc).__name__}: {exc}"[:200])
 
 
+def check_setup(case: TestCase, source: str = "the ADS configuration") -> None:
+    """Everything ``case`` needs, built once without running: its scenario, ADS configuration,
+    invariants and the simulation with every module node and the planner - a ConfigError (one
+    line naming the file or the setting) instead of a harness error in every test."""
+    from deft_gym.config import ConfigError
+
+    path = resolve(case.scenario)
+    if not path.is_file():
+        raise ConfigError(f"scenario {case.scenario!r}: no such file ({path})")
+    scenario = _scenario(case.scenario)
+    ads = build_ads(case)
+    _invariants(case.invariants)
+    try:
+        sim = Simulation(scenario, ads, jitter_seed=case.jitter_seed, keep_planning=False)
+    except ConfigError:
+        raise
+    except (ImportError, ValueError, TypeError, AttributeError) as exc:  # a module node that cannot be built
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ConfigError(f"{source}: cannot build the simulation of {case.scenario}: {text}") from None
+    close = getattr(sim.planner, "close", None)
+    if callable(close):
+        close()
+
+
 def run_case(case: TestCase, out_dir: Path | str | None = None, stop_on: str | None = None,
              until: float | None = None, ads: AdsConfig | None = None) -> RunResult:
     """Run ``case``; ``out_dir`` records the test log; ``stop_on`` ends the run at the first

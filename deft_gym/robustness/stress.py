@@ -31,6 +31,7 @@ from deft_gym.config import CONFIG_DIR, ConfigError, deep_merge, load_mapping
 from deft_gym.execution import add_backend_arguments, backend_from_args
 
 SUBCOMMANDS = ("replay", "check", "spec", "compare", "subsystem")
+MAX_BUDGET = 1_000_000  # tests of one campaign (checked before any work)
 console = common.console(stderr=True, width=160)
 
 
@@ -53,7 +54,7 @@ def campaign_parser() -> argparse.ArgumentParser:
                "subsystem FRAMES.jsonl (each with --help)")
     common.add_scenarios(ap, flags=("--scenarios", "--scenario"),
                          help="scenario YAMLs or names in configs/scenarios (default: the campaign config's list)")
-    ap.add_argument("--budget", type=common.positive_int, default=100, help="number of tests")
+    ap.add_argument("--budget", type=common.int_range(1, MAX_BUDGET), default=100, help="number of tests")
     common.add_out(ap, common.RUNS / "stress" / "campaign", help="campaign folder (resumed if it exists)")
     ap.add_argument("--config", default=None, help="campaign config YAML (default: configs/stress/default.yaml)")
     common.add_seed(ap, 0, "campaign seed: the tests and their jitter seeds")
@@ -70,8 +71,10 @@ def campaign_parser() -> argparse.ArgumentParser:
                     help="minimise every distinct finding (default), only planted-fault findings, or none")
     ap.add_argument("--until-found", action="store_true",
                     help="with planted faults: stop the tests once every planted fault was found")
-    ap.add_argument("--max-replays", type=int, default=None, help="replays per minimisation")
-    ap.add_argument("--max-signatures", type=int, default=None, help="distinct findings to minimise")
+    ap.add_argument("--max-replays", type=common.int_range(1, 100_000), default=None,
+                    help="replays per minimisation (default: the campaign config's)")
+    ap.add_argument("--max-signatures", type=common.int_range(0, 100_000), default=None,
+                    help="distinct findings to minimise (default: the campaign config's)")
     common.add_render(ap)
     common.add_watchdog(ap)
     common.add_output_flags(ap)
@@ -106,12 +109,23 @@ def _campaign(args: argparse.Namespace) -> int:
         load_ads_config(args.ads_config, ads_overrides, source=f"{path} (--ads-overlay)")
     campaign = Campaign(cfg, args.seed, args.ads_config, ads_overrides, args.hardening == "on")
     # validate the ADS configuration once, up front (a bad file is one clear line, not N failed runs)
-    from deft_gym.robustness.runner import build_ads
+    from deft_gym.robustness.runner import build_ads, check_setup
 
     build_ads(campaign.base_case(cfg.scenarios[0], 0, "check"))
     from deft_gym.robustness.invariants import load_invariants
 
     load_invariants(cfg.invariants)  # a missing or bad invariants file: one line, before any run
+    for scenario in dict.fromkeys(cfg.scenarios):  # each scenario, every module node and the planner, built
+        check_setup(campaign.base_case(scenario, 0, "check"),
+                    ", ".join([*(f"{p} (--ads-overlay)" for p in args.ads_overlay)]) or
+                    str(args.ads_config or "configs/ads/default.yaml"))
+    from deft_gym.robustness.generate import generate_policies
+    from deft_gym.robustness.spec import TestSpecification
+
+    if not TestSpecification.from_schemas().select(cfg.generation.roles, brittle=cfg.generation.brittle):
+        raise ConfigError(f"{args.config or 'configs/stress/default.yaml'}: generation.roles: no field to "
+                          "inject into")
+    generate_policies(TestSpecification.from_schemas(), cfg.generation, __import__("random").Random(0))
     backend = backend_from_args(args, args.workers)
     out = Path(args.out)
     bars: dict[str, common.Bar] = {}
@@ -127,23 +141,35 @@ def _campaign(args: argparse.Namespace) -> int:
                     f"violations {counts['violations']}  harness errors {counts['harness_errors']}")
         bars[stage].set(done, total or None, info)
 
-    try:
-        summary = run_campaign(campaign, out, args.budget, args.workers, args.minimise, report, args.until_found,
-                               backend)
-    finally:
-        for b in bars.values():
-            b.close()
-    if args.render != "none":  # pictures of the minimised findings' test logs
-        from deft_gym.viz.episode import picture_paths, render_log
+    with common.locked_out(out):
+        try:
+            summary = run_campaign(campaign, out, args.budget, args.workers, args.minimise, report, args.until_found,
+                                   backend)
+        finally:
+            for b in bars.values():
+                b.close()
+        undrawn = []
+        if args.render != "none":  # pictures of the minimised findings' test logs
+            from deft_gym.viz.episode import picture_paths, render_log
 
-        for log in sorted((out / "minimised").rglob("*.mcap")):
-            if not picture_paths(log)[0].exists():
-                with contextlib.suppress(ValueError):
-                    render_log(log)
+            for log in sorted((out / "minimised").rglob("*.mcap")):
+                if not picture_paths(log)[0].exists():
+                    try:
+                        render_log(log)
+                    except ValueError as err:
+                        undrawn.append(f"{log}: {err}")
     if args.quiet:
         print(f"campaign: {out / 'summary.json'}")
     else:
         print_summary(summary, out)
+    for line in undrawn:
+        print(f"warning: no picture of {line}", file=sys.stderr)
+    errors = summary.get("harness_errors", 0)
+    if errors:  # an error of the tool, not a finding: never a silent success
+        print(f"error: {errors} harness error(s) in {summary.get('harness_error_runs', 0)} test(s) and the baseline "
+              f"- errors of the tool, not findings (runs.jsonl, baseline.jsonl); run the same command again to "
+              "retry them", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -209,8 +235,10 @@ def replay_cli(argv: list[str]) -> int:
     for col in ("case", "expected", "reproduced", "identical run", "same foundation"):
         t.add_column(col)
     changed = changed_ok = 0
-    for f in files:
-        r = replay(f, args.log if len(files) == 1 else None)
+    log = args.log if len(files) == 1 else None
+    with common.locked_out(log) if log else contextlib.nullcontext():
+        results = [replay(f, log) for f in files]
+    for f, r in zip(files, results):
         ok += r["reproduced"] and r["identical"]
         changed += not r["same_foundation"]
         changed_ok += not r["same_foundation"] and r["reproduced"] and r["identical"]
@@ -278,7 +306,16 @@ def compare_cli(argv: list[str]) -> int:
                        "Compare campaign summaries (e.g. hardening off vs on).")
     ap.add_argument("dirs", nargs="+", help="campaign folders")
     args = ap.parse_args(argv)
-    sums = [json.loads((Path(d) / "summary.json").read_text()) for d in args.dirs]
+    sums = []
+    for d in args.dirs:
+        try:
+            s = json.loads((Path(d) / "summary.json").read_text())
+            if not isinstance(s, dict) or "runs" not in s:
+                raise ValueError("not a campaign summary")
+        except (OSError, ValueError) as err:  # no campaign there, or a damaged summary: one line
+            return common.cli_error(f"{Path(d) / 'summary.json'}: {getattr(err, 'strerror', None) or err}; expected "
+                                    "a campaign folder (deft-gym stress --out DIR)")
+        sums.append(s)
     t = Table(box=box.SIMPLE)
     t.add_column("measure")
     for d, s in zip(args.dirs, sums):
@@ -299,9 +336,10 @@ def subsystem_cli(argv: list[str]) -> int:
     ap.add_argument("frames", help="frames.jsonl written by the extractor (deft-gym extract)")
     common.add_out(ap, common.RUNS / "stress" / "subsystem",
                    help="output folder (frames copy, cases.json, test module, summary)")
-    ap.add_argument("--budget", type=int, default=300, help="number of tests")
+    ap.add_argument("--budget", type=common.int_range(1, MAX_BUDGET), default=300, help="number of tests")
     common.add_seed(ap)
-    ap.add_argument("--turnover", type=int, default=5, help="unmodified frames planned after the mutated one")
+    ap.add_argument("--turnover", type=common.int_range(0, 10_000), default=5,
+                    help="unmodified frames planned after the mutated one")
     ap.add_argument("--invariants", default=None, help="invariants YAML (its `on: planning` ones are used)")
     ap.add_argument("--hardening", choices=("off", "on"), default="off",
                     help="sanitise the planner's inputs as the hardened planning node does")
@@ -309,8 +347,9 @@ def subsystem_cli(argv: list[str]) -> int:
     args = ap.parse_args(argv)  # before the planner is imported: a fast --help
     from deft_gym.robustness.subsystem import run_subsystem
 
-    s = run_subsystem(args.frames, args.out, args.budget, args.seed, args.invariants, args.turnover,
-                      args.hardening == "on")
+    with common.locked_out(args.out):
+        s = run_subsystem(args.frames, args.out, args.budget, args.seed, args.invariants, args.turnover,
+                          args.hardening == "on")
     if not args.quiet:
         print(", ".join(f"{k.replace('_', ' ')} {sum(s[k].values()) if isinstance(s[k], dict) else s[k]}"
                         for k in ("tests", "crashes", "hangs", "violations", "harness_errors")))

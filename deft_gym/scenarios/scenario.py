@@ -19,6 +19,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator, model_validator
 
 from deft_gym.config import CONFIG_DIR, ConfigError, load_yaml, validate
+from deft_gym.world.geometry import box_gap_point
 from deft_gym.world.participants import SIZES, ReactiveVehicle, ScriptedVehicle, StaticObstacle
 from deft_gym.world.roadmap import MapSpec, RoadMap, shared_roadmap
 from deft_gym.world.traffic_lights import LightPlan, TrafficLights
@@ -29,6 +30,7 @@ SCENARIO_DIR = CONFIG_DIR / "scenarios"
 
 MAX_OFFSET = 50.0  #: largest lateral offset d [m] of a lane position
 MIN_GAP = 2.0  #: a participant starting closer [m] to the ego's start lies on it
+MIN_DURATION = 1.0  #: the shortest episode [s]: shorter ones end before the planner's first cycle
 #: most participants of a scenario: every world step, sensor frame and message handles each one
 #: (1000 run at about 3x real time on one core; 5000 at a third of real time)
 MAX_PARTICIPANTS = 1000
@@ -116,17 +118,28 @@ ParticipantSpec = Annotated[StaticSpec | ScriptedSpec | ReactiveSpec, Field(disc
 class Scenario(_Strict):
     """A system-level scenario test."""
 
-    name: str
+    name: str = Field(min_length=1, max_length=200)
     description: str = ""
     map: MapSpec
     lights: LightPlan | None = None
     ego: EgoSpec
     participants: list[ParticipantSpec] = Field(default_factory=list)
-    duration: float = Field(default=40.0, gt=0.0, le=600.0)
+    duration: float = Field(default=40.0, ge=MIN_DURATION, le=600.0)
     seed: int = Field(default=0, ge=0, le=2**32 - 1, description="scenario randomness (sensor noise, NPC behaviour)")
     stuck_time: float = Field(default=30.0, gt=0.0, description="standstill [s] that counts as stuck")
 
     source: str | None = Field(default=None, exclude=True)
+
+    @field_validator("name")
+    @classmethod
+    def _folder_name(cls, v: str) -> str:
+        """The name names output folders (``runs/run/<name>``): one folder name, never a path."""
+        bad = sorted({c for c in v if c in '/\\' or ord(c) < 32 or ord(c) == 127})
+        if bad or v in (".", "..") or v.startswith(".") or v != v.strip():
+            shown = ", ".join(repr(c) for c in bad) or "a leading dot or space"
+            raise ValueError(f"{v[:80]!r} cannot name a folder ({shown}); expected a name such as 'left_turn' "
+                             "(no path separators, control characters or leading dot)")
+        return v
 
     @field_validator("participants", mode="before")
     @classmethod
@@ -160,7 +173,51 @@ def load_scenario(path: Path | str) -> Scenario:
     data = load_yaml(path)
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
-    return scenario_from_dict(data, source=str(path))
+    sc = scenario_from_dict(data, source=str(path))
+    errors = vehicle_overlaps(sc, shared_roadmap(sc.map))
+    if errors:
+        raise ConfigError("\n".join(f"{path}: {e}" for e in errors))
+    return sc
+
+
+def vehicle_overlaps(sc: Scenario, roadmap: RoadMap, limit: int = MAX_PROBLEMS) -> list[str]:
+    """Vehicles (static, scripted and reactive; not cones) present at the start whose boxes
+    overlap each other: two cars in one place are no scenario (checked for scenario files; the
+    search's own placements are judged by its feasibility rules)."""
+    boxes = []
+    for i, p in enumerate(sc.participants):
+        if isinstance(p, StaticSpec):
+            if p.obstacle == "CONE":
+                continue
+            pose = p
+            length, width = (p.length, p.width or SIZES[p.obstacle][1]) if p.length else SIZES[p.obstacle]
+        elif isinstance(p, ScriptedSpec):
+            pose, length, width = p.waypoints[0], p.length, p.width
+            if pose.t > 0:
+                continue  # appears later
+        else:
+            pose, (length, width) = p, SIZES["VEHICLE"]
+        xy, h = pose_xyh(roadmap, pose)
+        boxes.append((i, p.id, float(xy[0]), float(xy[1]), float(h), float(length), float(width)))
+    cell = 25.0  # > the longest diagonal: overlapping boxes share a cell or touch neighbours
+    grid: dict[tuple[int, int], list[int]] = {}
+    for k, b in enumerate(boxes):
+        grid.setdefault((int(b[2] // cell), int(b[3] // cell)), []).append(k)
+    errs = []
+    for k, (i, pid, x, y, h, length, width) in enumerate(boxes):
+        cx, cy = int(x // cell), int(y // cell)
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for m in grid.get((cx + dx, cy + dy), ()):
+                    if m <= k:
+                        continue
+                    j, qid, x2, y2, h2, l2, w2 = boxes[m]
+                    if box_gap_point(x, y, h, length, width, x2, y2, h2, l2, w2) < 0.0:
+                        errs.append(f"participants.{j}: {qid!r} overlaps participants.{i} ({pid!r}) at the start "
+                                    "(two vehicles in one place)")
+                        if len(errs) >= limit:
+                            return errs
+    return errs
 
 
 def scenario_from_dict(data: dict[str, Any], source: str = "<scenario>") -> Scenario:

@@ -32,7 +32,15 @@ from deft_gym.bus.bus import Bus, Node, header
 from deft_gym.bus.jitter import JitterModel
 from deft_gym.bus.messages import LOG_START_KEY, NS_PER_S, non_finite_field, to_ns
 from deft_gym.config import ConfigError
-from deft_gym.execution.watchdog import DEFAULT_WATCHDOG_S, ModuleHang, Watchdog, watchdog_seconds
+from deft_gym.execution.watchdog import (
+    DEFAULT_WATCHDOG_S,
+    ModuleHang,
+    Watchdog,
+    describe_exception,
+    interrupts,
+    module_fault,
+    watchdog_seconds,
+)
 from deft_gym.files import write_atomic
 from deft_gym.modules.control import ControlNode
 from deft_gym.modules.planning import PlanningNode
@@ -57,8 +65,11 @@ PACKAGE_VERSION = "0.1.0"
 
 
 class WatchedSupervisor:
-    """The simulation's default bus supervisor: a module call that raises ends the episode as a
-    ``crash``, one that runs ``seconds`` of wall clock past its start as a ``hang`` (the
+    """The simulation's default bus supervisor: a module call that raises - anything, a
+    ``BaseException`` such as ``SystemExit`` or a ``KeyboardInterrupt`` the module raised itself
+    included; only the user's Ctrl-C ends the program - ends the episode as a ``crash``, one that
+    runs ``seconds`` of wall clock past its start as a ``hang``, and so does the call in progress
+    once the episode's calls took ``run_wall_s`` in all (reason ``run wall-clock cap``; the
     wall-clock :class:`~deft_gym.execution.watchdog.Watchdog`, armed while the bus runs; main
     thread only). Per call it only notes the start time, so valid runs cost nothing measurable
     and behave exactly as before. A module that publishes a NaN or an infinity on one of
@@ -66,21 +77,24 @@ class WatchedSupervisor:
     as a ``crash`` too, reason ``non-finite output``, once the message is out (so the log holds
     it); otherwise a NaN plan was tracked as full throttle and full lock, and the run timed out."""
 
-    def __init__(self, bus: Bus, seconds: float, finite_topics: frozenset[str] = frozenset()) -> None:
+    def __init__(self, bus: Bus, seconds: float, finite_topics: frozenset[str] = frozenset(),
+                 run_wall_s: float | None = None) -> None:
         self.bus = bus
-        self.dog = Watchdog(seconds)
+        self.dog = Watchdog(seconds, run_wall_s)
         self.failure: dict[str, Any] | None = None
         self.finite_topics = finite_topics
 
     def run(self, node: Node, fn: Callable[..., Any], *args: Any) -> Any:
+        before = interrupts()
         try:
             out = self.dog.call(fn, *args)
         except ModuleHang:
-            self._fail("hang", node, self.dog.message())
+            self._fail("hang", node, self.dog.message(), "run wall-clock cap" if self.dog.expired else None)
             return None
-        except Exception as exc:
-            msg = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-            self._fail("crash", node, f"{type(exc).__name__}: {msg}"[:300])
+        except BaseException as exc:  # SystemExit, KeyboardInterrupt... a module raised: a crash
+            if not module_fault(exc, before):
+                raise  # the user's Ctrl-C ends the program (the log says interrupted)
+            self._fail("crash", node, describe_exception(exc))
             return None
         if self.finite_topics and getattr(fn, "__name__", "") == "_publish":
             for topic, payload in args[0]:
@@ -116,8 +130,10 @@ def build_planner(ads: AdsConfig, sc: Scenario) -> Any:
             first = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors())
         else:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        shown = repr(dict(spec.params))
+        shown = shown if len(shown) <= 200 else shown[:200] + "...}"
         raise ConfigError(f"{getattr(ads, '_source', 'ADS config')}: planning.planner: cannot build "
-                          f"{spec.cls!r} with params {dict(spec.params)}: {first}") from None
+                          f"{spec.cls!r} with params {shown}: {first[:300]}") from None
 
 
 class SimulatorNode(Node):
@@ -193,7 +209,7 @@ class Simulation:
                  jitter_seed: int | None = None, out_dir: Path | str | None = None,
                  keep_planning: bool = True, compress: bool = False,
                  recorder_process: bool | None = None, watchdog_s: float | None = None,
-                 log_start_ns: int | None = None) -> None:
+                 log_start_ns: int | None = None, run_wall_s: float | None = None) -> None:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.ads = ads or load_ads_config()
         sc, ads = self.scenario, self.ads
@@ -202,7 +218,7 @@ class Simulation:
         self.jitter = JitterModel(ads.jitter, jitter_seed)
         self.bus = Bus(self.jitter)
         self.watch = WatchedSupervisor(self.bus, watchdog_seconds(watchdog_s),
-                                       frozenset({ads.topic("planning"), ads.topic("control")}))
+                                       frozenset({ads.topic("planning"), ads.topic("control")}), run_wall_s)
         self.bus.supervisor = self.watch
         self.bus.reliable = {ads.topic(role) for role in ads.jitter.reliable}
         self.on_step: list[Callable[[Simulation], None]] = []
@@ -247,6 +263,7 @@ class Simulation:
         self._wall = 0.0
         self._started = False
         self._result: EpisodeResult | None = None
+        self._interrupted: dict[str, Any] | None = None
         self.planning_outputs: list[dict[str, Any]] = []
         if keep_planning:
             t_plan = topics["planning"]
@@ -319,7 +336,10 @@ class Simulation:
             return self._result
         outcome = self.oracle.outcome()
         failure = self.watch.failure if self.bus.supervisor is self.watch else None
-        if failure is not None:
+        if self._interrupted is not None:  # the program was interrupted: the log must not say timeout
+            outcome = Outcome("interrupted", outcome.sim_time, outcome.collision, outcome.min_distance,
+                              {**self._interrupted, "time": outcome.sim_time})
+        elif failure is not None:
             outcome = Outcome(failure["kind"], outcome.sim_time, outcome.collision, outcome.min_distance, failure)
         elif outcome.outcome == "completed" and self.bus.published_on(self.ads.topic("planning")) == 0:
             outcome = Outcome("no_plan", outcome.sim_time, outcome.collision, outcome.min_distance,
@@ -338,12 +358,19 @@ class Simulation:
                                                        "jitter_seed": self.jitter.seed,
                                                        "participants_added": self.added}))
         self._result = result
+        close = getattr(self.planner, "close", None)  # a planner in a process of its own ends it
+        if callable(close):
+            close()
         return result
 
     def run(self) -> EpisodeResult:
-        """Run until an oracle ends the episode or the duration is over."""
+        """Run until an oracle ends the episode or the duration is over. Interrupted (Ctrl-C, or
+        an error of the tool itself), the log is closed with the outcome ``interrupted``."""
         try:
             self.advance(self.scenario.duration)
+        except BaseException as exc:
+            self._interrupted = {"kind": "interrupted", "module": None, "exception": describe_exception(exc)}
+            raise
         finally:
             result = self.finish()
         return result

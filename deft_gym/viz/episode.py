@@ -153,8 +153,8 @@ def load_episode(log: Path | str) -> Episode:
             elif topic == t_plan:
                 tr = (p or {}).get("trajectory") or {}
                 with contextlib.suppress(KeyError, TypeError, ValueError):
-                    plans.append((_f((p.get("header") or {}).get("stamp", t)), np.asarray(tr["x"], float),
-                                  np.asarray(tr["y"], float)))
+                    plans.append((_f((p.get("header") or {}).get("stamp", t)), _finite(np.asarray(tr["x"], float)),
+                                  _finite(np.asarray(tr["y"], float))))
             elif topic == t_map and not lanes:
                 lanes, stops = _map(p)
     source = "scene" if scene_parts or scene_ego else "perception"
@@ -182,10 +182,18 @@ def _json(v: str) -> Any:
 
 
 def _f(v: Any) -> float:
+    """A number to draw: NaN (not drawn) for what is no finite number - an infinite heading in a
+    stress finding's log used to end its plot and video with "math domain error"."""
     try:
-        return float(v)
-    except (TypeError, ValueError):
+        x = float(v)
+    except (TypeError, ValueError, OverflowError):
         return float("nan")
+    return x if math.isfinite(x) else float("nan")
+
+
+def _finite(a: np.ndarray) -> np.ndarray:
+    """``a`` with every non-finite value NaN (matplotlib leaves NaN points out)."""
+    return np.where(np.isfinite(a), a, np.nan)
 
 
 def _scene(p: dict[str, Any], t: float, ego: list[Any], parts: dict[str, Track]) -> None:
@@ -215,8 +223,8 @@ def _map(p: dict[str, Any]) -> tuple[list[tuple[np.ndarray, float]], list[tuple[
     widths: dict[str, float] = {}
     for lane in p.get("lanes") or []:
         try:
-            xy = np.column_stack([np.asarray(lane["x"], float), np.asarray(lane["y"], float)])
-            lanes.append((xy, float(lane["width"])))
+            xy = _finite(np.column_stack([np.asarray(lane["x"], float), np.asarray(lane["y"], float)]))
+            lanes.append((xy, _f(lane["width"])))
             widths[json.dumps(lane["id"])] = float(lane["width"])
         except (KeyError, TypeError, ValueError):
             continue

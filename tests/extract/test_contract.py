@@ -153,3 +153,33 @@ def test_search_is_right_when_restore_is_not_faithful(tmp_path) -> None:
     assert any("not faithful" in w for w in s["warnings"])
     code, outcomes, log = run_pytest(Path(out.test_path).parent)
     assert code == 0 and set(outcomes.values()) == {"passed"}, log[-1500:]
+
+
+class CounterPlanner(LatticePlanner):
+    """Keeps a counter outside self.state that changes its plan only after 10,000 calls: no
+    frame of a short log exercises it, so the output checks all pass - the attributes do not."""
+
+    def __init__(self, map_spec: dict[str, Any], **params: Any) -> None:
+        super().__init__(map_spec, **params)
+        self.calls = 0
+
+    def plan(self, frame: Any) -> dict[str, Any] | None:
+        self.calls += 1
+        out = super().plan(frame)
+        if out is not None and self.calls > 10_000:
+            out["trajectory"]["x"] = [x + 1.0 for x in out["trajectory"]["x"]]
+        return out
+
+
+def test_hidden_state_the_frames_never_exercise_is_flagged(frames) -> None:
+    """check-planner used to pass a planner whose state outside self.state no given frame made
+    visible; it now names the attribute plan() changed and the first frame it did so, while the
+    reference planner (whose memo caches are declared in `caches`) passes."""
+    spec, fr = frames
+    report = check_contract(_make(CounterPlanner, spec), fr[:10])
+    assert report.checks["snapshot_restore"] == "ok" and report.checks["deterministic"] == "ok"
+    assert report.checks["hidden_state"] == "violated"
+    (v,) = [v for v in report.violations if v.check == "hidden_state"]
+    assert v.frame == 0 and "self.calls" in v.message
+    assert check_contract(_make(LatticePlanner, spec), fr[:10]).checks["hidden_state"] == "ok"
+    assert check_contract(_make(HiddenStatePlanner, spec), fr[:10]).checks["hidden_state"] == "violated"

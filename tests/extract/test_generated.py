@@ -126,3 +126,24 @@ def test_cli_bad_input_is_one_clear_line(tmp_path) -> None:
         assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("error: ")
     assert _cli("--help").returncode == 0
     assert _cli("x.mcap").returncode == 2  # --out is required
+
+
+def test_a_second_regression_later_in_the_episode_fails_too(collision) -> None:
+    """Frames after a divergence are consequences only while they differ one after the other: a
+    planner changed in two separate windows of frames fails twice (the first frame of each
+    window), xfails the rest of each window, and passes the frames between and after them that
+    replay equal - they used to be xfailed as consequences of the first, hiding the second."""
+    res, _ = collision
+    index = json.loads(Path(res.frames_path).read_text().splitlines()[0])["frames_index"]
+    times = [f["time"] for f in index]
+    n = len(times)
+    assert n > 30
+    w1, w2 = (times[5] - 1e-6, times[8] + 1e-6), (times[20] - 1e-6, times[23] + 1e-6)
+    _, outcomes, log = run_pytest(res.test_path.parent, "-k", "reproduces", "-rx",
+                                  env={"DEFT_PLANNER": "tests.support.extract_support:WindowedPlanner",
+                                       "DEFT_WINDOWS": json.dumps([w1, w2])})
+    got = [v for _, v in sorted(_reproduction(outcomes).items())]
+    want = ["passed"] * 5 + ["failed"] + ["skipped"] * 3 + ["passed"] * 11 + ["failed"] + ["skipped"] * 3 + \
+        ["passed"] * (n - 24)
+    assert got == want, log[-2000:]
+    assert "a divergence of its own" in log and "a consequence of frame 5" in log and "a consequence of frame 20" in log

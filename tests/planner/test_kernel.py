@@ -302,3 +302,61 @@ def test_near_matches_numpy() -> None:
         assert kernel.near(oxy, ex, ey, reach2) == want
     with pytest.raises(ValueError, match="oxy: dimension 0 is 3, expected 2"):
         kernel.near(np.zeros((3, 1, 4)), 0.0, 0.0, 1.0)
+
+
+# -- a compiled kernel never overrides an edited source ---------------------------------------------
+KERNELS = [("deft_gym.planner._lattice_c", "deft_gym/planner/_lattice_c.c", "deft_gym/planner/lattice.py"),
+           ("deft_gym.modules._control_c", "deft_gym/modules/_control_c.c", "deft_gym/modules/control.py"),
+           ("deft_gym.record._snapshot_c", "deft_gym/record/_snapshot_c.c", "deft_gym/record/worker.py")]
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize("name, c_source, mirrors", KERNELS)
+def test_a_kernel_built_before_an_edit_of_its_sources_is_not_used(name, c_source, mirrors, tmp_path) -> None:
+    """Each kernel records the digests of its C source and of the Python file it stands in for
+    (setup.py): the build here matches the files beside it; a copy of either file with one edit
+    makes it stale (an edit of lattice.py used to have no effect while the old kernel ran), and
+    checked_kernel then gives None (the Python version) with a warning saying to rebuild."""
+    import importlib
+
+    from deft_gym.files import checked_kernel, stale_kernel
+
+    kernel = importlib.import_module(name)
+    assert stale_kernel(kernel, ROOT / c_source, ROOT / mirrors) is None  # this build is current
+    for edited in (c_source, mirrors):
+        copies = {p: tmp_path / Path(p).name for p in (c_source, mirrors)}
+        for p, q in copies.items():
+            q.write_bytes((ROOT / p).read_bytes() + (b"\n# an edit\n" if p == edited else b""))
+        why = stale_kernel(kernel, copies[c_source], copies[mirrors])
+        assert why is not None and Path(edited).name in why
+        with pytest.warns(RuntimeWarning, match="using the Python version"):
+            assert checked_kernel(kernel, copies[c_source], copies[mirrors]) is None
+    old = SimpleNamespace(__name__=name)  # a build from before the digests were recorded
+    assert "records no digests" in stale_kernel(old, ROOT / c_source, ROOT / mirrors)
+
+
+def test_the_planner_fingerprint_covers_every_source_the_planner_runs(tmp_path) -> None:
+    """The fingerprint a log records of its planner (source_sha256) is the digest of the class's
+    file, the modules of its package and of deft_gym it imports (decision.py for the lattice
+    planner) and the C sources of its kernels: it used to cover lattice.py only, so an edit of
+    decision.py went unseen by the generated tests."""
+    from deft_gym.planner.base import _digest_of, planner_sources, source_digest
+    from deft_gym.planner.lattice import LatticePlanner
+    from tests.support.fault_planners import FaultyPlanner
+
+    names = {p.name for p in planner_sources(LatticePlanner)}
+    assert {"lattice.py", "decision.py", "base.py", "_lattice_c.c", "geometry.py", "roadmap.py"} <= names
+    assert not any("site-packages" in str(p) for p in planner_sources(LatticePlanner))
+    assert {"fault_planners.py", "lattice.py", "decision.py"} <= {p.name for p in planner_sources(FaultyPlanner)}
+    files = planner_sources(LatticePlanner)
+    copies = []
+    for p in files:
+        q = tmp_path / p.name
+        q.write_bytes(p.read_bytes())
+        copies.append(q)
+    key = lambda fs: tuple((str(f), 0, 0) for f in fs)  # noqa: E731
+    assert _digest_of(key(copies)) == source_digest(LatticePlanner)
+    decision = next(q for q in copies if q.name == "decision.py")
+    decision.write_bytes(decision.read_bytes() + b"\n# an edit\n")
+    _digest_of.cache_clear()
+    assert _digest_of(key(copies)) != source_digest(LatticePlanner)

@@ -109,3 +109,21 @@ class HiddenStatePlanner(LatticePlanner):
             shift = 0.0025 * (self._v_filtered > 4.0)
             out["trajectory"]["x"] = [x + shift for x in out["trajectory"]["x"]]
         return out
+
+
+class WindowedPlanner(LatticePlanner):
+    """The reference planner whose outputs (never its state) are shifted 0.5 m sideways while the
+    frame time is inside one of ``DEFT_WINDOWS`` (JSON ``[[t0, t1], ...]`` from the environment):
+    a regression confined to those frames - between and after them it plans exactly as the
+    reference planner does."""
+
+    def plan(self, frame: Any) -> dict[str, Any] | None:
+        import copy
+        import json
+
+        out = super().plan(frame)
+        windows = json.loads(os.environ.get("DEFT_WINDOWS", "[]"))
+        if out is not None and any(t0 <= frame.time <= t1 for t0, t1 in windows):
+            out = copy.deepcopy(out)
+            out["trajectory"]["y"] = [y + 0.5 for y in out["trajectory"]["y"]]
+        return out

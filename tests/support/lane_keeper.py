@@ -25,6 +25,8 @@ from deft_gym.planner.base import Frame, Planner
 
 
 class LaneKeeperPlanner(Planner):
+    caches = ("_lanes", "_map_key")  # the lane index of the map message (a cache, not state)
+
     """Route-following lane keeper with an IDM speed profile (see the module docstring)."""
 
     inputs = ("map", "routing", "localization", "traffic_light", "prediction")
