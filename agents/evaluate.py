@@ -138,7 +138,9 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
         value = getattr(args, key)
         flags[key] = ("--" + key, common.split_list(value) if value is not None else None)
     data.setdefault("workers", common.cpus())
-    from deft_gym.models import resolve_model  # --model default: the adversary shipped in the package
+    from deft_gym.models import (
+        resolve_model,  # --model default: the adversary shipped in the package
+    )
 
     if isinstance(data.get("model"), str):
         data["model"] = resolve_model(data["model"])
