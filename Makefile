@@ -1,6 +1,7 @@
 # DeFT-Gym: `make demo` runs the main job end to end on a small budget, `make test` the test suite.
 # Both create .venv on first use with Python 3.11 (and no other version), torch==2.13.0 (CPU) first
-# so that pip never resolves a CUDA build, and the ray extra, so the Ray backend's tests run too.
+# so that pip never resolves a CUDA build, the ray extra, so the Ray backend's tests run too, and the
+# commonroad extra (CommonRoad's reactive planner), so its adapter's tests run.
 
 PYTHON ?= python3.11
 VENV   := .venv
@@ -30,7 +31,7 @@ $(STAMP): pyproject.toml setup.py deft_gym/planner/_lattice_c.c deft_gym/modules
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -qq --upgrade pip
 	$(PY) -m pip install -qq torch==2.13.0
-	$(PY) -m pip install -qq -e ".[dev,ray]"
+	$(PY) -m pip install -qq -e ".[dev,ray,commonroad]"
 	$(PY) -c "import deft_gym, extract, agents" && touch $(STAMP)
 
 demo: $(STAMP)
