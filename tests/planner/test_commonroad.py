@@ -290,3 +290,20 @@ def test_it_can_be_seeded_from_a_recorded_state(episode) -> None:
     fresh.load_state(live.export_state())
     expected = {k2: res.planning[k][k2] for k2 in ("trajectory", "decision")}
     assert fresh.plan(frames[k]) == expected
+
+
+@pytest.mark.slow
+def test_the_adversary_env_runs_against_it() -> None:
+    """The campaigns' env takes the planner from its ADS config (env.ads): the seed's reference
+    run and every episode run CommonRoad's planner."""
+    from deft_gym.envs.adversary import AdversaryEnv
+
+    env = AdversaryEnv(config={"scenarios": ["cross_intersection"], "ads": "configs/ads/commonroad.yaml"})
+    try:
+        env.reset(seed=0)
+        assert env.ctx.ads.planning.planner.cls == CLASS and isinstance(env.sim.planner, CommonRoadPlanner)
+        assert env.ctx.ref.outcome == "completed"
+        _, _, _, _, info = env.step(env.action_space.sample())
+        assert info["t"] > 0 and isinstance(env.sim.planner, CommonRoadPlanner)
+    finally:
+        env.close()
