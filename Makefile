@@ -1,7 +1,8 @@
 # DeFT-Gym: `make demo` runs the main job end to end on a small budget, `make test` the test suite.
 # Both create .venv on first use with Python 3.11 (and no other version), torch==2.13.0 (CPU) first
 # so that pip never resolves a CUDA build, the ray extra, so the Ray backend's tests run too, and the
-# export extra (OpenSCENARIO / CommonRoad export and their independent checkers), so its tests run.
+# export extra (OpenSCENARIO / CommonRoad export and their independent checkers) and the commonroad
+# extra (CommonRoad's reactive planner), so their tests run.
 
 PYTHON ?= python3.11
 VENV   := .venv
@@ -36,7 +37,7 @@ $(STAMP): pyproject.toml setup.py $(KERNEL_SOURCES) | check-python
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -qq --upgrade pip
 	$(PY) -m pip install -qq torch==2.13.0
-	$(PY) -m pip install -qq -e ".[dev,ray,export]"
+	$(PY) -m pip install -qq -e ".[dev,ray,commonroad,export]"
 	$(PY) -c "import deft_gym, extract, agents" && touch $(STAMP)
 
 demo: $(STAMP)

@@ -124,7 +124,16 @@ def check_train_settings(cfg: TrainConfig, source: Path | str | None) -> None:
                               f"{sorted(policy_params)}")
     if cfg.algo_kwargs.get("n_steps", params["n_steps"].default) * cfg.n_envs < 2:
         raise ConfigError(f"{name}: algo_kwargs.n_steps: n_steps x n_envs must be at least 2")
-    from deft_gym.search.context import resolve_scenario  # names, paths, gen:<seed>, <name>~v<seed>
+    from deft_gym.search.context import (  # names, paths, gen:<seed>, <name>~v<seed>
+        ads_config,
+        resolve_scenario,
+    )
+
+    if cfg.env.ads is not None:
+        try:
+            ads_config(cfg.env.ads)
+        except ConfigError as err:
+            raise ConfigError(f"{name}: env.ads: {err}") from None
 
     seen: set[str] = set()
     for i, scenario in enumerate(cfg.env.scenarios):

@@ -84,6 +84,9 @@ class EvalConfig(BaseModel):
     placements: list[Literal["closest", "uniform"]] = Field(
         default_factory=lambda: ["closest", "uniform"], min_length=1,
         description="placement rules every method runs under (one table row per method and placement)")
+    ads: str | None = Field(None, description="ADS config YAML every method runs on, the planner under test "
+                            "included (default: the model's training env.ads, else configs/ads/default.yaml), "
+                            "e.g. configs/ads/commonroad.yaml")
 
 
 def build_parser() -> common.Parser:
@@ -105,6 +108,7 @@ def build_parser() -> common.Parser:
                    help="placement rules, of closest, uniform (default: both)")
     p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl', or 'default': the "
                    "adversary shipped in the package (deft_gym/models/adversary; default: none)")
+    common.add_ads_config(p, "the config's ads, else the model's training env.ads, else configs/ads/default.yaml")
     p.add_argument("--deterministic", action="store_true", default=None, help="greedy RL actions (default: off)")
     p.add_argument("--workers", type=common.positive_int, default=None, metavar="N",
                    help=f"parallel worker processes (default: the config's, else the CPUs, {common.cpus()} here)")
@@ -134,14 +138,15 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
     flags: dict[str, tuple[str, Any]] = {}
     for key in ("budget", "repeats", "held_out", "variants", "model", "deterministic", "workers", "seed", "log_failures"):
         flags[key] = ("--" + key.replace("_", "-"), getattr(args, key))
+    ads_flag = getattr(args, "ads_config", None)
+    flags["ads"] = ("--ads-config", str(ads_flag) if ads_flag is not None else None)
     for key in ("methods", "scenarios", "placements"):
         value = getattr(args, key)
         flags[key] = ("--" + key, common.split_list(value) if value is not None else None)
     data.setdefault("workers", common.cpus())
-    from deft_gym.models import (
-        resolve_model,  # --model default: the adversary shipped in the package
-    )
+    from deft_gym.models import resolve_model
 
+    # --model default: the adversary shipped in the package
     if isinstance(data.get("model"), str):
         data["model"] = resolve_model(data["model"])
     if isinstance(flags["model"][1], str):
@@ -151,6 +156,13 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
     def where(key: str) -> str:  # a problem names the flag that set the value, else the file's field
         return flags[key][0] if flags[key][1] is not None else f"{name}: {key}"
 
+    if cfg.ads is not None:
+        from deft_gym.search.context import ads_config
+
+        try:
+            ads_config(cfg.ads)
+        except ConfigError as err:
+            raise ConfigError(f"{where('ads')}: {err}") from None
     bad = [m for m in cfg.methods if m not in METHODS]
     if bad:
         raise ConfigError(f"{where('methods')}: unknown {bad}; expected some of {list(METHODS)}")
@@ -262,18 +274,19 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
     from deft_gym.search.trace import code_fingerprint
 
     code = code_fingerprint()  # the simulation code this job ran (a changed planner shows here)
-    key = scenario_key(scenario)  # and the scenario's content (an edited scenario file shows here)
+    key = scenario_key(scenario, env_cfg.ads)  # and the scenario's content (an edited scenario file shows
+    # here), the ADS config and the source of a planner the fingerprint does not hash
     return [{**base, **r, "code": code, "scenario_key": key} for r in recs]
 
 
-def scenario_key(spec: str) -> str:
-    """Hash of a scenario's content, the default ADS config and the simulation code: a record
-    made on another version of any of them is stale."""
-    from deft_gym.bus.ads import load_ads_config
-    from deft_gym.search.context import resolve_scenario
+def scenario_key(spec: str, ads: str | None = None) -> str:
+    """Hash of a scenario's content, the ADS config (``ads``, default: the default one; its
+    planner's source when that is not the default planner) and the simulation code: a record made
+    on another version of any of them is stale."""
+    from deft_gym.search.context import ads_config, resolve_scenario
     from deft_gym.search.trace import content_key
 
-    return content_key(resolve_scenario(spec), load_ads_config(), 0)
+    return content_key(resolve_scenario(spec), ads_config(ads), 0)
 
 
 def _log_root(job: dict[str, Any]) -> Path:
@@ -411,6 +424,11 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
     out.mkdir(parents=True, exist_ok=True)
     seeds = list(cfg.scenarios)
     env = model_env_config(cfg.model)
+    if cfg.ads is not None:  # the planner under test: the evaluation's, else the one the model trained on
+        env["ads"] = cfg.ads
+    from deft_gym.search.context import ads_config
+
+    ads = ads_config(env.get("ads"))
     held_out = []
     if cfg.held_out:
         from deft_gym.scenarios.generate import HELD_OUT_BASE as GEN_BASE
@@ -418,7 +436,7 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
         from deft_gym.search.context import robust_generated
 
         con.print(f"choosing {cfg.held_out} robust held-out generated scenario(s) ...")
-        held_out += robust_generated(cfg.held_out, GEN_BASE)
+        held_out += robust_generated(cfg.held_out, GEN_BASE, ads=ads)
         trained = [parse_spec(s) for s in env.get("scenarios", []) if isinstance(s, str)]
         try:
             disjoint([t for t in trained if t is not None], [parse_spec(h) for h in held_out])  # type: ignore[misc]
@@ -430,7 +448,7 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
 
         con.print(f"choosing {cfg.variants} robust held-out variant(s) per seed ...")
         for s in seeds:
-            held_out += held_out_variants(s, cfg.variants, HELD_OUT_BASE) if "~v" not in s else []
+            held_out += held_out_variants(s, cfg.variants, HELD_OUT_BASE, ads=ads) if "~v" not in s else []
     env["max_added"] = env.get("max_added", cfg.max_added)
     rec_path = out / "records.jsonl"
     done: dict[tuple[str, str, str, int], int] = defaultdict(int)
@@ -440,7 +458,7 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
         from deft_gym.search.trace import code_fingerprint
 
         code = code_fingerprint()
-        keys = {name: scenario_key(name) for name in seeds + held_out}
+        keys = {name: scenario_key(name, env.get("ads")) for name in seeds + held_out}
         records = read_jsonl(rec_path)
         earlier = list(records)
         stale = sum(1 for r in records if r.get("code") != code
@@ -470,7 +488,7 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
                                  "repeat": rep, "budget": cfg.budget, "seed": cfg.seed * 1000 + rep, "env": env,
                                  "model": cfg.model, "deterministic": cfg.deterministic, "out": str(out),
                                  "log_failures": cfg.log_failures, "max_added": cfg.max_added})
-    write_json_atomic(out / "eval_config.json", {**cfg.model_dump(), "held_out": held_out})
+    write_json_atomic(out / "eval_config.json", {**cfg.model_dump(), "ads": env.get("ads"), "held_out": held_out})
     # rewrite the journal without partial jobs and stale records (set aside, never deleted), then
     # append as jobs finish
     kept, aside = {id(r) for r in records}, out / "records.set_aside.jsonl"

@@ -15,6 +15,7 @@ needs to judge whether a competent driver would call it a failure.
 
 from __future__ import annotations
 
+import json
 import math
 from collections import defaultdict
 from pathlib import Path
@@ -34,6 +35,7 @@ def build_parser() -> common.Parser:
                    help="failures re-simulated and drawn per root cause (default: 2)")
     p.add_argument("--methods", nargs="+", action=common.ListAction, default=None, metavar="METHOD",
                    help="only these methods' failures (default: all)")
+    common.add_ads_config(p, "the evaluation's (eval_config.json), else configs/ads/default.yaml")
     common.add_out(p, None, "output folder (default: FOLDER/findings)")
     common.add_output_flags(p)
     return p
@@ -51,12 +53,13 @@ def split_equivalent(rec: dict[str, Any]) -> tuple[dict[str, Any], dict[str, flo
     return eq, None, int(rec["jitter_seed"])
 
 
-def resimulate(rec: dict[str, Any]) -> tuple[Any, Any]:
-    """``(context, run)``: the record's failure simulated again with its jitter seed."""
-    from deft_gym.search.context import seed_context
+def resimulate(rec: dict[str, Any], ads: str | None = None) -> tuple[Any, Any]:
+    """``(context, run)``: the record's failure simulated again with its jitter seed (on the ADS
+    config ``ads``, default: the default one)."""
+    from deft_gym.search.context import ads_config, seed_context
     from deft_gym.search.episode import run_scenario
 
-    ctx = seed_context(rec["scenario"])
+    ctx = seed_context(rec["scenario"], ads=ads_config(ads))
     data, added_at, jitter = split_equivalent(rec)
     specs = data["participants"][len(ctx.scenario.participants):]
     return ctx, run_scenario(ctx, specs, jitter, added_at=added_at)
@@ -159,6 +162,9 @@ def main(argv: list[str] | None = None) -> int:
             raise RecordError(f"{rec_path}: no such file")
         raw = read_jsonl(rec_path)
         rows, _ = normalize(raw, str(rec_path))
+        ads = str(args.ads_config) if args.ads_config is not None else None
+        if ads is None and (folder / "eval_config.json").exists():  # the ADS the evaluation ran on
+            ads = json.loads((folder / "eval_config.json").read_text()).get("ads")
     except (RecordError, ValueError) as err:
         return common.cli_error(str(err))
     by_cause: dict[str, list[dict[str, Any]]] = defaultdict(list)
@@ -171,11 +177,11 @@ def main(argv: list[str] | None = None) -> int:
         con.print("no counted failures in the records")
         return 0
     with common.locked_out(out):
-        return _draw(args, con, out, by_cause, counts)
+        return _draw(args, con, out, by_cause, counts, ads)
 
 
 def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any]]],
-          counts: dict[str, dict[str, int]]) -> int:
+          counts: dict[str, dict[str, int]], ads: str | None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     causes = sorted(by_cause, key=lambda c: (-len(by_cause[c]), c))
     sample = [(c, r) for c in causes
@@ -196,7 +202,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             if cause != current:
                 lines += ["", f"## `{cause}`", ""]
                 current = cause
-            ctx, run = resimulate(rec)
+            ctx, run = resimulate(rec, ads)
             v = run.verdict
             same = v.signature == rec.get("signature") and v.failure == rec.get("failure")
             name = f"{n:03d}_{rec['method']}_{rec['scenario'].replace(':', '_')}_r{rec['repeat']}_{rec['index']}.png"

@@ -57,6 +57,7 @@ def build_parser() -> common.Parser:
     common.add_seed(p, None, "seed of the learner and the envs (default: the config's)")
     p.add_argument("--n-envs", type=int, default=None, help="parallel envs (default: the config's)")
     p.add_argument("--algo", choices=ALGOS, default=None, help="algorithm (default: the config's)")
+    common.add_ads_config(p, "the config's env.ads, else configs/ads/default.yaml")
     common.add_render(p)
     common.add_watchdog(p)
     common.add_output_flags(p)
@@ -412,16 +413,18 @@ def _main(args: argparse.Namespace) -> int:
     try:
         cfg = load_train_config(args.config, {"timesteps": args.timesteps, "seed": args.seed,
                                               "n_envs": args.n_envs, "algo": args.algo})
+        if args.ads_config is not None:  # the planner under test (and the rest of the ADS)
+            cfg = cfg.model_copy(update={"env": cfg.env.model_copy(update={"ads": str(args.ads_config)})})
         backend = backend_from_args(args, cfg.n_envs)
         check_train_settings(cfg, args.config)
     except ConfigError as err:
         return common.cli_error(str(err))
     con = common.console(args)
     if cfg.generated:
-        from deft_gym.search.context import robust_generated
+        from deft_gym.search.context import ads_config, robust_generated
 
         con.print(f"choosing {cfg.generated} robust generated training scenario(s) ...")
-        names = robust_generated(cfg.generated, 0)
+        names = robust_generated(cfg.generated, 0, ads=ads_config(cfg.env.ads))
         cfg = cfg.model_copy(update={"env": cfg.env.model_copy(update={"scenarios": list(cfg.env.scenarios) + names}),
                                      "generated": 0})
         con.print(f"training on {len(cfg.env.scenarios)} scenarios ({len(names)} generated)")

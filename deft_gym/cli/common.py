@@ -164,6 +164,14 @@ def add_jitter_seed(p: argparse.ArgumentParser, help: str = "jitter seed of the 
                    help=f"{help} (default: fresh seeds from the OS, recorded in the output)")
 
 
+def add_ads_config(p: argparse.ArgumentParser, default: str = "configs/ads/default.yaml") -> None:
+    """``--ads-config YAML``: the ADS the campaign runs on, its planner included (e.g.
+    ``configs/ads/commonroad.yaml``: CommonRoad's reactive planner)."""
+    p.add_argument("--ads-config", type=Path, default=None, metavar="YAML",
+                   help=f"ADS config, the planner under test included, e.g. configs/ads/commonroad.yaml "
+                        f"(default: {default})")
+
+
 def add_output_flags(p: argparse.ArgumentParser) -> None:
     """``--no-progress`` and ``--quiet``."""
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

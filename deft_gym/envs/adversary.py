@@ -55,7 +55,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from deft_gym.config import load_mapping, validate
 from deft_gym.envs.sink import EpisodeSink
 from deft_gym.scenarios.scenario import with_participants
-from deft_gym.search.context import SEED_SCENARIOS, SeedContext, robust, seed_context
+from deft_gym.search.context import SEED_SCENARIOS, SeedContext, ads_config, robust, seed_context
 from deft_gym.search.episode import run_scenario
 from deft_gym.search.feasible import FeasibleConfig, Layout
 from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH, IN_LANE
@@ -105,6 +105,9 @@ class AdversaryConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     scenarios: list[str] = Field(default_factory=lambda: list(SEED_SCENARIOS), min_length=1)
+    ads: str | None = Field(None, description="ADS config YAML the scenarios run on (default: "
+                            "configs/ads/default.yaml); configs/ads/commonroad.yaml puts CommonRoad's reactive "
+                            "planner under test")
     objective: Literal["collision", "nods", "both"] = "both"
     variant_prob: float = Field(0.0, ge=0.0, le=1.0, description="share of episodes on a training variant")
     variant_seeds: int = Field(200, ge=1, description="training variants use seeds [0, variant_seeds)")
@@ -137,13 +140,14 @@ class AdversaryConfig(BaseModel):
     def context(self, scenario: str | Path) -> SeedContext:
         """The :class:`SeedContext` of a scenario under this config's feasible areas, reference
         seed and decision oracle (memoised per process by name: resolving a name reads files)."""
-        key = (str(scenario), self.feasible, self.reference_seed, self.grid, self.threshold)
+        key = (str(scenario), self.ads, self.feasible, self.reference_seed, self.grid, self.threshold)
         ctx = _CONTEXTS.get(key)
         if ctx is None:
             if len(_CONTEXTS) > 512:
                 _CONTEXTS.clear()
-            ctx = _CONTEXTS[key] = seed_context(scenario, self.feasible, reference_seed=self.reference_seed,
-                                                grid=self.grid, threshold=self.threshold)
+            ctx = _CONTEXTS[key] = seed_context(scenario, self.feasible, ads_config(self.ads),
+                                                reference_seed=self.reference_seed, grid=self.grid,
+                                                threshold=self.threshold)
         return ctx
 
 

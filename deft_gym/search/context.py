@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from deft_gym.bus.ads import AdsConfig, load_ads_config
-from deft_gym.config import ConfigError
+from deft_gym.config import ConfigError, resolve_config_path
 from deft_gym.planner.base import import_object
 from deft_gym.scenarios.generate import resolve as resolve_generated
 from deft_gym.scenarios.scenario import Scenario, list_scenarios, load_scenario
@@ -66,6 +66,20 @@ def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRE
     if text not in names:
         raise ConfigError(f"scenario {text!r}: not a file and not one of {names}")
     return load_scenario(text)
+
+
+_ADS: dict[str, AdsConfig] = {}
+
+
+def ads_config(path: str | Path | None = None) -> AdsConfig:
+    """The ADS config a campaign runs on (memoised per process): ``path`` (a YAML file; ``configs/...``
+    also names a shipped config in an installed package), or ``configs/ads/default.yaml``. Naming
+    ``configs/ads/commonroad.yaml`` runs every campaign against CommonRoad's reactive planner."""
+    key = str(path) if path else ""
+    ads = _ADS.get(key)
+    if ads is None:
+        ads = _ADS[key] = load_ads_config(resolve_config_path(path) if path else None)
+    return ads
 
 
 @dataclass
@@ -147,28 +161,32 @@ def robust(ctx: SeedContext, runs: int = 8, cache_dir: Path | str | None = CACHE
     return ok
 
 
-def _first_robust(names: Iterable[str], count: int) -> list[str]:
-    """The first ``count`` of ``names`` whose context is robust (see :func:`robust`); names that
-    do not resolve or whose reference run fails are skipped."""
+def _first_robust(names: Iterable[str], count: int, ads: AdsConfig | None = None) -> list[str]:
+    """The first ``count`` of ``names`` whose context (under ``ads``, default: the default ADS
+    config) is robust (see :func:`robust`); names that do not resolve or whose reference run fails
+    are skipped."""
     out: list[str] = []
     for name in names:
         if len(out) >= count:
             break
         try:
-            if robust(seed_context(name)):
+            if robust(seed_context(name, ads=ads)):
                 out.append(name)
         except (ValueError, ConfigError):
             continue
     return out
 
 
-def held_out_variants(seed_name: str, count: int, base: int = 1_000_000, tries: int = 20) -> list[str]:
-    """The first ``count`` robust perturbed variants ``<seed>~v<base + i>`` of a seed scenario."""
-    return _first_robust((f"{seed_name}~v{base + i}" for i in range(tries)), count)
+def held_out_variants(seed_name: str, count: int, base: int = 1_000_000, tries: int = 20,
+                      ads: AdsConfig | None = None) -> list[str]:
+    """The first ``count`` robust perturbed variants ``<seed>~v<base + i>`` of a seed scenario
+    (under ``ads``: robust for the planner it names)."""
+    return _first_robust((f"{seed_name}~v{base + i}" for i in range(tries)), count, ads)
 
 
-def robust_generated(count: int, base: int, tries: int | None = None) -> list[str]:
+def robust_generated(count: int, base: int, tries: int | None = None, ads: AdsConfig | None = None) -> list[str]:
     """The first ``count`` robust generated scenarios ``gen:<seed>`` from seed ``base`` on (their
-    reference run completes and their unmutated runs stay consistent under timing noise); at most
-    ``tries`` seeds are looked at (default ``4 count + 20``)."""
-    return _first_robust((f"gen:{base + i}" for i in range(tries if tries is not None else 4 * count + 20)), count)
+    reference run completes and their unmutated runs stay consistent under timing noise; under
+    ``ads``: for the planner it names); at most ``tries`` seeds are looked at (default ``4 count + 20``)."""
+    seeds = range(tries if tries is not None else 4 * count + 20)
+    return _first_robust((f"gen:{base + i}" for i in seeds), count, ads)

@@ -21,9 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from deft_gym.bus.ads import AdsConfig, load_ads_config
+from deft_gym.bus.ads import AdsConfig, PlannerSpec, load_ads_config
 from deft_gym.config import cache_dir
 from deft_gym.files import write_atomic
+from deft_gym.planner.base import planner_fingerprint
 from deft_gym.scenarios.scenario import Scenario, scenario_to_dict
 
 CACHE_DIR = cache_dir() / "reference"
@@ -192,7 +193,10 @@ def decision_entry(d: dict[str, Any]) -> dict[str, Any]:
 # not part of what a run computes: this package's own modules, tools and the log writer
 _NOT_SIMULATION_PACKAGES = ("envs", "search", "robustness", "cli", "viz", "execution", "experiments",
                             "metrics", "export", "models")  # metrics: planned (issue 33); models: data
-_NOT_SIMULATION_FILES = ("__init__.py", "record/recorder.py", "scenarios/variants.py")
+# planner/commonroad.py: a third-party planner's adapter that no run uses unless its ADS config
+# names it; such a run's cache keys hash its source instead (content_key), so that adding or
+# changing it leaves every other run's fingerprint and caches alone
+_NOT_SIMULATION_FILES = ("__init__.py", "record/recorder.py", "scenarios/variants.py", "planner/commonroad.py")
 _FINGERPRINT: list[str] = []
 
 
@@ -223,11 +227,28 @@ def code_fingerprint(root: Path | None = None, read: Any = None) -> str:
 
 
 def content_key(sc: Scenario, ads: AdsConfig, jitter_seed: int) -> str:
-    """Hash of everything a reference run depends on (scenario, ADS config, seed, code)."""
-    blob = json.dumps({"scenario": scenario_to_dict(sc), "ads": ads.model_dump(mode="json", by_alias=True),
-                       "jitter_seed": jitter_seed, "format": TRACE_FORMAT, "code": code_fingerprint()},
-                      sort_keys=True)
+    """Hash of everything a reference run depends on (scenario, ADS config, seed, code; and the
+    source of the configured planner when it is not the default, whose code
+    :func:`code_fingerprint` may not hash: a third-party adapter, a user's planner)."""
+    data = {"scenario": scenario_to_dict(sc), "ads": ads.model_dump(mode="json", by_alias=True),
+            "jitter_seed": jitter_seed, "format": TRACE_FORMAT, "code": code_fingerprint()}
+    planner = planner_source(ads)
+    if planner is not None:
+        data["planner_source"] = planner
+    blob = json.dumps(data, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def planner_source(ads: AdsConfig) -> str | None:
+    """The SHA-256 of the source file of the ADS config's planner class, or None for the default
+    planner (hashed with the simulation code) - so that the default's keys stay what they were."""
+    cls = ads.planning.planner.cls
+    if cls == PlannerSpec.model_fields["cls"].default:
+        return None
+    return _PLANNER_SOURCES.get(cls) or _PLANNER_SOURCES.setdefault(cls, planner_fingerprint(cls))
+
+
+_PLANNER_SOURCES: dict[str, str] = {}
 
 
 def record_run(sc: Scenario, ads: AdsConfig | None = None, jitter_seed: int = 0) -> Trace:

@@ -1,0 +1,309 @@
+"""CommonRoad's reactive planner behind the planner interface (deft_gym/planner/commonroad.py): a
+planner nobody here wrote, shipped as a target. Its hidden state (the library's ``_low_vel_mode``)
+carried exactly, the planner contract on hand-made and on recorded frames, the seed scenarios
+through the simulation, extraction reproducing every output, its ADS config and what it does to the
+code fingerprint. Skipped without the extra (``pip install -e ".[commonroad]"``; ``make test``
+installs it)."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+pytest.importorskip("commonroad_rp.reactive_planner", reason="CommonRoad's reactive planner is not installed: "
+                    "pip install -e '.[commonroad]' (make test installs it)")
+
+from deft_gym.bus.ads import load_ads_config
+from deft_gym.config import CONFIG_DIR
+from deft_gym.planner.base import Frame, load_planner, planner_class, source_digest, validate_output
+from deft_gym.planner.commonroad import CommonRoadParams, CommonRoadPlanner
+from extract.contract import assert_contract, check_contract
+
+CLASS = "deft_gym.planner.commonroad:CommonRoadPlanner"
+ADS = CONFIG_DIR / "ads" / "commonroad.yaml"
+
+
+# -- hand-made frames: a straight two-lane road ------------------------------------------------------
+def _lane(index: int, length: float = 200.0) -> dict[str, Any]:
+    y = 3.5 * index
+    return {"id": ["a", "b", index], "x": [0.0, length], "y": [y, y], "s": [0.0, length], "width": 3.5,
+            "length": length, "speed_limit": 12.0, "successors": [], "left": ["a", "b", index - 1] if index else [],
+            "right": ["a", "b", index + 1] if index == 0 else [], "change_left": index == 1,
+            "change_right": index == 0, "junction": False}
+
+
+MAP = {"header": {"seq": 0, "stamp": 0.0, "module": "routing"}, "name": "highway",
+       "lanes": [_lane(0), _lane(1)], "stop_lines": [], "lights": []}
+ROUTING = {"header": {"seq": 0, "stamp": 0.0, "module": "routing"},
+           "segments": [{"road": ["a", "b"], "lanes": [0, 1]}],
+           "destination": {"lane": ["a", "b", 0], "s": 190.0}, "cruise_speed": 10.0}
+
+
+def road_frames(speeds: list[float], heading: float = 0.03) -> list[Frame]:
+    """Frames of an ego on lane 0 at the given speeds (0.1 s apart), slightly off the lane's
+    heading (so that the lateral initial state depends on the low-velocity mode), a parked car on
+    lane 1 and a car ahead on lane 0."""
+    frames, x = [], 20.0
+    for k, v in enumerate(speeds):
+        t = 0.1 * k + 0.013
+        head = {"seq": k, "stamp": t, "module": "x"}
+        acc = (speeds[min(k + 1, len(speeds) - 1)] - speeds[max(k - 1, 0)]) / 0.2
+        loc = {"header": head, "x": x, "y": 0.2 + 0.003 * k, "heading": heading, "v": v, "a": acc, "yaw_rate": 0.0}
+        lead = [x + 30.0 + 8.0 * 0.2 * i for i in range(31)]
+        pred = {"header": head, "perception_stamp": t, "obstacles": [
+            {"id": 1, "type": "STATIC_VEHICLE", "length": 4.8, "width": 2.0, "is_static": True, "t0": t, "dt": 0.2,
+             "x": [60.0], "y": [3.9], "heading": [0.0], "v": 0.0},
+            {"id": 2, "type": "VEHICLE", "length": 5.0, "width": 2.0, "is_static": False, "t0": t, "dt": 0.2,
+             "x": lead, "y": [0.0] * 31, "heading": [0.0] * 31, "v": 8.0}]}
+        frames.append(Frame(t, {"map": MAP, "routing": ROUTING, "localization": loc,
+                                "traffic_light": {"header": head, "lights": []}, "prediction": pred}))
+        x += v * 0.1
+    return frames
+
+
+#: the speed crosses the low-velocity threshold (4 m/s) both ways, twice (2.5 m/s^2)
+TOGGLING = [3.1, 3.35, 3.6, 3.85, 4.1, 4.35, 4.6, 4.35, 4.1, 3.85, 3.6, 3.85, 4.1, 4.35]
+
+
+def test_it_plans_hand_made_frames_in_its_own_terms() -> None:
+    """Valid outputs, its own decision vocabulary, and the library's quirk on the way: the first
+    cycle in low-velocity mode after a fast one starts from a lateral state in the other mode's
+    units (per second read as per metre) and finds no trajectory; the adapter keeps to the rest of
+    its previous plan (collision-free) and says so."""
+    planner = CommonRoadPlanner({})
+    assert planner.plan(Frame(0.0, dict.fromkeys(CommonRoadPlanner.inputs))) is None
+    results, was_low = [], None
+    for fr in road_frames(TOGGLING):
+        out = planner.plan(fr)
+        assert validate_output(out, fr.time) == []
+        d = out["decision"]
+        assert d["mode"] == "velocity_keeping" and d["leader"] == 2 and d["error"] == ""
+        assert d["lane"] == ["a", "b", 0] and d["target_lane"] == ["a", "b", 0]
+        assert d["low_vel_mode"] == (fr.get("localization")["v"] < 4.0)  # the library's switch
+        if d["result"] != "OPTIMAL":
+            assert (d["result"], d["fallback"], was_low, d["low_vel_mode"]) == ("NO_TRAJECTORY", "PREVIOUS", False, True)
+        results.append(d["result"])
+        was_low = d["low_vel_mode"]
+        tr = out["trajectory"]
+        assert len(tr["t"]) == CommonRoadParams().time_steps + 1 and tr["t"][0] == fr.time
+        assert math.isclose(tr["t"][1] - tr["t"][0], CommonRoadParams().dt)
+    assert results.count("OPTIMAL") >= len(results) - 2
+
+
+def test_the_low_velocity_mode_is_state_and_is_carried() -> None:
+    """The library turns the initial state into curvilinear coordinates with the previous
+    cycle's mode: the same frame after a fast and after a slow cycle plans differently, and the
+    mode lives in (and returns with) ``self.state``."""
+    frames = road_frames(TOGGLING)
+    slow, fast = frames[3], frames[5]  # 3.85 m/s, 4.35 m/s
+    probe = frames[4]  # 4.1 m/s: plans in high-velocity mode either way
+    a, b = CommonRoadPlanner({}), CommonRoadPlanner({})
+    a.plan(slow)
+    b.plan(fast)
+    assert a.state["low_vel_mode"] is True and b.state["low_vel_mode"] is False
+    b.state["prev"] = a.state["prev"]  # only the mode differs now (lane, target and cycles agree)
+    out_a, out_b = a.plan(probe), b.plan(probe)
+    assert out_a["trajectory"] != out_b["trajectory"]
+    # snapshot / restore returns exactly, including the mode
+    c = CommonRoadPlanner({})
+    c.plan(slow)
+    snap = c.snapshot()
+    c.plan(fast)
+    assert c.state["low_vel_mode"] is False
+    c.restore(snap)
+    assert c.state["low_vel_mode"] is True and c.plan(probe) == out_a
+    # and so does a seeded planner (plain values)
+    e = CommonRoadPlanner({})
+    e.plan(slow)
+    d = CommonRoadPlanner({})
+    d.load_state(e.export_state())
+    assert d.plan(probe) == out_a
+
+
+def test_it_meets_the_planner_contract_on_toggling_frames() -> None:
+    report = assert_contract(lambda: CommonRoadPlanner({}), road_frames(TOGGLING))
+    assert set(report.checks.values()) == {"ok"}
+
+
+def test_a_planner_that_forgets_the_mode_breaks_the_contract() -> None:
+    """What the contract checker would say of an adapter that left ``_low_vel_mode`` in the
+    library object: snapshot / restore no longer returns to the state."""
+
+    class Forgetful(CommonRoadPlanner):
+        def plan(self, frame: Frame) -> dict[str, Any] | None:
+            models = list(self._models.values())
+            mode = models[0].planner._low_vel_mode if models else False
+            self.state["low_vel_mode"] = mode  # whatever the library object holds now
+            return super().plan(frame)
+
+    report = check_contract(lambda: Forgetful({}), road_frames(TOGGLING))
+    assert report.checks["deterministic"] == "ok" and report.checks["snapshot_restore"] == "violated"
+
+
+def test_plan_reads_no_clock_and_restores_the_librarys() -> None:
+    import time
+
+    import commonroad_rp.reactive_planner as rp
+
+    report = check_contract(lambda: CommonRoadPlanner({}), road_frames(TOGGLING[:4]))
+    assert report.checks["no_clock_or_global_rng"] == "ok"
+    assert rp.time is time  # the step clock stands in only while the library plans
+
+
+def test_bad_params_fail_at_construction() -> None:
+    with pytest.raises(ValueError, match="time_steps"):
+        CommonRoadPlanner({}, time_steps=1)
+    with pytest.raises(ValueError, match="no_such"):
+        CommonRoadPlanner({}, no_such=1)
+    assert CommonRoadPlanner.hard_clearance({"margin": 0.4}) == 0.4
+
+
+# -- configuration and fingerprint ---------------------------------------------------------------------
+def test_its_ads_config_is_the_default_but_for_the_planner() -> None:
+    ours, default = yaml.safe_load(ADS.read_text()), yaml.safe_load((CONFIG_DIR / "ads" / "default.yaml").read_text())
+    assert ours["planning"].pop("planner") == {"class": CLASS, "params": {}}
+    default["planning"].pop("planner")
+    assert ours == default
+    ads = load_ads_config(ADS)
+    assert planner_class(ads.planning.planner.cls) is CommonRoadPlanner
+
+
+def test_the_code_fingerprint_leaves_it_out_and_the_cache_key_takes_its_source() -> None:
+    """Adding (or editing) the adapter changes no fingerprint of runs that never use it; a run
+    that does use it keys its caches by the adapter's source."""
+    from deft_gym.scenarios.scenario import load_scenario
+    from deft_gym.search import trace
+
+    pkg = Path(trace.__file__).resolve().parent.parent
+    edited = trace.code_fingerprint(pkg, read=lambda f: f.read_bytes() + (b"# edited\n" if f.name == "commonroad.py"
+                                                                          else b""))
+    assert edited == trace.code_fingerprint(pkg)
+    sc = load_scenario("lane_follow_static")
+    default, ours = load_ads_config(), load_ads_config(ADS)
+    assert trace.planner_source(default) is None
+    assert trace.planner_source(ours) == source_digest(CommonRoadPlanner)
+    # the default's key is what it was before the adapter existed (no planner source in it)
+    import json
+
+    from deft_gym.scenarios.scenario import scenario_to_dict
+
+    blob = json.dumps({"scenario": scenario_to_dict(sc), "ads": default.model_dump(mode="json", by_alias=True),
+                       "jitter_seed": 0, "format": trace.TRACE_FORMAT, "code": trace.code_fingerprint()}, sort_keys=True)
+    assert trace.content_key(sc, default, 0) == hashlib.sha256(blob.encode()).hexdigest()[:16]
+    assert trace.content_key(sc, ours, 0) != trace.content_key(sc, default, 0)
+
+
+def test_campaigns_take_the_ads_config() -> None:
+    from agents.evaluate import build_parser as evaluate_parser
+    from agents.findings import build_parser as findings_parser
+    from agents.train import build_parser as train_parser
+    from deft_gym.cli.run import build_parser as run_parser
+    from deft_gym.envs.adversary import load_env_config
+    from deft_gym.robustness.stress import campaign_parser as stress_parser
+    from deft_gym.search.context import ads_config
+
+    for parser, argv in ((run_parser, ["x"]), (train_parser, []), (evaluate_parser, []), (findings_parser, ["x"]),
+                         (stress_parser, [])):
+        args = parser().parse_args([*argv, "--ads-config", "configs/ads/commonroad.yaml"])
+        assert str(args.ads_config) == "configs/ads/commonroad.yaml"
+    env = load_env_config({"ads": "configs/ads/commonroad.yaml"})
+    assert ads_config(env.ads).planning.planner.cls == CLASS
+    assert ads_config(None).planning.planner.cls != CLASS
+
+
+# -- through the simulation, the contract checker and the extractor (slow) ----------------------------
+def _run(scenario: Any, out: Path | None, seed: int = 3) -> Any:
+    from deft_gym.sim.simulation import Simulation
+
+    return Simulation(scenario, load_ads_config(ADS), jitter_seed=seed, out_dir=out).run()
+
+
+@pytest.fixture(scope="module")
+def episode(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    root = tmp_path_factory.mktemp("commonroad")
+    return _run("lane_follow_static", root / "log"), root
+
+
+@pytest.mark.slow
+def test_it_drives_a_seed_scenario_to_its_destination(episode) -> None:
+    res, _ = episode
+    assert res.outcome.outcome == "completed" and res.outcome.collision is None
+    decisions = [p["decision"] for p in res.planning]
+    assert {d["result"] for d in decisions} <= {"OPTIMAL", "STANDSTILL", "NO_TRAJECTORY", "ERROR"}
+    assert sum(d["result"] == "OPTIMAL" for d in decisions) >= 0.95 * len(decisions)
+    assert {"velocity_keeping", "stopping"} <= {d["mode"] for d in decisions}  # it stops at the destination
+    assert all(validate_output(p, p["header"]["stamp"]) == [] for p in res.planning)
+
+
+@pytest.mark.slow
+def test_one_jitter_seed_gives_one_run(episode) -> None:
+    res, _ = episode
+    again = _run("lane_follow_static", None)
+    strip = [{k: p[k] for k in ("trajectory", "decision")} for p in res.planning]
+    assert strip == [{k: p[k] for k in ("trajectory", "decision")} for p in again.planning]
+    assert again.outcome.outcome == res.outcome.outcome and again.outcome.sim_time == res.outcome.sim_time
+
+
+@pytest.mark.slow
+def test_check_planner_is_clean_on_its_log(episode, capsys) -> None:
+    from extract.contract import main as check_planner
+
+    res, _ = episode
+    code = check_planner([str(res.log_path), "--planner", CLASS, "--max-frames", "60"])
+    text = capsys.readouterr().out
+    assert code == 0 and "holds" in text, text
+
+
+@pytest.mark.slow
+def test_extraction_reproduces_every_output_at_theta_zero(episode) -> None:
+    from extract import extract_episode
+    from extract.contract import check_path
+
+    res, root = episode
+    ext = extract_episode(res.log_path, root / "deft")
+    s = ext.summary
+    assert s["frames"] == len(res.planning) and s["reproduced_at_theta"] == s["frames"]
+    assert s["reproduced_all_fields"]["0"] == s["frames"]
+    assert {"decision.result", "decision.low_vel_mode", "decision.mode"} <= set(s["fields"])
+    # the frames it found meet the contract too (the seeded start included)
+    assert check_path(ext.frames_path, max_frames=40).ok
+
+
+@pytest.mark.slow
+def test_it_can_be_seeded_from_a_recorded_state(episode) -> None:
+    """The state is plain values: a fresh planner given the state before a frame (rebuilt by
+    replaying the frames before it) plans that frame's recorded output exactly."""
+    from extract.contract import frames_from_log
+
+    res, _ = episode
+    spec, frames = frames_from_log(res.log_path)
+    live = load_planner(CLASS, spec["map"], spec["params"])
+    k = len(frames) // 2
+    for fr in frames[:k]:
+        live.plan(fr)
+    fresh = load_planner(CLASS, spec["map"], spec["params"])
+    fresh.load_state(live.export_state())
+    expected = {k2: res.planning[k][k2] for k2 in ("trajectory", "decision")}
+    assert fresh.plan(frames[k]) == expected
+
+
+@pytest.mark.slow
+def test_the_adversary_env_runs_against_it() -> None:
+    """The campaigns' env takes the planner from its ADS config (env.ads): the seed's reference
+    run and every episode run CommonRoad's planner."""
+    from deft_gym.envs.adversary import AdversaryEnv
+
+    env = AdversaryEnv(config={"scenarios": ["cross_intersection"], "ads": "configs/ads/commonroad.yaml"})
+    try:
+        env.reset(seed=0)
+        assert env.ctx.ads.planning.planner.cls == CLASS and isinstance(env.sim.planner, CommonRoadPlanner)
+        assert env.ctx.ref.outcome == "completed"
+        _, _, _, _, info = env.step(env.action_space.sample())
+        assert info["t"] > 0 and isinstance(env.sim.planner, CommonRoadPlanner)
+    finally:
+        env.close()
