@@ -561,7 +561,7 @@ def print_summary(con: Any, s: dict[str, Any], out: Path, pictures: int) -> None
             ("scenarios per CPU-hour", f"{s['scenarios_per_cpu_hour']:.0f}")]
     for k, v in rows:
         t.add_row(k, v)
-    con.print(t)
+    common.print_table(con, t)
     con.print(f"model: {out / 'model.zip'}   curves: tensorboard --logdir {out / 'tb'}   "
               f"report: deft-gym report {out}" + (f"   pictures of {pictures} failure(s) under {out / 'episodes'}"
                                                   if pictures else ""), soft_wrap=True)

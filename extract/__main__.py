@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
                                                 on_episode=lambda _: bar.update(), executor=ex, **kwargs)
     except (LogError, MappingError) as err:
         return common.cli_error(str(err)), []
-    console.print(_table(results, args, root))
+    common.print_table(console, _table(results, args, root))
     for r in results:
         for w in r.summary.get("warnings", []):
             console.print(f"[yellow]warning:[/yellow] {w}", soft_wrap=True)

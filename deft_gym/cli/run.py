@@ -123,7 +123,7 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
             sim_total += result.sim_time
             wall_total += result.wall_time
             bar.update()
-    console.print(_table(scenario.name, rows))
+    common.print_table(console, _table(scenario.name, rows))
     sim_speed = sim_total / wall_total if wall_total > 0 else None
     collided = sum(r["collision"] for r in rows)
     console.print(f"{collided}/{len(rows)} reruns collided; outcomes {', '.join(sorted({r['outcome'] for r in rows}))}; "
@@ -150,24 +150,33 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
     return 0
 
 
-def _table(name: str, rows: list[dict[str, Any]]) -> Any:
-    from rich import box
-    from rich.table import Table
+def compared(rerun: dict[str, Any], ref: dict[str, Any]) -> str | None:
+    """Why ``rerun``'s plans are not compared with rerun 0's (``ref``), or None when they are: a
+    rerun with another outcome drove elsewhere after the two parted, so a lock-step distance
+    between its plans and rerun 0's measures nothing (it would read as tens of metres)."""
+    if rerun["rerun"] == ref["rerun"]:
+        return "(reference)"
+    if rerun["outcome"] != ref["outcome"]:
+        return "not compared"
+    return None
 
-    t = Table(title=f"{name}: {len(rows)} reruns of one scenario; only the module timing (jitter) differs",
-              title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1),
-              caption="plans vs rerun 0: the i-th planning output against rerun 0's i-th (lock-step distance, m); "
-                      "reruns that differ from rerun 0 are the flakiness DeFT's extracted tests remove",
-              caption_justify="left")
+
+def _table(name: str, rows: list[dict[str, Any]]) -> Any:
+    t = common.table(
+        title=f"{name}: {len(rows)} reruns of one scenario; only the module timing (jitter) differs",
+        caption="plans vs rerun 0: the i-th planning output against rerun 0's i-th (lock-step distance, m), for "
+                "reruns with rerun 0's outcome; a rerun with another outcome drove elsewhere and is not compared. "
+                "Reruns that differ from rerun 0 are the flakiness DeFT's extracted tests remove")
     for col, just in [("rerun", "right"), ("outcome", "left"), ("hit", "left"), ("closest m", "right"),
                       ("sim s", "right"), ("wall s", "right"), ("jitter seed", "right"),
                       ("same plans as rerun 0", "right"), ("plan dist. med/max m", "right")]:
-        t.add_column(col, justify=just, no_wrap=True)
+        t.add_column(col, justify=just)
     for r in rows:
         dv = r["divergence"]
         coll = r["collision_detail"]
-        ident = "(reference)" if r["rerun"] == 0 else f"{dv['identical']} of {dv['paired']}"
-        dist = "-" if r["rerun"] == 0 or dv["median"] is None else f"{dv['median']:.3f} / {dv['max']:.2f}"
+        why = compared(r, rows[0])
+        ident = why or f"{dv['identical']} of {dv['paired']}"
+        dist = "-" if why or dv["median"] is None else f"{dv['median']:.3f} / {dv['max']:.2f}"
         t.add_row(str(r["rerun"]), r["outcome"], coll["participant"] if coll else "",
                   "-" if r["min_distance"] is None else f"{r['min_distance']:.2f}",
                   f"{r['sim_time']:.1f}", f"{r['wall_time']:.2f}", str(r["jitter_seed"]), ident, dist)
