@@ -357,10 +357,20 @@ def failure_callback(out: Path | None, counts: Counter[str] | None = None) -> An
                 self.logger.record_mean("adversary/valid", float(bool(info.get("valid"))))
                 self.logger.record_mean("adversary/iou", float(info.get("iou", 1.0)))
                 if out is not None and c["episodes"] % 50 == 0:
-                    append_jsonl(out / "progress.jsonl", {"timesteps": self.num_timesteps,
-                                                          "seconds": round(time.time() - self.t0, 1),
-                                                          "cpu_seconds": round(self.cpu_seconds(), 1), **c})
+                    self._write()
             return True
+
+        def _write(self) -> None:
+            assert out is not None
+            append_jsonl(out / "progress.jsonl", {"timesteps": self.num_timesteps,
+                                                  "seconds": round(time.time() - self.t0, 1),
+                                                  "cpu_seconds": round(self.cpu_seconds(), 1), **self.counts})
+            self.written = self.counts["episodes"]
+
+        def _on_training_end(self) -> None:
+            """The last line: the curves reach the end of training, not the last 50th episode."""
+            if out is not None and self.counts["episodes"] != getattr(self, "written", None):
+                self._write()
 
     return FailureStats()
 

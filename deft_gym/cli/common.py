@@ -563,3 +563,30 @@ def print_markdown(con: Any, text: str) -> None:
         con.print(Text(s.lstrip("#").strip().replace("**", ""), style="bold" if s.startswith("#") else ""),
                   soft_wrap=True)
     flush()
+
+
+# -- paths and commands shown to users -----------------------------------------------------------
+def shown(path: str | Path) -> str:
+    """A path as shown to users (in commands to paste, in reports): relative to the working
+    directory when it is inside it (normally the checkout's root), else absolute."""
+    p = Path(os.path.abspath(path))
+    cwd = Path.cwd()
+    for a, b in ((p, cwd), (p.resolve(), cwd.resolve())):
+        try:
+            rel = a.relative_to(b).as_posix()
+            return rel or "."
+        except ValueError:
+            continue
+    return str(p)
+
+
+def tool(name: str) -> str:
+    """How to call the console script ``name`` (``deft-gym``, ``pytest``, ``tensorboard``) from
+    the working directory: the bare name inside this program's activated virtual environment,
+    else its path in that environment (``.venv/bin/deft-gym``), so the command works as pasted."""
+    bindir = Path(sys.executable).parent
+    active = os.environ.get("VIRTUAL_ENV")
+    if sys.prefix == sys.base_prefix or (active and os.path.abspath(active) == os.path.abspath(sys.prefix)):
+        return name  # no virtual environment, or the activated one
+    script = bindir / name
+    return shown(script) if script.exists() else name
