@@ -340,8 +340,11 @@ def replay_command(d: Path, v: dict[str, Any] | None = None, log: Path | None = 
         if eq is None:
             return None
         write_replay(scen, eq)
+    import re
+
+    name = re.sub(r"[^A-Za-z0-9._-]+", "_", str(eq["scenario"].get("name") or d.name))
     return ["deft-gym", "run", common.shown(scen), "--reruns", "1", "--jitter-seed", str(eq["jitter_seed"]),
-            "--out", f"runs/replay/{d.name}"]
+            "--out", f"runs/replay/{name}-{eq['jitter_seed']}"]
 
 
 def section_training(page: Page, folder: Path) -> str:

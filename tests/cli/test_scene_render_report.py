@@ -226,6 +226,19 @@ def test_report_of_reruns_and_their_extraction(runs: Path, extractions) -> None:
     assert videos and all(a.get("poster", "").endswith("_poster.png") for a in videos)  # no black box before play
     pres = [x for x in page.text if x.startswith(("deft-gym ", "pytest "))]
     assert pres and not any(w.startswith(str(ROOT)) for x in pres for w in x.split()), pres  # no clone's path
+    # the extracted log's card replays the log's episode (its replay_scenario.yaml), as printed
+    import shlex
+
+    from deft_gym.cli.run import main as run_main
+
+    words = next(shlex.split(x) for x in pres if x.startswith("deft-gym run") and "replay_scenario.yaml" in x)
+    args = words[2:]
+    args[args.index("--out") + 1] = str(runs.parent / "replayed")
+    assert run_main([*args, "--render", "none", "--quiet"]) == 0
+    again = json.loads((runs.parent / "replayed" / "summary.json").read_text())["reruns"][0]
+    first = json.loads((runs / "summary.json").read_text())["reruns"][0]
+    assert (again["outcome"], again["sim_time"], again["collision_detail"]) == \
+        (first["outcome"], first["sim_time"], first["collision_detail"])
 
 
 def _chrome() -> object:
