@@ -517,9 +517,40 @@ def fit_table(con: Any, t: Any) -> int:
     return sum(widths) + fixed
 
 
+def _one_line(con: Any, t: Any) -> int:
+    """The width [characters] of table ``t`` with every value on one line, one character between
+    columns and headers no wider than their values."""
+    from rich.measure import Measurement
+
+    opts = con.options.update_width(1_000_000)
+    return sum(max([Measurement.get(con, opts, c).maximum for c in col.cells] + [1]) for col in t.columns) \
+        + len(t.columns) - 1
+
+
+def transposed(t: Any) -> Any:
+    """Table ``t`` turned by 90 degrees: a row per column (its header first), a column per row
+    (headed by the row's first value) - what a table of many columns and few rows prints as on a
+    narrow terminal."""
+    from rich.text import Text
+
+    first = t.columns[0]
+    out = table(title=t.title, caption=t.caption)
+    out.add_column(first.header if isinstance(first.header, Text) else Text(str(first.header)))
+    for cell in first.cells:
+        out.add_column(cell if isinstance(cell, Text) else Text.from_markup(str(cell)), justify="right")
+    for col in t.columns[1:]:
+        out.add_row(col.header if isinstance(col.header, Text) else Text(str(col.header)), *col.cells)
+    return out
+
+
 def print_table(con: Any, t: Any) -> None:
     """Print rich table ``t`` on console ``con`` with :func:`fit_table`: fitted to a terminal,
-    full values when piped; never a cut value."""
+    full values when piped; never a cut value. On a terminal too narrow for its values on one
+    line, a table of more columns than rows prints :func:`transposed` when that fits."""
+    if con.is_terminal and t.columns and t.row_count < len(t.columns) and _one_line(con, t) > con.width:
+        turned = transposed(t)
+        if _one_line(con, turned) <= con.width:
+            t = turned
     need = fit_table(con, t)
     if need <= con.width:
         con.print(t)
