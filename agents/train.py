@@ -572,9 +572,11 @@ def print_summary(con: Any, s: dict[str, Any], out: Path, pictures: int) -> None
     for k, v in rows:
         t.add_row(k, v)
     common.print_table(con, t)
-    con.print(f"model: {out / 'model.zip'}   curves: tensorboard --logdir {out / 'tb'}   "
-              f"report: deft-gym report {out}" + (f"   pictures of {pictures} failure(s) under {out / 'episodes'}"
-                                                  if pictures else ""), soft_wrap=True)
+    con.print(f"model: {common.shown(out / 'model.zip')}   curves: {common.tool('tensorboard')} --logdir "
+              f"{common.shown(out / 'tb')}   "
+              f"report: {common.tool('deft-gym')} report {common.shown(out)}"
+              + (f"   pictures of {pictures} failure(s) under {common.shown(out / 'episodes')}" if pictures else ""),
+              soft_wrap=True)
 
 
 if __name__ == "__main__":

@@ -294,6 +294,9 @@ def section_extraction(page: Page, folder: Path, s: dict[str, Any]) -> str:
 
 
 def _curves(progress: list[dict[str, Any]]) -> str:
+    """Cumulative counts over env steps, from the start of training (0) to its last record."""
+    if progress and progress[0].get("timesteps", 0) > 0:
+        progress = [{"timesteps": 0}, *progress]
     if len(progress) < 2:
         return '<p class="note">(too few progress records for training curves)</p>'
     from deft_gym.viz.episode import _pyplot
