@@ -118,3 +118,17 @@ def test_markdown_tables_and_units_are_printed_whole() -> None:
             assert re.search(r"failures held-out +282\.6 ± 11\.4", out), out
         if width >= 100:  # room enough: every value on one line
             assert "149.4 ± 12.0" in out and "282.6 ± 11.4" in out and "RL (PPO)" in out, out
+
+
+def test_stress_summary_keeps_its_units(tmp_path: Path, capsys) -> None:
+    """``deft-gym stress``'s summary table: ``wall time [s]`` is printed with its unit (rich
+    markup would take ``[s]`` for a style)."""
+    from deft_gym.robustness.stress import print_summary
+
+    s = {"hardening": False, "runs": 12, "crashes": 1, "hangs": 0, "runs_with_violations": 2,
+         "runs_with_findings": 3, "harness_errors": 0, "violations": {"speed_limit": 2}, "wall_time_s": 61.0,
+         "findings": {"crash:planning:ValueError": {"runs": 1, "first_run": 4}}, "minimised": [], "planted": {}}
+    print_summary(s, tmp_path)
+    out = capsys.readouterr()
+    text = out.out + out.err
+    assert "wall time [s]" in text and "61" in text and "crash:planning:ValueError" in text and "…" not in text
