@@ -254,8 +254,7 @@ def section_run(page: Page, folder: Path, s: dict[str, Any]) -> str:
     for r in coll[:MAX_CARDS]:
         log = Path(r["log"]) if r.get("log") else folder / str(r["rerun"]) / "episode.mcap"
         c = r["collision_detail"]
-        scen = s.get("scenario_file")
-        scen = common.shown(scen) if scen and Path(scen).exists() else s["scenario"]
+        scen = _scenario_arg(s.get("scenario_file"), s["scenario"])
         replay = ["deft-gym", "run", scen, "--reruns", "1", "--jitter-seed",
                   str(r["jitter_seed"]), "--out", f"runs/replay/{s['scenario']}-{r['jitter_seed']}"]
         test = None
@@ -266,6 +265,19 @@ def section_run(page: Page, folder: Path, s: dict[str, Any]) -> str:
     return (f"<h2>System-level reruns: {esc(s['scenario'])}</h2>{head}"
             f'<p class="note">The same scenario rerun; only the module timing (jitter) differs, so the outcome '
             f"may too.</p>{body}" + (cards(items, len(coll)) if items else ""))
+
+
+def _scenario_arg(path: str | None, name: str) -> str:
+    """How a replay command names a scenario file: ``configs/...`` for a shipped one (found from
+    any folder), else its path as shown to users; the scenario's name without a file."""
+    from deft_gym.config import CONFIG_DIR
+
+    if not path or not Path(path).exists():
+        return name
+    try:
+        return "configs/" + Path(path).resolve().relative_to(CONFIG_DIR.resolve()).as_posix()
+    except ValueError:
+        return common.shown(path)
 
 
 def section_extraction(page: Page, folder: Path, s: dict[str, Any]) -> str:
