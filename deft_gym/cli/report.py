@@ -35,7 +35,7 @@ STYLE = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0;background:#f6f7f9;color:#1d2733}
 header{background:#15324d;color:#fff;padding:18px 28px}header h1{margin:0 0 4px;font-size:22px}
 header p{margin:0;opacity:.8;font-size:13px}main{padding:8px 28px 40px;max-width:1280px}
-section{background:#fff;border-radius:8px;padding:14px 20px;margin:18px 0;box-shadow:0 1px 3px #0002}
+section{background:#fff;border-radius:8px;padding:14px 20px;margin:18px 0;box-shadow:0 1px 3px #0002;overflow-x:auto}
 h2{font-size:18px;margin:4px 0 10px}h3{font-size:15px;margin:14px 0 6px}
 .kpis{display:flex;flex-wrap:wrap;gap:10px;margin:8px 0}.kpi{background:#eef3f8;border-radius:6px;padding:8px 12px;
 min-width:120px}.kpi b{display:block;font-size:20px}.kpi span{font-size:12px;color:#4a5a6a}
@@ -43,7 +43,7 @@ table{border-collapse:collapse;font-size:13px;margin:6px 0}td,th{border-bottom:1
 text-align:right}th{background:#f0f3f6}td:first-child,th:first-child{text-align:left}
 .cards{display:grid;grid-template-columns:repeat(auto-fill,minmax(380px,1fr));gap:14px}
 .card{border:1px solid #dde3ea;border-radius:6px;padding:10px;background:#fcfdfe}.card img{width:100%}
-.card video{width:100%;margin-top:6px}code,pre{background:#eef1f4;border-radius:4px;font-size:12px}
+.card video{width:100%;margin-top:6px;background:#fff}code,pre{background:#eef1f4;border-radius:4px;font-size:12px}
 pre{padding:6px 8px;white-space:pre-wrap;word-break:break-all;margin:4px 0}.bad{color:#c0392b}.good{color:#1e8449}
 .note{font-size:13px;color:#4a5a6a}img.plot{max-width:100%;border:1px solid #eee}
 """
