@@ -527,10 +527,10 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
 
         with common.bar(args, None, "pictures of failures") as b:
             render_failures(out / "logs", progress=lambda done, n: b.set(done, n))
-    con.print(headline_markdown(summary), markup=False)
-    con.print(targets_markdown(summary["targets"]), markup=False)
-    con.print(f"tables and plots: {out / 'table.md'}, {out / 'cumulative_failures.png'}; "
-              f"report: deft-gym report {out}", soft_wrap=True)
+    common.print_markdown(con, headline_markdown(summary))
+    common.print_markdown(con, targets_markdown(summary["targets"]))
+    con.print(f"tables and plots: {common.shown(out / 'table.md')}, {common.shown(out / 'cumulative_failures.png')}; "
+              f"report: {common.tool('deft-gym')} report {common.shown(out)}", soft_wrap=True)
     if args.quiet:
         print(f"evaluation: {out / 'summary.json'}")
     return 0

@@ -42,15 +42,15 @@ def build_parser() -> common.Parser:
 
 
 def split_equivalent(rec: dict[str, Any]) -> tuple[dict[str, Any], dict[str, float] | None, int]:
-    """``(scenario dict, added_at, jitter seed)`` of a record's equivalent scenario - the RL env
-    stores ``{"scenario", "added_at", "jitter_seed"}``, the search baselines the scenario itself."""
-    eq = rec.get("scenario_equivalent")
-    if not isinstance(eq, dict):
+    """``(scenario dict, added_at, jitter seed)`` of a record's failure scenario, read with
+    :func:`deft_gym.search.episode.read_replay` (the one shape, and records written before it)."""
+    from deft_gym.search.episode import read_replay
+
+    eq = read_replay(rec.get("scenario_equivalent"), rec.get("jitter_seed"))
+    if eq is None:
         raise RecordError(f"record {rec.get('method')}/{rec.get('scenario')}/{rec.get('index')}: "
                           "field 'scenario_equivalent' is missing")
-    if "scenario" in eq and isinstance(eq["scenario"], dict):
-        return eq["scenario"], eq.get("added_at") or None, int(eq.get("jitter_seed", rec["jitter_seed"]))
-    return eq, None, int(rec["jitter_seed"])
+    return eq["scenario"], eq["added_at"] or None, eq["jitter_seed"]
 
 
 def resimulate(rec: dict[str, Any], ads: str | None = None) -> tuple[Any, Any]:

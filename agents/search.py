@@ -31,7 +31,7 @@ import numpy as np
 
 from agents.mutation import Mutant, NonInvasiveMutator, RandomMutator
 from deft_gym.search.context import SeedContext
-from deft_gym.search.episode import EpisodeRun, run_scenario
+from deft_gym.search.episode import EpisodeRun, replay_record, run_scenario
 from deft_gym.search.feasible import Layout
 from deft_gym.search.nods import Verdict
 
@@ -87,7 +87,7 @@ def _run_record(ctx: SeedContext, run: EpisodeRun, index: int, t_mut: float, c_m
                     confirmed, run.result.jitter_seed, sum(1 for a in run.trace.actors if a.added),
                     run.result.sim_time, extra)
     if v.failure or v.task_failure:
-        rec["scenario_equivalent"] = run.scenario
+        rec["scenario_equivalent"] = replay_record(run.scenario, run.result.jitter_seed)
     return rec
 
 

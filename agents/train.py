@@ -357,10 +357,20 @@ def failure_callback(out: Path | None, counts: Counter[str] | None = None) -> An
                 self.logger.record_mean("adversary/valid", float(bool(info.get("valid"))))
                 self.logger.record_mean("adversary/iou", float(info.get("iou", 1.0)))
                 if out is not None and c["episodes"] % 50 == 0:
-                    append_jsonl(out / "progress.jsonl", {"timesteps": self.num_timesteps,
-                                                          "seconds": round(time.time() - self.t0, 1),
-                                                          "cpu_seconds": round(self.cpu_seconds(), 1), **c})
+                    self._write()
             return True
+
+        def _write(self) -> None:
+            assert out is not None
+            append_jsonl(out / "progress.jsonl", {"timesteps": self.num_timesteps,
+                                                  "seconds": round(time.time() - self.t0, 1),
+                                                  "cpu_seconds": round(self.cpu_seconds(), 1), **self.counts})
+            self.written = self.counts["episodes"]
+
+        def _on_training_end(self) -> None:
+            """The last line: the curves reach the end of training, not the last 50th episode."""
+            if out is not None and self.counts["episodes"] != getattr(self, "written", None):
+                self._write()
 
     return FailureStats()
 
@@ -561,10 +571,12 @@ def print_summary(con: Any, s: dict[str, Any], out: Path, pictures: int) -> None
             ("scenarios per CPU-hour", f"{s['scenarios_per_cpu_hour']:.0f}")]
     for k, v in rows:
         t.add_row(k, v)
-    con.print(t)
-    con.print(f"model: {out / 'model.zip'}   curves: tensorboard --logdir {out / 'tb'}   "
-              f"report: deft-gym report {out}" + (f"   pictures of {pictures} failure(s) under {out / 'episodes'}"
-                                                  if pictures else ""), soft_wrap=True)
+    common.print_table(con, t)
+    con.print(f"model: {common.shown(out / 'model.zip')}   curves: {common.tool('tensorboard')} --logdir "
+              f"{common.shown(out / 'tb')}   "
+              f"report: {common.tool('deft-gym')} report {common.shown(out)}"
+              + (f"   pictures of {pictures} failure(s) under {common.shown(out / 'episodes')}" if pictures else ""),
+              soft_wrap=True)
 
 
 if __name__ == "__main__":

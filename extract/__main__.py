@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
                                                 on_episode=lambda _: bar.update(), executor=ex, **kwargs)
     except (LogError, MappingError) as err:
         return common.cli_error(str(err)), []
-    console.print(_table(results, args, root))
+    common.print_table(console, _table(results, args, root))
     for r in results:
         for w in r.summary.get("warnings", []):
             console.print(f"[yellow]warning:[/yellow] {w}", soft_wrap=True)
@@ -126,7 +126,8 @@ def run(args: argparse.Namespace) -> tuple[int, list[ExtractionResult]]:
         console.print(f"[red]damaged log:[/red] {s['log']}: {s['log_status']}; its tests cover only its intact "
                       "messages", soft_wrap=True)
     out = Path(args.out)
-    line = f"wrote {out / 'summary.json'}" + (f"; run the tests with: pytest {out}" if not args.no_tests else "")
+    line = f"wrote {common.shown(out / 'summary.json')}" + (
+        f"; run the tests with: {common.tool('pytest')} {common.shown(out)}" if not args.no_tests else "")
     if args.quiet:
         print(line)
     console.print(line, soft_wrap=True)

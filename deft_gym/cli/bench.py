@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     t.add_row("DeFT-Gym full stack, recording on, no scene topics", f"{med['stack_recording_no_scene']:.1f}")
     t.add_row("DeFT-Gym full stack, recording off", f"{med['stack_no_recording']:.1f}")
     t.add_row(f"highway-v0, {n_part} vehicles, {ads.world_hz:g} Hz", f"{med['highway_v0']:.1f}")
-    console.print(t)
+    common.print_table(console, t)
     console.print(f"full stack / highway-v0 = {ratio:.2f}x   recording overhead = {100 * overhead['wall']:.1f} %   "
                   f"targets: >= 100x real time, >= 1.0x highway-v0, <= 10 % overhead")
     console.print(f"recording overhead with the in-process writer = {100 * overhead['wall_inline']:.1f} %; "
@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         bt.add_row(name, f"{1e3 * sec / sim0:.2f}", f"{100 * sec / wall0:.0f} %")
     rest = wall0 - sum(nodes.values())
     bt.add_row("bus, jitter, recording", f"{1e3 * rest / sim0:.2f}", f"{100 * rest / wall0:.0f} %")
-    console.print(bt)
+    common.print_table(console, bt)
     if args.out:
         console.print(f"wrote {args.out}")
         write_atomic(Path(args.out), json.dumps({"median_speed": med, "ratio_vs_highway": ratio,

@@ -193,9 +193,9 @@ def main(argv: list[str] | None = None) -> int:
         profiled = {label: cum.get((suffix, name), 0.0) / max(total, 1e-9) for label, suffix, name in PARTS}
         timed = {label: timers.spent[label] / max(cpu, 1e-9) for label, *_ in TIMED}
         what = args.config or "the env's defaults"
-        con.print(_shares_table(f"{args.episodes} episodes of {what} ({args.policy} actions), CPU shares under "
+        common.print_table(con, _shares_table(f"{args.episodes} episodes of {what} ({args.policy} actions), CPU shares under "
                                 "cProfile", profiled))
-        con.print(_shares_table(f"the same parts timed around each call, without cProfile ({args.episodes} "
+        common.print_table(con, _shares_table(f"the same parts timed around each call, without cProfile ({args.episodes} "
                                 "other episodes)", timed))
         out["profile"] = {"cprofile": {k.strip(): round(v, 4) for k, v in profiled.items()},
                           "timed": {k.strip(): round(v, 4) for k, v in timed.items()}}

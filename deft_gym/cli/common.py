@@ -447,3 +447,177 @@ def bar(args: argparse.Namespace | None, total: int | None, description: str, co
         yield b
     finally:
         b.close()
+
+
+# -- tables ----------------------------------------------------------------------------------------
+def table(title: str | None = None, caption: str | None = None, **kw: Any) -> Any:
+    """A rich ``Table`` in the one style (left-justified title and caption, simple head rule);
+    print it with :func:`print_table` so that no value is cut."""
+    from rich import box
+    from rich.table import Table
+
+    opts: dict[str, Any] = {"title_justify": "left", "caption_justify": "left", "box": box.SIMPLE_HEAD,
+                            "pad_edge": False, "padding": (0, 1)}
+    return Table(title=title, caption=caption, **{**opts, **kw})
+
+
+def fit_table(con: Any, t: Any) -> int:
+    """Set the column widths of rich table ``t`` so that no value is ever cut; returns the width
+    [characters] the table needs.
+
+    Piped (not a terminal: a file, a CI log) every column gets its full natural width, headers
+    included. On a terminal the table fits the console's width where the values allow it: each
+    column is first as wide as its widest value (values on one line) and headers wrap, at words
+    where there is room, else folded; when the values alone are too wide, values of several
+    words wrap at their spaces. No value ever loses a character (``…``): a word longer than the
+    room keeps its width and the terminal wraps the line."""
+    from rich.cells import cell_len
+    from rich.measure import Measurement
+    from rich.text import Text
+
+    opts = con.options.update_width(1_000_000)
+    vmax, vmin, heads, words = [], [], [], []
+    for col in t.columns:
+        sizes = [Measurement.get(con, opts, c) for c in col.cells]
+        head = col.header.copy() if isinstance(col.header, Text) else Text(str(col.header))  # plain: "[s]" stays
+        head.no_wrap, head.overflow = False, "fold"
+        col.header = head
+        col.no_wrap, col.overflow, col.min_width, col.max_width = True, "fold", None, None
+        lines = head.plain.splitlines() or [""]
+        vmax.append(max([m.maximum for m in sizes] + [1]))
+        vmin.append(max([m.minimum for m in sizes] + [1]))
+        heads.append(max(cell_len(x) for x in lines))
+        words.append(max((cell_len(w) for x in lines for w in x.split()), default=0))
+    def overhead() -> int:  # borders, dividers and padding [characters]
+        return t._extra_width + sum(t._get_padding_width(i) for i in range(len(t.columns)))
+
+    fixed = overhead()
+    widths = [max(v, h) for v, h in zip(vmax, heads)]
+    if con.is_terminal and sum(widths) + fixed > con.width:
+        # tighter first: no outer edge, one character between columns (the divider, else padding)
+        t.show_edge, t.padding = False, ((0, 0) if t.box is not None else (0, 1, 0, 0))
+        fixed = overhead()
+        targets = [words, heads]
+        widths = list(vmax)
+        if sum(widths) + fixed > con.width:  # values of several words wrap at their spaces
+            widths, targets = list(vmin), [words, vmax, heads]
+            for col in t.columns:
+                col.no_wrap = False
+        room = con.width - fixed - sum(widths)
+        for target in targets:
+            while room > 0:
+                short = [i for i, w in enumerate(widths) if w < target[i]]
+                if not short:
+                    break
+                i = max(short, key=lambda k: target[k] - widths[k])
+                widths[i] += 1
+                room -= 1
+    for col, w in zip(t.columns, widths):
+        col.width = w
+    return sum(widths) + fixed
+
+
+def _one_line(con: Any, t: Any) -> int:
+    """The width [characters] of table ``t`` with every value on one line, one character between
+    columns and headers no wider than their values."""
+    from rich.measure import Measurement
+
+    opts = con.options.update_width(1_000_000)
+    return sum(max([Measurement.get(con, opts, c).maximum for c in col.cells] + [1]) for col in t.columns) \
+        + len(t.columns) - 1
+
+
+def transposed(t: Any) -> Any:
+    """Table ``t`` turned by 90 degrees: a row per column (its header first), a column per row
+    (headed by the row's first value) - what a table of many columns and few rows prints as on a
+    narrow terminal."""
+    from rich.text import Text
+
+    first = t.columns[0]
+    out = table(title=t.title, caption=t.caption)
+    out.add_column(first.header if isinstance(first.header, Text) else Text(str(first.header)))
+    for cell in first.cells:
+        out.add_column(cell if isinstance(cell, Text) else Text.from_markup(str(cell)), justify="right")
+    for col in t.columns[1:]:
+        out.add_row(col.header if isinstance(col.header, Text) else Text(str(col.header)), *col.cells)
+    return out
+
+
+def print_table(con: Any, t: Any) -> None:
+    """Print rich table ``t`` on console ``con`` with :func:`fit_table`: fitted to a terminal,
+    full values when piped; never a cut value. On a terminal too narrow for its values on one
+    line, a table of more columns than rows prints :func:`transposed` when that fits."""
+    if con.is_terminal and t.columns and t.row_count < len(t.columns) and _one_line(con, t) > con.width:
+        turned = transposed(t)
+        if _one_line(con, turned) <= con.width:
+            t = turned
+    need = fit_table(con, t)
+    if need <= con.width:
+        con.print(t)
+        return
+    old = con.width
+    con.width = need
+    try:
+        con.print(t)
+    finally:
+        con.width = old
+
+
+def print_markdown(con: Any, text: str) -> None:
+    """Print the little markdown of the project's reports (paragraphs, ``- `` items, headings,
+    ``|`` tables) on console ``con``: tables through :func:`print_table`, the rest soft-wrapped,
+    with no rich markup (a ``[s]`` stays)."""
+    from rich.text import Text
+
+    rows: list[list[str]] = []
+
+    def flush() -> None:
+        if rows:
+            t = table()
+            for h in rows[0]:
+                t.add_column(Text(h), justify="left" if not t.columns else "right")
+            for r in rows[1:]:
+                t.add_row(*(Text(c) for c in r))
+            print_table(con, t)
+            rows.clear()
+
+    for line in text.splitlines():
+        s = line.strip()
+        if s.startswith("|"):
+            cells = [c.strip().replace("**", "") for c in s.strip("|").split("|")]
+            if not set("".join(cells)) <= set("-: "):
+                rows.append(cells)
+            continue
+        flush()
+        if s in ("<details>", "</details>") or s.startswith("<details><summary>"):
+            continue
+        con.print(Text(s.lstrip("#").strip().replace("**", ""), style="bold" if s.startswith("#") else ""),
+                  soft_wrap=True)
+    flush()
+
+
+# -- paths and commands shown to users -----------------------------------------------------------
+def shown(path: str | Path) -> str:
+    """A path as shown to users (in commands to paste, in reports): relative to the working
+    directory when it is inside it (normally the checkout's root), else absolute."""
+    p = Path(os.path.abspath(path))
+    cwd = Path.cwd()
+    for a, b in ((p, cwd), (p.resolve(), cwd.resolve())):
+        try:
+            rel = a.relative_to(b).as_posix()
+            return rel or "."
+        except ValueError:
+            continue
+    return str(p)
+
+
+def tool(name: str) -> str:
+    """How to call the console script ``name`` (``deft-gym``, ``pytest``, ``tensorboard``) from
+    the working directory: the bare name inside this program's activated virtual environment,
+    else its path in that environment (``.venv/bin/deft-gym``), so the command works as pasted."""
+    bindir = Path(sys.executable).parent
+    active = os.environ.get("VIRTUAL_ENV")
+    if sys.prefix == sys.base_prefix or (active and os.path.abspath(active) == os.path.abspath(sys.prefix)):
+        return name  # no virtual environment, or the activated one
+    script = bindir / name
+    return shown(script) if script.exists() else name

@@ -251,17 +251,23 @@ def _demo(args: argparse.Namespace, con: Any, out: Path, marker: Path) -> int:
 
     report = write_report(out)
     test = doc["flaky"].get("test")
-    con.print(f"\ndone in {doc['seconds']:.0f} s. Next:")
-    con.print(f"  open the report       {report}")
+    shown = common.shown
+    con.print(f"\ndone in {doc['seconds']:.0f} s. Next:", soft_wrap=True)
+    con.print(f"  open the report       {shown(report)}", soft_wrap=True)
     if test:
-        con.print(f"  run the failing test  pytest {test}")
+        con.print(f"  run the failing test  {common.tool('pytest')} {shown(test)}", soft_wrap=True)
     if not args.skip_adversary and (out / "train" / "tb").exists():
-        con.print(f"  training curves       tensorboard --logdir {out / 'train' / 'tb'}")
+        con.print(f"  training curves       {common.tool('tensorboard')} --logdir {shown(out / 'train' / 'tb')}",
+                  soft_wrap=True)
     logs = sorted((out / "flaky" / "reruns").glob("*/episode.mcap"))
     if logs:
-        con.print(f"  a log in Foxglove     open {logs[0]} with the layout configs/foxglove/layout.json")
+        con.print(f"  a log in Foxglove     open {shown(logs[0])} with the layout configs/foxglove/layout.json",
+                  soft_wrap=True)
+    con.print(f"  any command           {common.tool('deft-gym')} --help", soft_wrap=True)
+    if common.tool("deft-gym") != "deft-gym":
+        con.print("  (or first: source .venv/bin/activate, then the commands without .venv/bin/)", soft_wrap=True)
     if args.quiet:
-        print(f"report: {report}")
+        print(f"report: {shown(report)}")
     return 0
 
 

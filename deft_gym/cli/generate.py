@@ -193,12 +193,12 @@ def _write(args: argparse.Namespace, console: Any, out: Any, gens: list[Any], cf
     t0 = time.perf_counter()
     if args.check:
         check(gens, rows, args.jitter_seed, console, common.show_progress(args))
-    out.print(_table(rows, args.check))
+    common.print_table(out, _table(rows, args.check))
     doc: dict[str, Any] = {"seeds": args.seeds, "config": cfg.model_dump(mode="json"), "scenarios": rows,
                            "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
     if args.check:
         stats = shares(rows)
-        out.print(_share_table(stats, args.jitter_seed))
+        common.print_table(out, _share_table(stats, args.jitter_seed))
         doc.update(jitter_seed=args.jitter_seed, completed=stats, check_wall_s=round(time.perf_counter() - t0, 1))
         allc = stats["all"]
         out.print(f"{allc['outcomes'].get('completed', 0)}/{allc['runs']} completed "

@@ -35,7 +35,7 @@ STYLE = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0;background:#f6f7f9;color:#1d2733}
 header{background:#15324d;color:#fff;padding:18px 28px}header h1{margin:0 0 4px;font-size:22px}
 header p{margin:0;opacity:.8;font-size:13px}main{padding:8px 28px 40px;max-width:1280px}
-section{background:#fff;border-radius:8px;padding:14px 20px;margin:18px 0;box-shadow:0 1px 3px #0002}
+section{background:#fff;border-radius:8px;padding:14px 20px;margin:18px 0;box-shadow:0 1px 3px #0002;overflow-x:auto}
 h2{font-size:18px;margin:4px 0 10px}h3{font-size:15px;margin:14px 0 6px}
 .kpis{display:flex;flex-wrap:wrap;gap:10px;margin:8px 0}.kpi{background:#eef3f8;border-radius:6px;padding:8px 12px;
 min-width:120px}.kpi b{display:block;font-size:20px}.kpi span{font-size:12px;color:#4a5a6a}
@@ -43,7 +43,7 @@ table{border-collapse:collapse;font-size:13px;margin:6px 0}td,th{border-bottom:1
 text-align:right}th{background:#f0f3f6}td:first-child,th:first-child{text-align:left}
 .cards{display:grid;grid-template-columns:repeat(auto-fill,minmax(380px,1fr));gap:14px}
 .card{border:1px solid #dde3ea;border-radius:6px;padding:10px;background:#fcfdfe}.card img{width:100%}
-.card video{width:100%;margin-top:6px}code,pre{background:#eef1f4;border-radius:4px;font-size:12px}
+.card video{width:100%;margin-top:6px;background:#fff}code,pre{background:#eef1f4;border-radius:4px;font-size:12px}
 pre{padding:6px 8px;white-space:pre-wrap;word-break:break-all;margin:4px 0}.bad{color:#c0392b}.good{color:#1e8449}
 .note{font-size:13px;color:#4a5a6a}img.plot{max-width:100%;border:1px solid #eee}
 """
@@ -173,7 +173,12 @@ def card(page: Page, title: str, log: Path | None, replay: list[str] | None, tes
         if video.suffix == ".gif":
             parts.append(f'<a href="{esc(page.rel(video))}">animation (GIF)</a>')
         else:
-            parts.append(f'<video controls preload="none" src="{esc(page.rel(video))}"></video>'
+            from deft_gym.viz.episode import ensure_poster
+
+            poster = ensure_poster(video) if page.draw else None
+            poster = poster if poster is not None and poster.exists() else None
+            attr = f' poster="{esc(page.rel(poster))}"' if poster else ""
+            parts.append(f'<video controls preload="metadata"{attr} src="{esc(page.rel(video))}"></video>'
                          f'<p class="note"><a href="{esc(page.rel(video))}">video</a>'
                          + (f' · <a href="{esc(page.rel(log))}">log (MCAP, opens in Foxglove)</a>' if log else "")
                          + "</p>")
@@ -184,7 +189,7 @@ def card(page: Page, title: str, log: Path | None, replay: list[str] | None, tes
     if test is not None:
         what = ("run its planning-module test (fails while the planner still plans the collision):" if collision
                 else "run its planning-module tests (they replay every frame of this episode):")
-        parts.append(f'<p class="note">{what}</p>' + cmd(["pytest", "-q", str(test)]))
+        parts.append(f'<p class="note">{what}</p>' + cmd(["pytest", "-q", common.shown(test)]))
     return '<div class="card">' + "".join(parts) + "</div>"
 
 
@@ -196,7 +201,7 @@ def export_links(page: Page, log: Path) -> str:
     names = {"xosc": "OpenSCENARIO", "xodr": "OpenDRIVE", "commonroad": "CommonRoad"}
     have = existing_exports(log)
     if not have:
-        return '<p class="note">export it (OpenSCENARIO, CommonRoad):</p>' + cmd(["deft-gym", "export", str(log)])
+        return '<p class="note">export it (OpenSCENARIO, CommonRoad):</p>' + cmd(["deft-gym", "export", common.shown(log)])
     links = " · ".join(f'<a href="{esc(page.rel(p))}">{names[k]} ({esc(p.name)})</a>' for k, p in have.items())
     return f'<p class="note">exported: {links}</p>'
 
@@ -236,16 +241,21 @@ def section_run(page: Page, folder: Path, s: dict[str, Any]) -> str:
     coll = [r for r in reruns if r.get("collision")]
     head = kpis([("reruns", len(reruns)), ("collided", f"{len(coll)} of {len(reruns)}"),
                  ("sim speed", f"{s.get('sim_speed') or 0:.0f}x real time")])
+    from deft_gym.cli.run import compared
+
     rows = [[r["rerun"], r["outcome"], (r.get("collision_detail") or {}).get("participant", ""),
              r["jitter_seed"], f"{r['sim_time']:.1f}",
-             "(reference)" if r["rerun"] == 0 else f"{r['divergence']['identical']} of {r['divergence']['paired']}"]
+             compared(r, reruns[0]) or f"{r['divergence']['identical']} of {r['divergence']['paired']}"]
             for r in reruns]
     body = table(["rerun", "outcome", "hit", "jitter seed", "sim s", "plans identical to rerun 0"], rows)
+    body += ('<p class="note">Plans are compared with rerun 0\'s only for reruns with its outcome; a rerun with '
+             "another outcome drove elsewhere once they parted.</p>")
     items = []
     for r in coll[:MAX_CARDS]:
         log = Path(r["log"]) if r.get("log") else folder / str(r["rerun"]) / "episode.mcap"
         c = r["collision_detail"]
-        replay = ["deft-gym", "run", s.get("scenario_file") or s["scenario"], "--reruns", "1", "--jitter-seed",
+        scen = _scenario_arg(s.get("scenario_file"), s["scenario"])
+        replay = ["deft-gym", "run", scen, "--reruns", "1", "--jitter-seed",
                   str(r["jitter_seed"]), "--out", f"runs/replay/{s['scenario']}-{r['jitter_seed']}"]
         test = None
         for cand in (folder.parent / f"{folder.name}_tests" / str(r["rerun"]), folder / str(r["rerun"]) / "deft"):
@@ -255,6 +265,19 @@ def section_run(page: Page, folder: Path, s: dict[str, Any]) -> str:
     return (f"<h2>System-level reruns: {esc(s['scenario'])}</h2>{head}"
             f'<p class="note">The same scenario rerun; only the module timing (jitter) differs, so the outcome '
             f"may too.</p>{body}" + (cards(items, len(coll)) if items else ""))
+
+
+def _scenario_arg(path: str | None, name: str) -> str:
+    """How a replay command names a scenario file: ``configs/...`` for a shipped one (found from
+    any folder), else its path as shown to users; the scenario's name without a file."""
+    from deft_gym.config import CONFIG_DIR
+
+    if not path or not Path(path).exists():
+        return name
+    try:
+        return "configs/" + Path(path).resolve().relative_to(CONFIG_DIR.resolve()).as_posix()
+    except ValueError:
+        return common.shown(path)
 
 
 def section_extraction(page: Page, folder: Path, s: dict[str, Any]) -> str:
@@ -273,15 +296,19 @@ def section_extraction(page: Page, folder: Path, s: dict[str, Any]) -> str:
                      f"frame {f['index']} t={f['time']:.2f} s" if f else "-", test.name if test else "-"])
         if f and len(items) < MAX_CARDS and test is not None:
             log = Path(e["log"]) if e.get("log") else None
+            replay = replay_command(test.parent, None, log) if log is not None else None
             items.append(card(page, f"{e.get('scenario')}: P_faulty at frame {f['index']} (t={f['time']:.2f} s)",
-                              log, None, test, pictures=test.parent))
+                              log, replay, test, pictures=test.parent))
     return (f"<h2>Extracted planning-module tests (DeFT)</h2>{head}"
             f'<p class="note">Every planning output of each log replayed through the planner from the frames '
-            f"it was planned from; run them all with:</p>{cmd(['pytest', '-q', page.rel(folder)])}"
+            f"it was planned from; run them all with:</p>{cmd(['pytest', '-q', common.shown(folder)])}"
             + table(["log", "scenario", "frames", "P_faulty", "test module"], rows) + (cards(items, len(items)) if items else ""))
 
 
 def _curves(progress: list[dict[str, Any]]) -> str:
+    """Cumulative counts over env steps, from the start of training (0) to its last record."""
+    if progress and progress[0].get("timesteps", 0) > 0:
+        progress = [{"timesteps": 0}, *progress]
     if len(progress) < 2:
         return '<p class="note">(too few progress records for training curves)</p>'
     from deft_gym.viz.episode import _pyplot
@@ -303,23 +330,36 @@ def _episode_cards(page: Page, episodes: list[Path]) -> list[str]:
     items = []
     for d in episodes[:MAX_CARDS]:
         v = read_json(d / "episode.json") or {}
-        eq = v.get("scenario_equivalent")
-        replay = None
-        if isinstance(eq, dict) and eq.get("scenario") and v.get("jitter_seed") is not None:
-            scen = d / "replay_scenario.yaml"
-            if not scen.exists():
-                import yaml
-
-                from deft_gym.files import write_atomic
-
-                write_atomic(scen, yaml.safe_dump(eq["scenario"], sort_keys=False))
-            replay = ["deft-gym", "run", page.rel(scen), "--reruns", "1", "--jitter-seed", str(v["jitter_seed"])]
+        replay = replay_command(d, v, d / "episode.mcap")
         what = v.get("failure") or "failure"
         title = f"{v.get('scenario', d.name)}: {what}" + (f" (IoU {v['iou']:.2f})" if isinstance(v.get("iou"), float)
                                                          and what == "nods" else "")
         items.append(card(page, title, d / "episode.mcap", replay, _tests_in(d / "extracted"), note=d.name,
                           collision=what == "collision"))
     return items
+
+
+def replay_command(d: Path, v: dict[str, Any] | None = None, log: Path | None = None) -> list[str] | None:
+    """The command that replays a failing episode: ``deft-gym run d/replay_scenario.yaml`` with
+    its jitter seed. The file is written when missing (:func:`deft_gym.search.episode.write_replay`)
+    from the scenario of the episode's verdict ``v`` (``episode.json``), else from its ``log``'s
+    metadata; None when neither holds one."""
+    from deft_gym.search.episode import load_replay, read_replay, replay_of_log, write_replay
+
+    scen = d / "replay_scenario.yaml"
+    eq = load_replay(scen) if scen.exists() else None
+    if eq is None:
+        eq = read_replay((v or {}).get("scenario_equivalent"), (v or {}).get("jitter_seed"))
+        if eq is None and log is not None and log.exists():
+            eq = replay_of_log(log)
+        if eq is None:
+            return None
+        write_replay(scen, eq)
+    import re
+
+    name = re.sub(r"[^A-Za-z0-9._-]+", "_", str(eq["scenario"].get("name") or d.name))
+    return ["deft-gym", "run", common.shown(scen), "--reruns", "1", "--jitter-seed", str(eq["jitter_seed"]),
+            "--out", f"runs/replay/{name}-{eq['jitter_seed']}"]
 
 
 def section_training(page: Page, folder: Path) -> str:
@@ -336,8 +376,13 @@ def section_training(page: Page, folder: Path) -> str:
     per = s.get("per_scenario") or {}
     rows = [[k, v.get("episodes", 0), v.get("collision", 0), v.get("nods", 0), v.get("valid", 0)]
             for k, v in sorted(per.items())]
+    last = progress[-1] if progress else {}
+    if s.get("timesteps", 0) > last.get("timesteps", 0):  # a run from before progress.jsonl got its last line
+        progress = [*progress, {"timesteps": s["timesteps"], "collision": s.get("collisions", last.get("collision", 0)),
+                                "nods": s.get("nods", last.get("nods", 0)),
+                                "episodes": s.get("episodes", last.get("episodes", 0))}]
     return (f"<h2>Adversary training: {esc(folder.name)}</h2>{head}<h3>Training curves</h3>{_curves(progress)}"
-            f'<p class="note">Live curves: {esc("tensorboard --logdir " + page.rel(folder / "tb"))}</p>'
+            f'<p class="note">Live curves: {esc("tensorboard --logdir " + common.shown(folder / "tb"))}</p>'
             + table(["scenario", "episodes", "collisions", "NoDS", "valid"], rows)
             + (f"<h3>Failing episodes ({len(fails)})</h3>" + cards(_episode_cards(page, fails), len(fails))
                if fails else ""))
@@ -362,18 +407,43 @@ def section_evaluation(page: Page, folder: Path) -> str:
     found = folder / "findings" / "findings.md"
     if found.exists():
         pics = sorted(found.parent.glob("*.png"))[:MAX_CARDS]
-        parts.append(f'<h3>Findings re-simulated and drawn ({esc(page.rel(found))})</h3>'
+        parts.append(f'<h3>Findings re-simulated and drawn ({esc(common.shown(found))})</h3>'
                      + "".join(img_data(p, p.stem) for p in pics))
     for png, alt in (("cumulative_failures.png", "cumulative failures per method"),
                      ("per_scenario.png", "failures per scenario")):
         if (folder / png).exists():
             parts.append(img_data(folder / png, alt))
-    if (folder / "table.md").exists():
-        parts.append(markdown((folder / "table.md").read_text()))
+    parts.append(evaluation_tables(s, folder))
     logs = sorted(p.parent for p in (folder / "logs").rglob("episode.json"))
     if logs:
         parts.append(f"<h3>Failing scenarios with logs ({len(logs)})</h3>" + cards(_episode_cards(page, logs), len(logs)))
     return "".join(parts)
+
+
+def evaluation_tables(s: dict[str, Any], folder: Path) -> str:
+    """One evaluation table (a row per method and placement: the headline measures, failures on
+    seed, held-out and all scenarios) and one table of the root causes (method and placement
+    columns); every other measure stays in ``table.md``, linked. An older summary that these
+    cannot be built from: ``table.md`` as it is."""
+    from agents.eval_report import METHOD_LABELS, headline_markdown
+
+    md = folder / "table.md"
+    link = (f'<p class="note">Every measure per group of scenarios, per scenario, the statistics and the targets: '
+            f'<a href="{esc(md.name)}">{esc(common.shown(md))}</a></p>' if md.exists() else "")
+    try:
+        head = markdown(headline_markdown(s))
+    except (KeyError, TypeError, AttributeError):
+        return markdown(md.read_text()) if md.exists() else ""
+    rows = []
+    causes = ((s.get("findings") or {}).get("root_causes") or {})
+    for m in [*s.get("methods", []), "all"]:
+        for p, cs in (causes.get(m) or {}).items():
+            for sig, c in sorted(cs.items(), key=lambda kv: (-kv[1]["failures"], kv[0]))[:MAX_CARDS]:
+                rows.append(["all methods" if m == "all" else METHOD_LABELS.get(m, m), p, sig, c.get("band", "-"),
+                             c.get("failures", 0), ", ".join(c.get("scenarios", [])[:3])])
+    causes_html = ("<h3>Root causes</h3>" + table(["method", "placement", "root cause", "band", "failures",
+                                                   "scenarios"], rows)) if rows else ""
+    return f"<h3>Evaluation</h3>{head}{causes_html}{link}"
 
 
 def section_stress(page: Page, folder: Path, s: dict[str, Any]) -> str:
@@ -387,7 +457,7 @@ def section_stress(page: Page, folder: Path, s: dict[str, Any]) -> str:
         case = folder / m["case"] if m.get("case") else None
         log = folder / m["log"] if m.get("log") else None
         items.append(card(page, f"finding {m.get('signature')}", log,
-                          ["deft-gym", "stress", "replay", str(case)] if case else None, None,
+                          ["deft-gym", "stress", "replay", common.shown(case)] if case else None, None,
                           note=f"minimised: {', '.join((m.get('dimensionality') or {}).get('fields', [])) or '-'}"))
     return (f"<h2>Robustness campaign (ASTAA): {esc(folder.name)}</h2>{head}{viol}"
             + (f"<h3>Minimised findings ({len(mins)})</h3>" + cards(items, len(mins)) if items else ""))
@@ -452,7 +522,9 @@ def render_html(page: Page, title: str) -> str:
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{esc(title)}</title>'
             f'<meta name="viewport" content="width=device-width, initial-scale=1">'
             f'<link rel="icon" href="data:,"><style>{STYLE}</style></head>'
-            f"<body><header><h1>{esc(title)}</h1><p>{esc(page.root)} · generated {when} by deft-gym report</p>"
+            f"<body><header><h1>{esc(title)}</h1><p>{esc(common.shown(page.root))} · generated {when} by deft-gym "
+            "report · the commands run from the project's folder in its virtual environment "
+            "(<code>source .venv/bin/activate</code>)</p>"
             f"</header><main>{body}</main></body></html>\n")
 
 

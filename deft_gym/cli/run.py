@@ -24,7 +24,8 @@ from deft_gym.files import write_atomic
 
 def build_parser() -> common.Parser:
     p = common.parser("run", "deft_gym.cli.run", __doc__)
-    p.add_argument("scenario", help="scenario name (configs/scenarios), YAML path or gen:<seed> spec")
+    p.add_argument("scenario", help="scenario name (configs/scenarios), YAML path or gen:<seed> spec, or a "
+                                    "failure's replay_scenario.yaml (its jitter seed unless --jitter-seed)")
     p.add_argument("--reruns", type=common.int_range(1, 100_000), default=10, help="number of reruns")
     common.add_out(p, None, help="output folder (default: runs/run/<scenario>)")
     common.add_jitter_seed(p)
@@ -82,11 +83,18 @@ def _main(args: argparse.Namespace) -> int:
     from deft_gym.config import ConfigError
     from deft_gym.modules.planning import frame_roles
     from deft_gym.planner.base import planner_class
-    from deft_gym.scenarios.scenario import load_scenario
+    from deft_gym.scenarios.scenario import load_scenario, scenario_from_dict
+    from deft_gym.search.episode import load_replay
     from deft_gym.sim.simulation import build_planner
 
     try:
-        scenario = load_scenario(args.scenario)
+        eq = load_replay(args.scenario) if str(args.scenario).endswith((".yaml", ".yml")) else None
+        if eq is not None:  # a failure's scenario: participants may join mid-run
+            scenario = scenario_from_dict(eq["scenario"], source=str(args.scenario))
+            if args.jitter_seed is None:
+                args.jitter_seed = eq["jitter_seed"]
+        else:
+            scenario = load_scenario(args.scenario)
         overrides = {"planning": {"publish_input_headers": True}} if args.headers else None
         ads = load_ads_config(args.ads_config, overrides)
         build_planner(ads, scenario)  # unknown class or parameters: one line, before any run
@@ -96,10 +104,12 @@ def _main(args: argparse.Namespace) -> int:
         return 2
     out = Path(args.out or common.RUNS / "run" / scenario.name)
     with common.locked_out(out):
-        return _reruns(args, console, scenario, ads, out)
+        return _reruns(args, console, scenario, ads, out, eq)
 
 
-def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out: Path) -> int:
+def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out: Path,
+            eq: dict[str, Any] | None = None) -> int:
+    from deft_gym.search.episode import replay
     from deft_gym.sim.simulation import Simulation
 
     rows: list[dict[str, Any]] = []
@@ -108,7 +118,10 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
     with common.bar(args, args.reruns, scenario.name) as bar:
         for i in range(args.reruns):
             seed = args.jitter_seed + i if args.jitter_seed is not None else common.fresh_seed()
-            result = Simulation(scenario, ads, jitter_seed=seed, out_dir=out / str(i), compress=args.compress).run()
+            if eq is None:
+                result = Simulation(scenario, ads, jitter_seed=seed, out_dir=out / str(i), compress=args.compress).run()
+            else:
+                result = replay(eq, ads, out / str(i), jitter_seed=seed, compress=args.compress)
             summary = result.summary()
             if i == 0:
                 ref_plans = result.planning
@@ -123,7 +136,7 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
             sim_total += result.sim_time
             wall_total += result.wall_time
             bar.update()
-    console.print(_table(scenario.name, rows))
+    common.print_table(console, _table(scenario.name, rows))
     sim_speed = sim_total / wall_total if wall_total > 0 else None
     collided = sum(r["collision"] for r in rows)
     console.print(f"{collided}/{len(rows)} reruns collided; outcomes {', '.join(sorted({r['outcome'] for r in rows}))}; "
@@ -146,28 +159,38 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
     write_atomic(out / "summary.json", json.dumps(summary_doc, indent=2))
     if args.quiet:
         print(f"{collided}/{len(rows)} reruns collided; {out / 'summary.json'}")
-    console.print(f"wrote {out / 'summary.json'}; next: deft-gym extract {out} --out {out}_tests")
+    console.print(f"wrote {common.shown(out / 'summary.json')}; next: {common.tool('deft-gym')} extract "
+                  f"{common.shown(out)} --out {common.shown(out)}_tests", soft_wrap=True)
     return 0
 
 
-def _table(name: str, rows: list[dict[str, Any]]) -> Any:
-    from rich import box
-    from rich.table import Table
+def compared(rerun: dict[str, Any], ref: dict[str, Any]) -> str | None:
+    """Why ``rerun``'s plans are not compared with rerun 0's (``ref``), or None when they are: a
+    rerun with another outcome drove elsewhere after the two parted, so a lock-step distance
+    between its plans and rerun 0's measures nothing (it would read as tens of metres)."""
+    if rerun["rerun"] == ref["rerun"]:
+        return "(reference)"
+    if rerun["outcome"] != ref["outcome"]:
+        return "not compared"
+    return None
 
-    t = Table(title=f"{name}: {len(rows)} reruns of one scenario; only the module timing (jitter) differs",
-              title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1),
-              caption="plans vs rerun 0: the i-th planning output against rerun 0's i-th (lock-step distance, m); "
-                      "reruns that differ from rerun 0 are the flakiness DeFT's extracted tests remove",
-              caption_justify="left")
+
+def _table(name: str, rows: list[dict[str, Any]]) -> Any:
+    t = common.table(
+        title=f"{name}: {len(rows)} reruns of one scenario; only the module timing (jitter) differs",
+        caption="plans vs rerun 0: the i-th planning output against rerun 0's i-th (lock-step distance, m), for "
+                "reruns with rerun 0's outcome; a rerun with another outcome drove elsewhere and is not compared. "
+                "Reruns that differ from rerun 0 are the flakiness DeFT's extracted tests remove")
     for col, just in [("rerun", "right"), ("outcome", "left"), ("hit", "left"), ("closest m", "right"),
                       ("sim s", "right"), ("wall s", "right"), ("jitter seed", "right"),
                       ("same plans as rerun 0", "right"), ("plan dist. med/max m", "right")]:
-        t.add_column(col, justify=just, no_wrap=True)
+        t.add_column(col, justify=just)
     for r in rows:
         dv = r["divergence"]
         coll = r["collision_detail"]
-        ident = "(reference)" if r["rerun"] == 0 else f"{dv['identical']} of {dv['paired']}"
-        dist = "-" if r["rerun"] == 0 or dv["median"] is None else f"{dv['median']:.3f} / {dv['max']:.2f}"
+        why = compared(r, rows[0])
+        ident = why or f"{dv['identical']} of {dv['paired']}"
+        dist = "-" if why or dv["median"] is None else f"{dv['median']:.3f} / {dv['max']:.2f}"
         t.add_row(str(r["rerun"]), r["outcome"], coll["participant"] if coll else "",
                   "-" if r["min_distance"] is None else f"{r['min_distance']:.2f}",
                   f"{r['sim_time']:.1f}", f"{r['wall_time']:.2f}", str(r["jitter_seed"]), ident, dist)

@@ -63,7 +63,7 @@ def _run(args: Any, console: Any, out: Path) -> int:
     for r in rows:
         t.add_row(r["scenario"], ", ".join(r["outcomes"]), str(r["collisions"]),
                   "-" if r["lsed_median"] is None else f"{r['lsed_median']:.2f}", f"{r['sim_speed']:.0f}")
-    console.print(t)
+    common.print_table(console, t)
     write_atomic(out / "summary.json", json.dumps(rows, indent=2))
     console.print(f"logs and summary in {out}")
     return 0

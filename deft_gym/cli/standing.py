@@ -125,8 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     for t_stuck in THRESHOLDS:
         c = shorter_rule(rows, t_stuck)
         rules.add_row(f"{t_stuck:g}", str(c["ended"]), str(c["failures"]), str(c["completed"]), f"{c['saved']:.1%}")
-    con.print(by_outcome)
-    con.print(rules)
+    common.print_table(con, by_outcome)
+    common.print_table(con, rules)
     return 0
 
 

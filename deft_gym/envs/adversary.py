@@ -56,7 +56,7 @@ from deft_gym.config import load_mapping, validate
 from deft_gym.envs.sink import EpisodeSink
 from deft_gym.scenarios.scenario import with_participants
 from deft_gym.search.context import SEED_SCENARIOS, SeedContext, ads_config, robust, seed_context
-from deft_gym.search.episode import run_scenario
+from deft_gym.search.episode import replay_record, run_scenario
 from deft_gym.search.feasible import FeasibleConfig, Layout
 from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH, IN_LANE
 from deft_gym.search.placement import ALONG, LATERAL, MANOEUVRES, SPEEDS, Placer, first_window
@@ -538,11 +538,12 @@ class AdversaryEnv(gym.Env):
         return self.sink.finish(d, record, details, keep=True)
 
     def equivalent_scenario(self) -> dict[str, Any]:
-        """``{"scenario", "added_at", "jitter_seed"}``: the seed scenario plus every added
-        participant with its final motion, and when each was added.
-        ``deft_gym.search.episode.run_scenario`` with these replays this episode exactly."""
+        """This episode in the one shape of a failure's scenario
+        (:func:`deft_gym.search.episode.replay_record`): the seed scenario plus every added
+        participant with its final motion, when each was added, and the jitter seed;
+        ``deft_gym.search.episode.replay`` (``deft-gym run`` of it) replays this episode exactly."""
         data = with_participants(self.ctx.scenario, f"{self.ctx.name}+adv", [p.spec for p in self.layout.placed])
-        return {"scenario": data, "added_at": dict(self.added_at), "jitter_seed": self.jitter_seed}
+        return replay_record(data, self.jitter_seed, self.added_at)
 
     # -- observation --------------------------------------------------------------------------
     def _obs(self) -> np.ndarray:

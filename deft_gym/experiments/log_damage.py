@@ -199,7 +199,7 @@ def _run(args: Any, console: Any, out: Path) -> int:
         summary[kind] = {"cases": len(rs), **row}
         t.add_row(kind, str(len(rs)), *(f"{row[k]}/{len(rs)}" for k in ("detected", "localised", "intact_kept",
                                                                         "loss_stated")), str(row["lost"]))
-    console.print(t)
+    common.print_table(console, t)
     write_atomic(out / "log_damage.json", json.dumps({"summary": summary, "rows": rows}, indent=1))
     console.print(f"wrote {out / 'log_damage.json'}")
     ok = all(r["detected"] and r["localised"] and r["intact_kept"] and r["loss_stated"] for r in rows)

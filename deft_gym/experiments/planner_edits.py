@@ -247,7 +247,7 @@ def _run(args: Any, console: Any, out: Path, edits: tuple[Any, ...]) -> int:
             continue
         t.add_row(r["edit"], r["kind"], "yes" if r["changes_output"] else "no", f"{r['frames_changed']}/{r['frames']}",
                   "yes" if r["caught"] else "no", str(r["tests_failed"]), r["first_change"] or "-")
-    console.print(t)
+    common.print_table(console, t)
     live = [r for r in rows if r["applies"]]
     behav = [r for r in live if r["changes_output"]]
     inert = [r for r in live if not r["changes_output"]]

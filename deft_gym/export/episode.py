@@ -289,13 +289,14 @@ def _replay_plan(ep: dict[str, Any], oc: dict[str, Any], verdict: dict[str, Any]
             eq = ast.literal_eval(eq)
         except (ValueError, SyntaxError):
             eq = None
-    if isinstance(eq, dict) and isinstance(eq.get("scenario"), dict):  # the env's {scenario, added_at, jitter_seed}
-        data, added_at = dict(eq["scenario"]), dict(eq.get("added_at") or {})
+    from deft_gym.search.episode import read_replay
+
+    rep = read_replay(eq, 0)  # the one shape of a failure's scenario (or a search's record from before it)
+    if rep is not None:
+        data, added_at = dict(rep["scenario"]), rep["added_at"]
         later = [p for p in data.get("participants", []) if p["id"] in added_at]
         data["participants"] = [p for p in data.get("participants", []) if p["id"] not in added_at]
         return data, [(float(added_at[p["id"]]), p) for p in later]
-    if isinstance(eq, dict) and "map" in eq:  # a search's mutated scenario
-        return eq, []
     data = ep.get("scenario")
     if not isinstance(data, dict):
         raise ValueError("the log's metadata holds no scenario")

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from rich import box
+from rich.markup import escape
 from rich.table import Table
 
 from deft_gym.cli import common
@@ -182,8 +183,8 @@ def print_summary(s: dict[str, Any], out: Path) -> None:
         t.add_row(key.replace("_", " "), str(s[key]))
     for name, n in s["violations"].items():
         t.add_row(f"  violation {name}", str(n))
-    t.add_row("wall time [s]", f"{s['wall_time_s']:.0f}")
-    console.print(t)
+    t.add_row(escape("wall time [s]"), f"{s['wall_time_s']:.0f}")
+    common.print_table(console, t)
     for sig, n in (s.get("baseline_findings") or {}).items():  # the unmodified runs already fail
         console.print(f"[red]baseline finding:[/red] {sig} in {n} unmodified run(s)", soft_wrap=True)
     if s["findings"]:
@@ -192,7 +193,7 @@ def print_summary(s: dict[str, Any], out: Path) -> None:
             f.add_column(col)
         for sig, info in s["findings"].items():
             f.add_row(sig, str(info["runs"]), str(info["first_run"]))
-        console.print(f)
+        common.print_table(console, f)
     if s["minimised"]:
         m = Table(title="minimised", box=box.SIMPLE)
         for col in ("signature", "interfaces", "instances", "fields", "replays", "deterministic"):
@@ -202,7 +203,7 @@ def print_summary(s: dict[str, Any], out: Path) -> None:
             m.add_row(info["signature"], str(d.get("interfaces", "-")), str(d.get("instances", "-")),
                       ", ".join(d.get("fields", [])) or "-", str(info.get("replays", "-")),
                       str(info.get("deterministic", "-")))
-        console.print(m)
+        common.print_table(console, m)
     for fault, info in s["planted"].items():
         if info.get("found"):
             d = (info.get("minimised") or {}).get("dimensionality") or {}
@@ -243,7 +244,7 @@ def replay_cli(argv: list[str]) -> int:
         changed += not r["same_foundation"]
         changed_ok += not r["same_foundation"] and r["reproduced"] and r["identical"]
         t.add_row(str(f), str(r["expected"]), str(r["reproduced"]), str(r["identical"]), str(r["same_foundation"]))
-    console.print(t)
+    common.print_table(console, t)
     console.print(f"{ok}/{len(files)} cases reproduced their finding with an identical run")
     if changed:
         console.print(f"[yellow]{changed} case(s) were recorded on another version of the simulation source "
@@ -273,8 +274,11 @@ def check_cli(argv: list[str]) -> int:
         for col in ("invariant", "kind", "first [s]", "count", "detail"):
             t.add_column(col)
         for v in violations:
-            t.add_row(v.name, v.kind, f"{v.time:.2f}", str(v.count), v.detail[:80])
-        console.print(t if violations else "no invariant violated")
+            t.add_row(v.name, v.kind, f"{v.time:.2f}", str(v.count), escape(v.detail))
+        if violations:
+            common.print_table(console, t)
+        else:
+            console.print("no invariant violated")
     return 1 if violations else 0
 
 
@@ -297,7 +301,7 @@ def spec_cli(argv: list[str]) -> int:
     for f in spec.fields:
         t.add_row(f.role, spec.message_types[f.role], f.path, f.type + (f"<{f.item_type}>" if f.item_type else ""),
                   f.unit, "yes" if f.brittle else "", str(len(candidates(f))))
-    console.print(t)
+    common.print_table(console, t)
     return 0
 
 
@@ -325,7 +329,7 @@ def compare_cli(argv: list[str]) -> int:
     names = sorted({n for s in sums for n in s["violations"]})
     for n in names:
         t.add_row(f"  {n}", *[str(s["violations"].get(n, 0)) for s in sums])
-    console.print(t)
+    common.print_table(console, t)
     return 0
 
 

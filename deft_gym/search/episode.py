@@ -4,6 +4,7 @@ budget, and the replay of an adversary episode from its equivalent scenario)."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,11 +37,30 @@ def run_scenario(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int
     exactly; the others are part of the scenario from the start (the search baselines)."""
     t0, c0 = time.perf_counter(), time.process_time()
     added_at = added_at or {}
-    later = [s for s in specs if s["id"] in added_at]
     data = with_participants(ctx.scenario, f"{ctx.name}+mut", [s for s in specs if s["id"] not in added_at])
-    sc = scenario_from_dict(data, source=f"{ctx.name} (mutated)")
-    sim = Simulation(sc, ctx.ads, jitter_seed=jitter_seed, out_dir=out_dir, keep_planning=False)
-    rec = TraceRecorder(sim, {s["id"] for s in specs})
+    recorder: list[TraceRecorder] = []
+    res = simulate(data, ctx.ads, jitter_seed, out_dir, [s for s in specs if s["id"] in added_at], added_at,
+                   source=f"{ctx.name} (mutated)",
+                   attach=lambda sim: recorder.append(TraceRecorder(sim, {s["id"] for s in specs})))
+    o = res.outcome
+    trace = recorder[0].trace(o.outcome, o.sim_time)
+    verdict = ctx.oracle.judge(trace, o.collision.as_dict() if o.collision else None)
+    return EpisodeRun(verdict, trace, res, data, time.perf_counter() - t0, time.process_time() - c0)
+
+
+def simulate(data: dict[str, Any], ads: Any, jitter_seed: int, out_dir: Path | str | None = None,
+             later: list[dict[str, Any]] | None = None, added_at: dict[str, float] | None = None,
+             source: str = "replay", attach: Callable[[Simulation], Any] | None = None,
+             keep_planning: bool = False, compress: bool = False) -> EpisodeResult:
+    """One episode of scenario ``data`` (plain data) on ``ads`` with ``jitter_seed``; the
+    participants ``later`` join mid-run, in their order, at ``added_at[id]`` [s sim time] (as the
+    adversary env added them). ``attach(sim)`` runs before the episode starts (a trace recorder)."""
+    later, added_at = later or [], added_at or {}
+    sc = scenario_from_dict(data, source=source)
+    sim = Simulation(sc, ads, jitter_seed=jitter_seed, out_dir=out_dir, keep_planning=keep_planning,
+                     compress=compress)
+    if attach is not None:
+        attach(sim)
     try:
         sim.start()
         for spec in later:
@@ -51,7 +71,98 @@ def run_scenario(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int
         sim.advance(sc.duration)
     finally:
         res = sim.finish()
-    o = res.outcome
-    trace = rec.trace(o.outcome, o.sim_time)
-    verdict = ctx.oracle.judge(trace, o.collision.as_dict() if o.collision else None)
-    return EpisodeRun(verdict, trace, res, data, time.perf_counter() - t0, time.process_time() - c0)
+    return res
+
+
+# -- the one shape of a failure's scenario ----------------------------------------------------------
+REPLAY_FORMAT = "deft_gym.replay/1"
+
+
+def replay_record(scenario: dict[str, Any], jitter_seed: int, added_at: dict[str, float] | None = None) -> dict[str, Any]:
+    """The one shape every failure's scenario is stored in (a record's ``scenario_equivalent``,
+    ``episode.json``, ``replay_scenario.yaml``): ``{"format", "scenario", "added_at",
+    "jitter_seed"}`` - the scenario as plain data with every participant, those named in
+    ``added_at`` (id -> sim time [s]) joining mid-run, and the jitter seed that replays it."""
+    return {"format": REPLAY_FORMAT, "scenario": scenario, "added_at": dict(added_at or {}),
+            "jitter_seed": int(jitter_seed)}
+
+
+def read_replay(eq: Any, jitter_seed: int | None = None) -> dict[str, Any] | None:
+    """``eq`` in the one shape (:func:`replay_record`), or None when it holds no scenario. Reads
+    records written before there was one shape too: the search baselines stored the scenario
+    itself (its jitter seed is then ``jitter_seed``, the record's)."""
+    if not isinstance(eq, dict):
+        return None
+    if isinstance(eq.get("scenario"), dict):
+        seed = eq.get("jitter_seed", jitter_seed)
+        return None if seed is None else replay_record(eq["scenario"], int(seed), eq.get("added_at"))
+    if "participants" in eq and "ego" in eq and jitter_seed is not None:  # a scenario itself
+        return replay_record(eq, int(jitter_seed))
+    return None
+
+
+def write_replay(path: Path | str, eq: dict[str, Any]) -> Path:
+    """Write a failure's scenario (:func:`replay_record`) as YAML that ``deft-gym run PATH`` replays."""
+    import yaml
+
+    from deft_gym.files import write_atomic
+
+    path = Path(path)
+    head = (f"# a failure's scenario ({REPLAY_FORMAT}): deft-gym run {path.name} --reruns 1 --jitter-seed "
+            f"{eq['jitter_seed']} replays it; participants in added_at join at that sim time [s]\n")
+    write_atomic(path, head + yaml.safe_dump(eq, sort_keys=False))
+    return path
+
+
+def load_replay(path: Path | str) -> dict[str, Any] | None:
+    """The failure's scenario in the YAML file ``path`` (:func:`write_replay`), or None when the
+    file is something else (a plain scenario)."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+    if not isinstance(data, dict) or data.get("format") != REPLAY_FORMAT:
+        return None
+    return read_replay(data)
+
+
+def replay(eq: dict[str, Any], ads: Any, out_dir: Path | str | None = None, jitter_seed: int | None = None,
+           keep_planning: bool = True, compress: bool = False) -> EpisodeResult:
+    """Simulate a failure's scenario (:func:`replay_record`) again, with its jitter seed unless
+    ``jitter_seed`` is given."""
+    data = eq["scenario"]
+    added_at = eq.get("added_at") or {}
+    start = {**data, "participants": [p for p in data.get("participants", []) if p["id"] not in added_at]}
+    later = [p for p in data.get("participants", []) if p["id"] in added_at]
+    seed = eq["jitter_seed"] if jitter_seed is None else jitter_seed
+    return simulate(start, ads, seed, out_dir, later, added_at, source=f"{data.get('name', 'scenario')} (replay)",
+                    keep_planning=keep_planning, compress=compress)
+
+
+def replay_of_log(log: Path | str) -> dict[str, Any] | None:
+    """A log's episode in the one shape (:func:`replay_record`), from its metadata: the scenario
+    it ran, its jitter seed and the participants added mid-run with their times; None when the
+    log does not say (an old or damaged log)."""
+    import json
+
+    from mcap.reader import make_reader
+
+    try:
+        with open(log, "rb") as f:
+            meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+        ep, oc = meta.get("deft_gym.episode") or {}, meta.get("deft_gym.outcome") or {}
+        data = json.loads(ep["scenario"])
+        seed = int(ep["jitter_seed"])
+        added = json.loads(oc.get("participants_added") or "[]")
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError):
+        return None
+    if not isinstance(data, dict):
+        return None
+    added_at = {}
+    for a in added:
+        spec = {k: v for k, v in a.items() if k != "time"}
+        data.setdefault("participants", []).append(spec)
+        added_at[spec["id"]] = float(a.get("time", 0.0))
+    return replay_record(data, seed, added_at)

@@ -451,6 +451,9 @@ def save_video(ep: Episode, path: Path | str, fps: int = 5, span: float = 70.0, 
         fig.canvas.draw()
         frames.append(np.asarray(fig.canvas.buffer_rgba())[:, :, :3].copy())
     plt.close(fig)
+    if frames:  # the picture a page shows before the video plays: the collision, else the start
+        with atomic_path(poster_path(path)) as tmp:
+            imageio.imwrite(tmp, frames[-1] if ep.collision else frames[0], format="png")
     try:
         with atomic_path(path) as tmp:
             imageio.mimsave(tmp, frames, fps=fps, macro_block_size=1)
@@ -460,6 +463,31 @@ def save_video(ep: Episode, path: Path | str, fps: int = 5, span: float = 70.0, 
         with atomic_path(gif) as tmp:
             imageio.mimsave(tmp, frames, duration=1.0 / fps)
         return gif
+
+
+def poster_path(video: Path | str) -> Path:
+    """The poster frame (PNG) of a video: ``video.mp4`` -> ``video_poster.png`` beside it."""
+    video = Path(video)
+    return video.with_name(f"{video.stem}_poster.png")
+
+
+def ensure_poster(video: Path | str) -> Path | None:
+    """The poster frame of ``video``, taken from the video's last frame when it has none yet (a
+    video drawn before posters were); None when the video cannot be read."""
+    import imageio.v2 as imageio
+
+    poster = poster_path(video)
+    if poster.exists():
+        return poster
+    try:
+        frames = imageio.mimread(video, memtest=False)
+    except Exception:  # no reader for it (no ffmpeg), or a damaged file
+        return None
+    if not frames:
+        return None
+    with atomic_path(poster) as tmp:
+        imageio.imwrite(tmp, frames[-1], format="png")
+    return poster
 
 
 # -- what deft-gym render does ------------------------------------------------------------------------

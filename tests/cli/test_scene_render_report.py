@@ -196,7 +196,7 @@ def check_report(path: Path) -> _Page:
     tags = page.tags
     assert any(t == "section" for t, _ in tags) and not any(t == "script" for t, _ in tags)
     for tag, a in tags:
-        for key in ("src", "href"):
+        for key in ("src", "href", "poster"):
             ref = a.get(key)
             if ref is None:
                 continue
@@ -222,25 +222,57 @@ def test_report_of_reruns_and_their_extraction(runs: Path, extractions) -> None:
     assert "pytest -q" in text and "test_flaky_left_turn_" in text  # its extracted test
     imgs = [a for t, a in page.tags if t == "img"]
     assert len(imgs) >= 2 and all(a["src"].startswith("data:image/png") for a in imgs)
-    assert any(t == "video" for t, _ in page.tags)
+    videos = [a for t, a in page.tags if t == "video"]
+    assert videos and all(a.get("poster", "").endswith("_poster.png") for a in videos)  # no black box before play
+    pres = [x for x in page.text if x.startswith(("deft-gym ", "pytest "))]
+    assert pres and not any(w.startswith(str(ROOT)) for x in pres for w in x.split()), pres  # no clone's path
+    # the extracted log's card replays the log's episode (its replay_scenario.yaml), as printed
+    import shlex
+
+    from deft_gym.cli.run import main as run_main
+
+    words = next(shlex.split(x) for x in pres if x.startswith("deft-gym run") and "replay_scenario.yaml" in x)
+    args = words[2:]
+    args[args.index("--out") + 1] = str(runs.parent / "replayed")
+    assert run_main([*args, "--render", "none", "--quiet"]) == 0
+    again = json.loads((runs.parent / "replayed" / "summary.json").read_text())["reruns"][0]
+    first = json.loads((runs / "summary.json").read_text())["reruns"][0]
+    assert (again["outcome"], again["sim_time"], again["collision_detail"]) == \
+        (first["outcome"], first["sim_time"], first["collision_detail"])
+
+
+def _chrome() -> object:
+    """Headless Chromium through selenium (``make browser`` installs both); the test skips,
+    saying what is missing, where they are not installed."""
+    import shutil
+
+    try:
+        from selenium import webdriver
+    except ImportError:
+        pytest.skip("selenium is not installed (make browser installs it with chromium and chromedriver)")
+    binary = shutil.which("chromium") or shutil.which("chromium-browser")
+    driver_path = shutil.which("chromedriver")
+    if binary is None or driver_path is None:
+        pytest.skip("chromium and chromedriver are not installed (make browser: apt-get install chromium "
+                    "chromium-driver, as root)")
+    opts = webdriver.ChromeOptions()
+    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run", "--allow-file-access-from-files",
+                 "--autoplay-policy=no-user-gesture-required", "--window-size=1300,2000"):
+        opts.add_argument(flag)
+    opts.binary_location = binary
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    return webdriver.Chrome(options=opts, service=webdriver.ChromeService(executable_path=driver_path))
 
 
 @pytest.mark.slow
 def test_report_loads_in_a_real_browser(runs: Path, extractions) -> None:
     """Chromium, headless (``make browser`` installs it and selenium): the page loads without
     console errors, every image decodes and every video's file is there."""
-    webdriver = pytest.importorskip("selenium.webdriver")
     from deft_gym.cli.report import write_report
 
     path = write_report(runs.parent)
-    opts = webdriver.ChromeOptions()
-    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run", "--allow-file-access-from-files"):
-        opts.add_argument(flag)
-    opts.binary_location = "/usr/bin/chromium"
-    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    service = webdriver.ChromeService(executable_path="/usr/bin/chromedriver")
-    driver = webdriver.Chrome(options=opts, service=service)
+    driver = _chrome()
     try:
         driver.get(path.resolve().as_uri())
         assert driver.title.startswith("DeFT-Gym report")
@@ -255,3 +287,50 @@ def test_report_loads_in_a_real_browser(runs: Path, extractions) -> None:
         assert errors == [], errors
     finally:
         driver.quit()
+
+
+# what the screenshot test asks the page: broken images, videos (poster, playable), cut table cells
+_PAGE_STATE = """
+const done = arguments[arguments.length - 1];
+const videos = Array.from(document.querySelectorAll('video'));
+const posters = videos.map(v => new Promise(ok => {
+  if (!v.poster) { ok([v.src, false, 0]); return; }
+  const img = new Image(); img.onload = () => ok([v.src, true, img.naturalWidth]);
+  img.onerror = () => ok([v.src, true, 0]); img.src = v.poster; }));
+const playable = videos.map(v => new Promise(ok => {
+  const report = () => ok([v.src, v.readyState, isFinite(v.duration) ? v.duration : 0,
+                           v.error ? v.error.code : null]);
+  if (v.readyState >= 1 || v.error) { report(); return; }
+  v.addEventListener('loadedmetadata', report); v.addEventListener('error', report);
+  setTimeout(report, 8000); v.preload = 'metadata'; v.load(); }));
+const cells = Array.from(document.querySelectorAll('td, th'))
+  .filter(c => c.scrollWidth > c.clientWidth + 1 || c.textContent.includes('\u2026'))
+  .map(c => c.textContent);
+const images = Array.from(document.images).filter(i => !(i.complete && i.naturalWidth > 0)).map(i => i.alt);
+Promise.all([Promise.all(posters), Promise.all(playable)]).then(([p, v]) =>
+  done({posters: p, videos: v, cut: cells, broken: images, tables: document.querySelectorAll('table').length}));
+"""
+
+
+@pytest.mark.slow
+def test_report_screenshot_in_a_real_browser(runs: Path, extractions, tmp_path: Path) -> None:
+    """The report as a user sees it in Chromium: a screenshot is taken, and the test fails on a
+    broken image, a video without a poster frame or that cannot play (no metadata, an error), or
+    a table cell whose text is cut (wider than the cell, or an ellipsis)."""
+    from deft_gym.cli.report import write_report
+
+    path = write_report(runs.parent)
+    driver = _chrome()
+    try:
+        driver.set_script_timeout(60)
+        driver.get(path.resolve().as_uri())
+        state = driver.execute_async_script(_PAGE_STATE)
+        shot = tmp_path / "report.png"
+        assert driver.save_screenshot(str(shot)) and shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    finally:
+        driver.quit()
+    assert state["broken"] == [], state["broken"]
+    assert state["videos"], "the report of a collision has a video"
+    assert all(has and width > 0 for _, has, width in state["posters"]), state["posters"]
+    assert all(ready >= 1 and duration > 0 and err is None for _, ready, duration, err in state["videos"]), state["videos"]
+    assert state["tables"] > 0 and state["cut"] == [], state["cut"]
