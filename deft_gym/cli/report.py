@@ -234,13 +234,17 @@ def kind_of(folder: Path) -> str | None:
 def section_run(page: Page, folder: Path, s: dict[str, Any]) -> str:
     reruns = s["reruns"]
     coll = [r for r in reruns if r.get("collision")]
+    agg = s.get("metrics") or {}
     head = kpis([("reruns", len(reruns)), ("collided", f"{len(coll)} of {len(reruns)}"),
-                 ("sim speed", f"{s.get('sim_speed') or 0:.0f}x real time")])
+                 ("sim speed", f"{s.get('sim_speed') or 0:.0f}x real time")]
+                + ([("mean driving score", f"{agg['mean_score']:.3f}")] if agg.get("mean_score") is not None else []))
     rows = [[r["rerun"], r["outcome"], (r.get("collision_detail") or {}).get("participant", ""),
              r["jitter_seed"], f"{r['sim_time']:.1f}",
-             "(reference)" if r["rerun"] == 0 else f"{r['divergence']['identical']} of {r['divergence']['paired']}"]
+             "(reference)" if r["rerun"] == 0 else f"{r['divergence']['identical']} of {r['divergence']['paired']}",
+             *quality(r.get("metrics"))]
             for r in reruns]
-    body = table(["rerun", "outcome", "hit", "jitter seed", "sim s", "plans identical to rerun 0"], rows)
+    body = table(["rerun", "outcome", "hit", "jitter seed", "sim s", "plans identical to rerun 0", "score",
+                  "violations (docs/metrics.md)"], rows)
     items = []
     for r in coll[:MAX_CARDS]:
         log = Path(r["log"]) if r.get("log") else folder / str(r["rerun"]) / "episode.mcap"
@@ -250,11 +254,19 @@ def section_run(page: Page, folder: Path, s: dict[str, Any]) -> str:
         test = None
         for cand in (folder.parent / f"{folder.name}_tests" / str(r["rerun"]), folder / str(r["rerun"]) / "deft"):
             test = test or _tests_in(cand)
-        items.append(card(page, f"rerun {r['rerun']}: collision with {c['participant']} at {c['time']:.2f} s",
-                          log, replay, test))
+        score = quality(r.get("metrics"))
+        items.append(card(page, f"rerun {r['rerun']}: collision with {c['participant']} at {c['time']:.2f} s"
+                          + (f"; score {score[0]}, {score[1]}" if r.get("metrics") else ""), log, replay, test))
     return (f"<h2>System-level reruns: {esc(s['scenario'])}</h2>{head}"
             f'<p class="note">The same scenario rerun; only the module timing (jitter) differs, so the outcome '
             f"may too.</p>{body}" + (cards(items, len(coll)) if items else ""))
+
+
+def quality(m: dict[str, Any] | None) -> list[str]:
+    """An episode's driving-quality cells: its score and the metrics it violated (docs/metrics.md)."""
+    if not m:
+        return ["-", "-"]
+    return [f"{m['score']:.3f}", ", ".join(m.get("violations") or []) or "none"]
 
 
 def section_extraction(page: Page, folder: Path, s: dict[str, Any]) -> str:
@@ -317,6 +329,9 @@ def _episode_cards(page: Page, episodes: list[Path]) -> list[str]:
         what = v.get("failure") or "failure"
         title = f"{v.get('scenario', d.name)}: {what}" + (f" (IoU {v['iou']:.2f})" if isinstance(v.get("iou"), float)
                                                          and what == "nods" else "")
+        if isinstance(v.get("metrics"), dict):
+            score, violated = quality(v["metrics"])
+            title += f"; score {score}, {violated}"
         items.append(card(page, title, d / "episode.mcap", replay, _tests_in(d / "extracted"), note=d.name,
                           collision=what == "collision"))
     return items
