@@ -37,9 +37,9 @@ from deft_gym.metrics.episode import EpisodeMetrics
 from deft_gym.metrics.oracle import (
     ORACLES,
     confirm_oracle,
-    oracle_finding,
     record_columns,
     run_metrics,
+    seed_finding,
     severity,
     violated,
 )
@@ -101,7 +101,7 @@ def oracle_columns(ctx: SeedContext, m: EpisodeMetrics, valid: bool, oracle: str
     cols = record_columns(m)
     if oracle == "default":
         return cols, 0.0, 0.0, 0
-    sig = oracle_finding(valid, m, oracle)
+    sig = seed_finding(ctx, valid, m, oracle)
     ok, w, c = confirm_oracle(ctx, oracle, sig, specs, jitter_seed, added_at)
     return {**cols, "oracle": oracle, "oracle_signature": sig, "oracle_confirmed": ok}, w, c, int(ok is not None)
 

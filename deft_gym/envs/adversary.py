@@ -58,7 +58,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.config import load_mapping, validate
 from deft_gym.envs.sink import EpisodeSink
-from deft_gym.metrics.oracle import ORACLES, oracle_finding, run_metrics, severity
+from deft_gym.metrics.oracle import ORACLES, run_metrics, seed_finding, severity
 from deft_gym.scenarios.scenario import with_participants
 from deft_gym.search.context import SEED_SCENARIOS, SeedContext, ads_config, robust, seed_context
 from deft_gym.search.episode import run_scenario
@@ -496,7 +496,7 @@ class AdversaryEnv(gym.Env):
         if not verdict.valid:
             r += rw.invalid
         elif cfg.oracle != "default":  # a metric oracle: its finding, novelty by its signature
-            sig = oracle_finding(verdict.valid, metrics, cfg.oracle)
+            sig = seed_finding(ctx, verdict.valid, metrics, cfg.oracle)
             if sig is not None:
                 r += self._failure_bonus(verdict, sig)
             else:
@@ -510,7 +510,7 @@ class AdversaryEnv(gym.Env):
             if o.outcome == "completed" and not verdict.nods and cfg.objective in ("nods", "both"):
                 r += rw.iou_shaping * (1.0 - verdict.iou)
         info = {**verdict.as_dict(), "metrics": metrics.as_dict(),
-                "oracle_signature": oracle_finding(verdict.valid, metrics, cfg.oracle),
+                "oracle_signature": seed_finding(ctx, verdict.valid, metrics, cfg.oracle),
                 "scenario": ctx.name, "jitter_seed": self.jitter_seed,
                 "pid": os.getpid(), "process_cpu": round(time.process_time() - self._cpu0, 3),
                 "added": len(self.layout.placed), "sim_time": round(o.sim_time, 3),

@@ -1,9 +1,10 @@
 """Metric oracles: a driving-quality metric as a failure that the adversary's reward and the
 baselines' fitness can aim at (``oracle:`` in the train and evaluation configs; docs/metrics.md).
 
-A finding on a metric oracle counts as the decision oracle's do: on a valid mutation only,
-reproduced on a second jitter seed with the same signature (:func:`agents.search.confirm`), and
-distinct by signature per oracle. ``default`` keeps the present objective (NoDS and at-fault
+A finding on a metric oracle counts as the decision oracle's do: on a valid mutation only, not
+when the seed's reference run has the same signature (the seed fails it without any mutation),
+reproduced on a second jitter seed with the same signature (:func:`confirm_oracle`, the rule of
+:func:`agents.search.confirm`), and distinct by signature per oracle. ``default`` keeps the present objective (NoDS and at-fault
 collisions, docs/search.md).
 """
 
@@ -113,11 +114,36 @@ def record_columns(m: EpisodeMetrics) -> dict[str, Any]:
             "metric_cpu_s": d["cpu_s"]}
 
 
-def oracle_finding(valid: bool, m: EpisodeMetrics, oracle: str) -> str | None:
-    """The signature of a finding on ``oracle`` - only for a valid mutation - or None."""
+def oracle_finding(valid: bool, m: EpisodeMetrics, oracle: str, reference: str | None = None) -> str | None:
+    """The signature of a finding on ``oracle`` - only for a valid mutation, and only when it is
+    not the ``reference`` run's own signature on that oracle (what the seed scenario does
+    without any mutation is no finding: the seed's parked car that every run closes on) - or None."""
     if oracle == "default" or not valid:
         return None
-    return signature(m, oracle)
+    sig = signature(m, oracle)
+    return None if sig is not None and sig == reference else sig
+
+
+_REFERENCE: dict[tuple[int, str], tuple[Any, str | None]] = {}
+
+
+def reference_signature(ctx: SeedContext, oracle: str) -> str | None:
+    """The seed context's reference run's own signature on ``oracle`` (None: it passes)."""
+    hit = _REFERENCE.get((id(ctx), oracle))
+    if hit is not None and hit[0] is ctx:
+        return hit[1]
+    if len(_REFERENCE) > 4096:
+        _REFERENCE.clear()
+    sig = signature(run_metrics(ctx, ctx.ref, None), oracle) if oracle != "default" else None
+    _REFERENCE[(id(ctx), oracle)] = (ctx, sig)
+    return sig
+
+
+def seed_finding(ctx: SeedContext, valid: bool, m: EpisodeMetrics, oracle: str) -> str | None:
+    """:func:`oracle_finding` of a run of ``ctx``'s scenario, its reference run's signature left out."""
+    if oracle == "default" or not valid:
+        return None
+    return oracle_finding(valid, m, oracle, reference_signature(ctx, oracle))
 
 
 def confirm_oracle(ctx: SeedContext, oracle: str, sig: str | None, specs: list[dict[str, Any]], jitter_seed: int,
@@ -132,5 +158,5 @@ def confirm_oracle(ctx: SeedContext, oracle: str, sig: str | None, specs: list[d
     w0, c0 = time.perf_counter(), time.process_time()
     again = run_scenario(ctx, specs, jitter_seed, added_at=added_at)
     m = run_metrics(ctx, again.trace, again.verdict.collision_detail)
-    same = oracle_finding(again.verdict.valid, m, oracle) == sig
+    same = seed_finding(ctx, again.verdict.valid, m, oracle) == sig
     return bool(same), time.perf_counter() - w0, time.process_time() - c0

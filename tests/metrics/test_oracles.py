@@ -25,6 +25,8 @@ def test_search_records_carry_the_metrics_and_the_oracle(oracle: str) -> None:
             assert "oracle" not in r
             continue
         assert r["oracle"] == "ttc"
+        # the seed's own TTC finding (its reference run closes on the parked blocker) never counts
+        assert r["oracle_signature"] != "metric:ttc:seed:parked"
         sig = r["oracle_signature"]
         if sig is None:  # no finding: nothing re-checked
             assert r["oracle_confirmed"] is None
@@ -33,23 +35,37 @@ def test_search_records_carry_the_metrics_and_the_oracle(oracle: str) -> None:
             assert isinstance(r["oracle_confirmed"], bool) and r["sims"] >= 2
 
 
-def test_the_env_rewards_its_metric_oracle() -> None:
-    """An episode on blocked_red_light (its reference run closes on the parked blocker at a TTC
-    of about 1.07 s < 1.5 s): with ``oracle: ttc`` and no-op actions the mutation (none) is valid
-    and the TTC finding earns the failure bonus; with the default objective it earns nothing."""
+def test_a_finding_the_reference_run_has_is_none() -> None:
+    from deft_gym.metrics.episode import EpisodeMetrics
+    from deft_gym.metrics.oracle import oracle_finding
+
+    m = EpisodeMetrics(duration=10.0, min_ttc=0.8, ttc_below_s=0.5, ttc_trigger="cone")
+    assert oracle_finding(True, m, "ttc") == "metric:ttc:cone"
+    assert oracle_finding(False, m, "ttc") is None  # an invalid mutation
+    assert oracle_finding(True, m, "ttc", reference="metric:ttc:cone") is None  # the seed does it anyway
+    assert oracle_finding(True, m, "ttc", reference="metric:ttc:seed:parked") == "metric:ttc:cone"
+    assert oracle_finding(True, m, "default") is None
+
+
+def test_the_env_aims_at_its_metric_oracle() -> None:
+    """blocked_red_light's reference run closes on the parked blocker at a TTC of about 1.07 s <
+    1.5 s. With ``oracle: ttc`` and no-op actions the episode violates TTC the same way - no
+    finding, no failure bonus (10), only the severity shaping (2 x exp(-TTC / 1.5 s))."""
+    import math
+
     from deft_gym.envs.adversary import AdversaryEnv
 
-    rewards = {}
-    for oracle in ("ttc", "default"):
-        env = AdversaryEnv("blocked_red_light", oracle=oracle)
-        env.reset(seed=0, options={"jitter_seed": 0})
-        done, total, info = False, 0.0, {}
-        while not done:
-            _, r, done, _, info = env.step(np.zeros(5, dtype=np.int64))  # no-op
-            total += r
-        env.close()
-        assert info["valid"] and info["metrics"]["min_ttc"] < 1.5
-        rewards[oracle] = total
-        if oracle == "ttc":
-            assert info["oracle_signature"] == "metric:ttc:seed:parked"
-    assert rewards["ttc"] >= rewards["default"] + 9.0  # the failure bonus (10), less any shaping
+    env = AdversaryEnv("blocked_red_light", oracle="ttc")
+    env.reset(seed=0, options={"jitter_seed": 0})
+    done, total, info = False, 0.0, {}
+    while not done:
+        _, r, done, _, info = env.step(np.zeros(5, dtype=np.int64))  # no-op
+        total += r
+    env.close()
+    m = info["metrics"]
+    assert info["valid"] and "ttc" in m["violations"] and m["ttc_trigger"] == "seed:parked"
+    assert info["oracle_signature"] is None
+    assert env.last_metrics.min_ttc == pytest.approx(m["min_ttc"], abs=1e-4)
+    # the end reward is the severity shaping; the per-window shaping (objective: both) adds the rest
+    assert total < env.cfg.reward.failure_bonus / 2
+    assert total >= env.cfg.reward.iou_shaping * math.exp(-m["min_ttc"] / 1.5) - 1e-6
