@@ -372,6 +372,9 @@ def section_evaluation(page: Page, folder: Path) -> str:
         rc, fl = (cell.get("root_causes") or {}).get("mean"), (cell.get("failures") or {}).get("mean")
         if rc is not None:
             heads.append((f"{m}: root causes", f"{rc:.1f} ({fl:.0f} failures)" if fl is not None else f"{rc:.1f}"))
+        score = (cell.get("metric_score") or {}).get("mean")
+        if score is not None:  # driving quality (docs/metrics.md): the mean score of its simulated scenarios
+            heads.append((f"{m}: driving score", f"{score:.3f}"))
     if heads:
         parts.append(kpis(heads))
     found = folder / "findings" / "findings.md"

@@ -178,3 +178,14 @@ def test_run_summary_holds_the_metrics(tmp_path: pytest.TempPathFactory) -> None
     m = s["reruns"][0]["metrics"]
     assert m["score"] > 0.99 and m["violations"] == []
     assert s["metrics"]["episodes"] == 1 and s["metrics"]["mean_score"] == m["score"]
+
+
+def test_bench_metrics_cost_is_small() -> None:
+    """``deft-gym bench --metrics``: the metrics of an episode cost a few ms against its ~0.1 s of
+    CPU (2.3 % on the seven seeds, docs/metrics.md); the bound here is loose, for loaded machines."""
+    from deft_gym.cli.bench import metrics_cost
+
+    cost = metrics_cost(["lane_follow_static"], 1)
+    (ep,) = cost["episodes"]
+    assert ep["outcome"] == "completed" and ep["score"] > 0.99
+    assert 0.0 < cost["metrics_cpu"] and cost["metrics_share"] < 0.2
