@@ -188,4 +188,4 @@ def test_bench_metrics_cost_is_small() -> None:
     cost = metrics_cost(["lane_follow_static"], 1)
     (ep,) = cost["episodes"]
     assert ep["outcome"] == "completed" and ep["score"] > 0.99
-    assert 0.0 < cost["metrics_cpu"] and cost["metrics_share"] < 0.2
+    assert cost["metrics_cpu"] > 0.0 and cost["metrics_share"] < 0.2
