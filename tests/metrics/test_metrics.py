@@ -189,3 +189,15 @@ def test_bench_metrics_cost_is_small() -> None:
     (ep,) = cost["episodes"]
     assert ep["outcome"] == "completed" and ep["score"] > 0.99
     assert cost["metrics_cpu"] > 0.0 and cost["metrics_share"] < 0.2
+
+
+def test_standstill_unless_queued(highway: MetricsContext) -> None:
+    """8 s standing on a free lane is an unrequired standstill; behind a car standing 3 m ahead
+    it is queueing."""
+    ego = straight(20.0, 0.0, 0.0, 8.0)
+    idle = episode_metrics(trace_of(ego), highway)
+    assert idle.standstill_s == pytest.approx(8.0 + DT) and "standstill" in idle.violations()
+    car = Actor("queue", "reactive", "vehicle", 4.5, 2.0)
+    parts = np.array([[k, 0, 20.0 + 2.4 + 3.0 + 2.25, 0.0, 0.0] for k in range(len(ego))], dtype=float)
+    queued = episode_metrics(trace_of(ego, actors=[car], parts=parts), highway)
+    assert queued.standstill_s == 0.0 and queued.min_ttc is None  # a standing ego has no TTC
