@@ -330,7 +330,7 @@ def _keep_or_drop(d: Path | None, rec: dict[str, Any]) -> None:
 
     if d is None:
         return
-    if not rec.get("failure"):
+    if not (rec.get("failure") or rec.get("oracle_signature")):  # a failure, or a metric oracle's finding
         shutil.rmtree(d, ignore_errors=True)
         return
     from deft_gym.envs.sink import extract_log

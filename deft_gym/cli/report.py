@@ -326,7 +326,7 @@ def _episode_cards(page: Page, episodes: list[Path]) -> list[str]:
 
                 write_atomic(scen, yaml.safe_dump(eq["scenario"], sort_keys=False))
             replay = ["deft-gym", "run", page.rel(scen), "--reruns", "1", "--jitter-seed", str(v["jitter_seed"])]
-        what = v.get("failure") or "failure"
+        what = v.get("failure") or v.get("oracle_signature") or "failure"
         title = f"{v.get('scenario', d.name)}: {what}" + (f" (IoU {v['iou']:.2f})" if isinstance(v.get("iou"), float)
                                                          and what == "nods" else "")
         if isinstance(v.get("metrics"), dict):
@@ -343,7 +343,8 @@ def section_training(page: Page, folder: Path) -> str:
 
     progress = read_jsonl(folder / "progress.jsonl") if (folder / "progress.jsonl").exists() else []
     eps = sorted(p.parent for p in (folder / "episodes").glob("*/episode.json"))
-    fails = [d for d in eps if (read_json(d / "episode.json") or {}).get("failure")]
+    fails = [d for d in eps if any((read_json(d / "episode.json") or {}).get(k)
+                                   for k in ("failure", "oracle_signature"))]  # incl. a metric oracle's findings
     head = kpis([("env steps", f"{s.get('timesteps', 0):,}"), ("episodes", s.get("episodes", "-")),
                  ("collisions", s.get("collisions", "-")), ("NoDS", s.get("nods", "-")),
                  ("valid mutations", f"{100 * s['validity']:.1f} %" if "validity" in s else "-"),

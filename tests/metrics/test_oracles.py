@@ -84,3 +84,18 @@ def test_the_env_aims_at_its_metric_oracle() -> None:
     # the end reward is the severity shaping; the per-window shaping (objective: both) adds the rest
     assert total < env.cfg.reward.failure_bonus / 2
     assert total >= env.cfg.reward.iou_shaping * math.exp(-m["min_ttc"] / 1.5) - 1e-6
+
+
+def test_the_sink_keeps_a_metric_finding_once(tmp_path) -> None:
+    """A metric oracle's finding is kept (and extracted) as a failure is; a second one with the
+    same (scenario, signature) is a duplicate; a passing episode is not kept (keep_passing 0)."""
+    from deft_gym.envs.sink import EpisodeSink
+
+    sink = EpisodeSink(tmp_path, 0, keep_passing=0.0, extract=False, distinct=True)
+    rec = {"scenario": "left_turn", "failure": None, "signature": "", "oracle_signature": "metric:ttc:cone"}
+    assert sink.keeps(rec)
+    d = sink.episode_dir("left_turn")
+    done = sink.finish(d, rec, {})
+    assert done["kept"] and (d / "episode.json").exists()
+    assert not sink.keeps(rec)  # distinct: the same finding again
+    assert not sink.keeps({**rec, "oracle_signature": None})
