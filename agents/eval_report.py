@@ -291,6 +291,28 @@ def _cause_tables(causes: dict[str, Any], order: list[str], placements: list[str
     return out
 
 
+def quality_markdown(summary: dict[str, Any], group: str = "all") -> str:
+    """Driving quality per method and placement on one group (docs/metrics.md): the mean
+    nuPlan-like score of the simulated scenarios, the share that violated each metric oracle and,
+    with a metric oracle configured, its counted findings and distinct signatures (mean ± sd over
+    repeats); empty when no record has metrics."""
+    from agents.stats import METRIC_VIOLATIONS
+
+    cells = {(m, p): summary["groups"].get(m, {}).get(p, {}).get(group) for m, p in _rows(summary)}
+    if not any(c and c.get("metric_score", {}).get("n") for c in cells.values()):
+        return ""
+    cols = ["method", "placement", "score", "oracle findings", "oracle root causes"] + \
+        [f"{v} %" for v in METRIC_VIOLATIONS]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for (m, p), c in cells.items():
+        if c is None or "metric_score" not in c:
+            continue
+        row = [_label(m), p, fmt(c["metric_score"], 3), fmt(c["oracle_findings"]), fmt(c["oracle_root_causes"])]
+        row += [fmt(c[f"viol_{v}"], 1, 100.0) for v in METRIC_VIOLATIONS]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def table_markdown(summary: dict[str, Any]) -> str:
     """``table.md``: the headline table, every measure per group, failures per scenario, the
     statistics and the targets."""
@@ -310,6 +332,14 @@ def table_markdown(summary: dict[str, Any]) -> str:
         text += ["Fields absent from records (defaults used): "
                  + ", ".join(f"{k} ({v})" for k, v in sorted(missing.items())) + ".", ""]
     text += ["## Headline", "", headline_markdown(summary), "## Root causes", "", findings_markdown(summary)]
+    quality = quality_markdown(summary)
+    if quality:
+        oracle = cfg.get("oracle") or "default"
+        text += ["## Driving quality", "",
+                 f"Per-episode metrics (docs/metrics.md) of every simulated scenario, all scenarios: the nuPlan-like "
+                 f"score, the share of scenarios violating each metric, and the findings on the configured oracle "
+                 f"`{oracle}` (valid, reproduced on a second jitter seed; root causes: distinct signatures).", "",
+                 quality]
     for g in GROUPS:
         text += [f"## {GROUP_TITLES[g]}", "", group_markdown(summary, g)]
     text += ["## Failures per scenario", "", per_scenario_markdown(summary),

@@ -84,6 +84,10 @@ class EvalConfig(BaseModel):
     placements: list[Literal["closest", "uniform"]] = Field(
         default_factory=lambda: ["closest", "uniform"], min_length=1,
         description="placement rules every method runs under (one table row per method and placement)")
+    oracle: str | None = Field(None, description="what every method aims at and what counts: default (NoDS and "
+                               "at-fault collisions, docs/search.md) or a driving-quality metric oracle "
+                               "(deft_gym.metrics.oracle.ORACLES, docs/metrics.md); default: the model's "
+                               "training env.oracle, else default")
     ads: str | None = Field(None, description="ADS config YAML every method runs on, the planner under test "
                             "included (default: the model's training env.ads, else configs/ads/default.yaml), "
                             "e.g. configs/ads/commonroad.yaml")
@@ -106,6 +110,10 @@ def build_parser() -> common.Parser:
                    "(default: 0)")
     p.add_argument("--placements", nargs="+", action=common.ListAction, default=None, metavar="RULE",
                    help="placement rules, of closest, uniform (default: both)")
+    p.add_argument("--oracle", default=None, metavar="ORACLE",
+                   help="default (NoDS, at-fault collisions) or a metric oracle: collision, ttc, drivable_area, "
+                   "direction, red_light, progress, comfort, speed_limit, standstill, score (docs/metrics.md; "
+                   "default: the model's training env.oracle, else default)")
     p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl', or 'default': the "
                    "adversary shipped in the package (deft_gym/models/adversary; default: none)")
     common.add_ads_config(p, "the config's ads, else the model's training env.ads, else configs/ads/default.yaml")
@@ -136,7 +144,8 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
         name = str(args.config)
         data = load_mapping(args.config)
     flags: dict[str, tuple[str, Any]] = {}
-    for key in ("budget", "repeats", "held_out", "variants", "model", "deterministic", "workers", "seed", "log_failures"):
+    for key in ("budget", "repeats", "held_out", "variants", "model", "deterministic", "workers", "seed", "log_failures",
+                "oracle"):
         flags[key] = ("--" + key.replace("_", "-"), getattr(args, key))
     ads_flag = getattr(args, "ads_config", None)
     flags["ads"] = ("--ads-config", str(ads_flag) if ads_flag is not None else None)
@@ -163,6 +172,11 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
             ads_config(cfg.ads)
         except ConfigError as err:
             raise ConfigError(f"{where('ads')}: {err}") from None
+    if cfg.oracle is not None:
+        from deft_gym.metrics.oracle import ORACLES
+
+        if cfg.oracle not in ORACLES:
+            raise ConfigError(f"{where('oracle')}: unknown oracle {cfg.oracle!r}; expected one of {list(ORACLES)}")
     bad = [m for m in cfg.methods if m not in METHODS]
     if bad:
         raise ConfigError(f"{where('methods')}: unknown {bad}; expected some of {list(METHODS)}")
@@ -265,7 +279,8 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
         def log_dir(i: int) -> Path | None:
             return (log_root / f"{i:05d}") if job["log_failures"] else None
 
-        for rec in search(method, ctx, budget, seed, job["max_added"], log_dir, rule=job["placement"]):
+        for rec in search(method, ctx, budget, seed, job["max_added"], log_dir, rule=job["placement"],
+                          oracle=env_cfg.oracle):
             if job["log_failures"]:
                 _keep_or_drop(log_dir(rec["index"]), rec)
             recs.append({**base, **rec})
@@ -315,7 +330,7 @@ def _keep_or_drop(d: Path | None, rec: dict[str, Any]) -> None:
 
     if d is None:
         return
-    if not rec.get("failure"):
+    if not (rec.get("failure") or rec.get("oracle_signature")):  # a failure, or a metric oracle's finding
         shutil.rmtree(d, ignore_errors=True)
         return
     from deft_gym.envs.sink import extract_log
@@ -334,8 +349,9 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
     import torch
     from stable_baselines3 import A2C, PPO
 
-    from agents.search import confirm, record_of
+    from agents.search import confirm, oracle_columns, record_of
     from deft_gym.envs.adversary import AdversaryEnv
+    from deft_gym.metrics.oracle import record_columns
 
     torch.set_num_threads(1)
     key = job["model"] if job["method"] == "rl" else None
@@ -375,9 +391,13 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
         eq = env.equivalent_scenario()
         specs = eq["scenario"]["participants"][len(env.ctx.scenario.participants):]
         confirmed, _, _ = confirm(env.ctx, v, specs, int(rng.integers(2**31 - 1)), eq["added_at"])
-        rec = record_of(v, i, time.perf_counter() - w0, time.process_time() - c0, 1 + (confirmed is not None),
-                        confirmed, int(info["jitter_seed"]), int(info["added"]), float(info["sim_time"]))
-        if v.failure or v.task_failure:
+        cols, _, _, n_o = oracle_columns(env.ctx, env.last_metrics, v.valid, env_cfg.oracle, specs,
+                                         int(rng.integers(2**31 - 1)), eq["added_at"]) \
+            if env_cfg.oracle != "default" else (record_columns(env.last_metrics), 0.0, 0.0, 0)
+        rec = record_of(v, i, time.perf_counter() - w0, time.process_time() - c0,
+                        1 + (confirmed is not None) + n_o, confirmed, int(info["jitter_seed"]), int(info["added"]),
+                        float(info["sim_time"]), cols)
+        if v.failure or v.task_failure or cols.get("oracle_signature"):
             rec["scenario_equivalent"] = eq
             rec["ops"] = env.ops
             if info.get("log"):
@@ -426,6 +446,8 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
     env = model_env_config(cfg.model)
     if cfg.ads is not None:  # the planner under test: the evaluation's, else the one the model trained on
         env["ads"] = cfg.ads
+    if cfg.oracle is not None:  # what counts: the evaluation's, else the model's training objective
+        env["oracle"] = cfg.oracle
     from deft_gym.search.context import ads_config
 
     ads = ads_config(env.get("ads"))
@@ -463,7 +485,9 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
         earlier = list(records)
         stale = sum(1 for r in records if r.get("code") != code
                     or (r["scenario"] in keys and r.get("scenario_key") != keys[r["scenario"]]))
+        oracle = env.get("oracle", "default")  # records of another oracle count other findings
         records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code
+                   and r.get("oracle", "default") == oracle
                    and r["scenario"] in keys and r.get("scenario_key") == keys[r["scenario"]]]
         if stale:
             con.print(f"{stale} earlier record(s) ran other simulation code or another version of their "

@@ -17,7 +17,10 @@ near-duplicate of one already simulated is redrawn before it costs a simulation;
 (NoDS, ego-at-fault collision) and task failure is re-checked on a second jitter seed
 (:func:`confirm`) and counts only when it reproduces with the same root cause - that run is reported (``sims``, time)
 but is not a unit of budget. Task failures of valid mutations (timeout, stuck) are findings of
-their own column; as in Algorithm 1 they do not join the population.
+their own column; as in Algorithm 1 they do not join the population. Every record carries the
+episode's driving-quality metrics (``metric_*``, docs/metrics.md); with a metric ``oracle`` the GA
+selects by it and its findings are re-checked the same way (``oracle_signature``,
+``oracle_confirmed``).
 """
 
 from __future__ import annotations
@@ -30,6 +33,16 @@ from typing import Any
 import numpy as np
 
 from agents.mutation import Mutant, NonInvasiveMutator, RandomMutator
+from deft_gym.metrics.episode import EpisodeMetrics
+from deft_gym.metrics.oracle import (
+    ORACLES,
+    confirm_oracle,
+    record_columns,
+    run_metrics,
+    seed_finding,
+    severity,
+    violated,
+)
 from deft_gym.search.context import SeedContext
 from deft_gym.search.episode import EpisodeRun, replay_record, run_scenario
 from deft_gym.search.feasible import Layout
@@ -79,22 +92,45 @@ def record_of(v: Verdict, index: int, seconds: float, cpu_seconds: float, sims: 
     return {**rec, **(extra or {})}
 
 
+def oracle_columns(ctx: SeedContext, m: EpisodeMetrics, valid: bool, oracle: str, specs: list[dict[str, Any]],
+                   jitter_seed: int, added_at: dict[str, float] | None = None) -> tuple[dict[str, Any], float, float, int]:
+    """The record's ``metric_*`` columns, and with a metric ``oracle`` its finding
+    (``oracle_signature``: on a valid mutation) and ``oracle_confirmed`` (re-checked on
+    ``jitter_seed``, :func:`deft_gym.metrics.oracle.confirm_oracle`); ``(columns, wall s, cpu s,
+    extra simulations)``."""
+    cols = record_columns(m)
+    if oracle == "default":
+        return cols, 0.0, 0.0, 0
+    sig = seed_finding(ctx, valid, m, oracle)
+    ok, w, c = confirm_oracle(ctx, oracle, sig, specs, jitter_seed, added_at)
+    return {**cols, "oracle": oracle, "oracle_signature": sig, "oracle_confirmed": ok}, w, c, int(ok is not None)
+
+
 def _run_record(ctx: SeedContext, run: EpisodeRun, index: int, t_mut: float, c_mut: float, rng: np.random.Generator,
-                extra: dict[str, Any]) -> dict[str, Any]:
+                extra: dict[str, Any], m: EpisodeMetrics, oracle: str = "default") -> dict[str, Any]:
     v = run.verdict
-    confirmed, w_c, c_c = confirm(ctx, v, extra.pop("specs"), int(rng.integers(2**31 - 1)))
-    rec = record_of(v, index, t_mut + run.seconds + w_c, c_mut + run.cpu_seconds + c_c, 1 + (confirmed is not None),
-                    confirmed, run.result.jitter_seed, sum(1 for a in run.trace.actors if a.added),
-                    run.result.sim_time, extra)
-    if v.failure or v.task_failure:
+    specs = extra.pop("specs")
+    confirmed, w_c, c_c = confirm(ctx, v, specs, int(rng.integers(2**31 - 1)))
+    cols, w_o, c_o, n_o = oracle_columns(ctx, m, v.valid, oracle, specs, int(rng.integers(2**31 - 1))) \
+        if oracle != "default" else (record_columns(m), 0.0, 0.0, 0)
+    rec = record_of(v, index, t_mut + run.seconds + w_c + w_o, c_mut + run.cpu_seconds + c_c + c_o,
+                    1 + (confirmed is not None) + n_o, confirmed, run.result.jitter_seed,
+                    sum(1 for a in run.trace.actors if a.added), run.result.sim_time, {**extra, **cols})
+    if v.failure or v.task_failure or cols.get("oracle_signature"):
         rec["scenario_equivalent"] = replay_record(run.scenario, run.result.jitter_seed)
     return rec
 
 
 def search(method: str, ctx: SeedContext, budget: int, seed: int, max_added: int = 8,
-           log_dir: Callable[[int], Path | None] | None = None, rule: str = "closest") -> Iterator[dict[str, Any]]:
+           log_dir: Callable[[int], Path | None] | None = None, rule: str = "closest",
+           oracle: str = "default") -> Iterator[dict[str, Any]]:
     """Run a search baseline for ``budget`` simulated scenarios under placement ``rule``; yields
-    one record per primary simulation. ``log_dir(index)`` may give a directory for its MCAP log."""
+    one record per primary simulation. ``log_dir(index)`` may give a directory for its MCAP log.
+    ``oracle``: ``default`` selects by :func:`feedback` (the decision oracle); a metric oracle
+    (:data:`deft_gym.metrics.oracle.ORACLES`) selects by its severity, and children that do not
+    fail it join the population."""
+    if oracle not in ORACLES:
+        raise ValueError(f"unknown oracle {oracle!r}; expected one of {ORACLES}")
     if method not in SEARCH_METHODS:
         raise ValueError(f"unknown search method {method!r}; expected one of {SEARCH_METHODS}")
     # each method its own stream: the GA and Random-delta would otherwise draw the same first
@@ -122,11 +158,14 @@ def search(method: str, ctx: SeedContext, budget: int, seed: int, max_added: int
             t_mut, c_mut = time.perf_counter() - w0, time.process_time() - c0
             run = run_scenario(ctx, child.specs, int(rng.integers(2**31 - 1)), log_dir(used) if log_dir else None)
             v = run.verdict
-            child.fitness = feedback(v)
+            m = run_metrics(ctx, run.trace, v.collision_detail)
+            child.fitness = feedback(v) if oracle == "default" else severity(m, oracle)
             yield _run_record(ctx, run, used, t_mut, c_mut, rng,
-                              {"mutation": child.history[-1] if child.history else "", "specs": child.specs})
+                              {"mutation": child.history[-1] if child.history else "", "specs": child.specs},
+                              m, oracle)
             used += 1
-            if v.valid and v.outcome == "completed" and not v.nods:
+            passed = not v.nods if oracle == "default" else not violated(m, oracle)
+            if v.valid and v.outcome == "completed" and passed:
                 offspring.append(child)
         pool = population + offspring
         if method == "decictor":

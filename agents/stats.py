@@ -38,7 +38,12 @@ COMPARISONS: tuple[tuple[str, str, str], ...] = (
 # per-repeat measures, in table order
 MEASURES = ("root_causes", "root_causes_in_lane", "failures", "nods", "collisions", "nods_local", "task_failures",
             "unconfirmed", "validity", "distinct", "simulated", "sims", "seconds_per_scenario", "cpu_seconds",
-            "distinct_per_cpu_hour")
+            "distinct_per_cpu_hour", "metric_score", "oracle_findings", "oracle_root_causes")
+# the driving-quality metric oracles a record's metric_violations may name (deft_gym.metrics.oracle);
+# each gets a measure viol_<name>: the share of simulated scenarios that violated it
+METRIC_VIOLATIONS = ("collision", "ttc", "drivable_area", "direction", "red_light", "comfort", "speed_limit",
+                     "standstill")
+MEASURES = MEASURES + tuple(f"viol_{v}" for v in METRIC_VIOLATIONS)
 # a root cause whose trigger stood inside the ego's own lane (< 0.75 m from the optimal path): the
 # headline leaves it out (docs/search.md, "What counts"), the in_lane column counts it too
 IN_LANE = "in_lane"
@@ -110,7 +115,14 @@ def normalize(records: Iterable[dict[str, Any]], source: str = "records",
              "mechanism": _field(rec, "mechanism", where, (str, type(None)), None, None, missing) or "other",
              "seconds": _field(rec, "seconds", where, (int, float), None, None, missing),
              "cpu_seconds": _field(rec, "cpu_seconds", where, (int, float), None, None, missing),
-             "sims": _field(rec, "sims", where, (int,), 1, None, missing)}
+             "sims": _field(rec, "sims", where, (int,), 1, None, missing),
+             # driving-quality metrics (docs/metrics.md); records from before them lack these (the
+             # driving-quality table is left out then, not reported as missing)
+             "metric_score": _field(rec, "metric_score", where, (int, float, type(None)), None, None),
+             "metric_violations": _field(rec, "metric_violations", where, (list, type(None)), None, None),
+             # only with a metric oracle (oracle: in the config): not missing without one
+             "oracle_signature": _field(rec, "oracle_signature", where, (str, type(None)), None, None),
+             "oracle_confirmed": _field(rec, "oracle_confirmed", where, (bool, type(None)), None, None)}
         if isinstance(rec.get("scenario_equivalent"), dict):
             r["scenario_equivalent"] = rec["scenario_equivalent"]
         out.append(r)
@@ -135,9 +147,18 @@ class Tally:
     signatures: set[tuple[str, str]] = field(default_factory=set)
     causes: set[str] = field(default_factory=set)
     causes_in_lane: set[str] = field(default_factory=set)
+    scores: list[float] = field(default_factory=list)  # metric_score of the records that have one
+    oracle_causes: set[str] = field(default_factory=set)  # signatures of counted metric-oracle findings
 
     def add(self, r: dict[str, Any]) -> None:
         c = self.counts
+        if r.get("metric_score") is not None:
+            self.scores.append(float(r["metric_score"]))
+            for v in r.get("metric_violations") or ():
+                c[f"viol_{v}"] += 1
+        if r.get("oracle_signature") and r["valid"] and r.get("oracle_confirmed") is True:
+            c["oracle_findings"] += 1
+            self.oracle_causes.add(r["oracle_signature"])
         kind = counted_failure(r)
         c["simulated"] += 1
         c["sims"] += r["sims"]
@@ -165,6 +186,8 @@ class Tally:
         self.signatures |= other.signatures
         self.causes |= other.causes
         self.causes_in_lane |= other.causes_in_lane
+        self.scores += other.scores
+        self.oracle_causes |= other.oracle_causes
 
     def measures(self) -> dict[str, float | None]:
         """The per-repeat values of :data:`MEASURES` (validity a share, times in s, rates per CPU-hour)."""
@@ -177,7 +200,10 @@ class Tally:
                 "root_causes_in_lane": float(len(self.causes | self.causes_in_lane)),
                 "validity": c["valid"] / n if n else None, "distinct": float(distinct),
                 "seconds_per_scenario": self.seconds / n if n and self.seconds is not None else None,
-                "cpu_seconds": cpu, "distinct_per_cpu_hour": distinct / (cpu / 3600.0) if cpu else None}
+                "cpu_seconds": cpu, "distinct_per_cpu_hour": distinct / (cpu / 3600.0) if cpu else None,
+                "metric_score": float(np.mean(self.scores)) if self.scores else None,
+                "oracle_findings": float(c["oracle_findings"]), "oracle_root_causes": float(len(self.oracle_causes)),
+                **{f"viol_{v}": c[f"viol_{v}"] / len(self.scores) if self.scores else None for v in METRIC_VIOLATIONS}}
 
 
 def describe(values: Sequence[float | None]) -> dict[str, Any]:

@@ -356,6 +356,10 @@ def failure_callback(out: Path | None, counts: Counter[str] | None = None) -> An
                 self.logger.record_mean("adversary/nods", float(fail == "nods"))
                 self.logger.record_mean("adversary/valid", float(bool(info.get("valid"))))
                 self.logger.record_mean("adversary/iou", float(info.get("iou", 1.0)))
+                if isinstance(info.get("metrics"), dict):  # driving quality (docs/metrics.md)
+                    self.logger.record_mean("adversary/driving_score", float(info["metrics"]["score"]))
+                if info.get("oracle_signature"):  # a finding on the configured metric oracle
+                    c["oracle_findings"] += 1
                 if out is not None and c["episodes"] % 50 == 0:
                     self._write()
             return True

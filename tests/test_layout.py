@@ -24,10 +24,11 @@ LAYERS: list[tuple[str, ...]] = [
     ("deft_gym.scenarios",),
     ("deft_gym.sim",),
     ("extract",),
-    # driving-quality metrics of an episode, from its log (planned: issue 33)
-    ("deft_gym.metrics",),
     # the search support; an episode's log drawn (viz) or written in standard formats (export)
     ("deft_gym.search", "deft_gym.viz", "deft_gym.export"),
+    # driving-quality metrics of an episode from its trace (issue 33): they read the trace and
+    # the collision fault of deft_gym.search; the env, the baselines and the programs read them
+    ("deft_gym.metrics",),
     ("deft_gym.envs",),
     # ASTAA, and its command (deft_gym.robustness.stress)
     ("deft_gym.robustness",),

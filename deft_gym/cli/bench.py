@@ -1,6 +1,7 @@
 """Speed benchmark: the full stack against bare highway-env, recording on and off.
 
     deft-gym bench [--scenario bench_highway] [--repeats 3]      # -> runs/bench.json
+    deft-gym bench --metrics left_turn right_turn --repeats 2 --out runs/bench_metrics.json
 
 Measures simulated seconds per wall second (one simulation process) of
 
@@ -14,6 +15,8 @@ Measures simulated seconds per wall second (one simulation process) of
 and prints both, their ratio, the recording overhead (wall time, and CPU time of both
 processes) and where the stack's time goes.
 Each figure is the median over ``--repeats`` runs; the runs of the three kinds are interleaved.
+``--metrics SCENARIO...`` measures instead what the driving-quality metrics (docs/metrics.md) cost
+against the episodes' CPU.
 """
 
 from __future__ import annotations
@@ -87,11 +90,50 @@ def highway_speed(vehicles: int, frequency: float, sim_seconds: float, seed: int
     return {"sim": steps / policy_hz, "wall": wall, "speed": steps / policy_hz / wall}
 
 
+def metrics_cost(scenarios: list[str], seeds: int) -> dict[str, Any]:
+    """What the driving-quality metrics (docs/metrics.md) cost per episode: process CPU [s] of
+    the episode without a trace recorder, with one, and of computing the metrics from its trace
+    (the map's drivable area built beforehand, as every campaign after its first episode has it);
+    their sums over ``scenarios`` x ``seeds`` unrecorded episodes and the shares."""
+    from deft_gym.metrics.episode import MetricsContext, episode_metrics
+    from deft_gym.scenarios.scenario import load_scenario
+    from deft_gym.search.trace import TraceRecorder
+    from deft_gym.sim.simulation import Simulation
+
+    rows = []
+    for name in scenarios:
+        sc = load_scenario(name)
+        for seed in range(seeds):
+            c0 = time.process_time()
+            Simulation(sc, jitter_seed=seed, keep_planning=False).run()
+            bare = time.process_time() - c0
+            sim = Simulation(sc, jitter_seed=seed, keep_planning=False)
+            c0 = time.process_time()
+            rec = TraceRecorder(sim)
+            res = sim.run()
+            traced = time.process_time() - c0
+            ctx = MetricsContext.of_scenario(sc, sim.roadmap)
+            ctx.area  # noqa: B018 - the map's drivable area: built once per map and process
+            c0 = time.process_time()
+            o = res.outcome
+            m = episode_metrics(rec.trace(o.outcome, o.sim_time), ctx, o.collision.as_dict() if o.collision else None)
+            rows.append({"scenario": sc.name, "jitter_seed": seed, "outcome": o.outcome, "sim_time": o.sim_time,
+                         "episode_cpu": bare, "traced_cpu": traced, "metrics_cpu": time.process_time() - c0,
+                         "score": round(m.score, 4)})
+    tot = {k: sum(r[k] for r in rows) for k in ("episode_cpu", "traced_cpu", "metrics_cpu")}
+    return {"episodes": rows, **tot, "metrics_share": tot["metrics_cpu"] / tot["episode_cpu"],
+            "metrics_and_trace_share": (tot["traced_cpu"] - tot["episode_cpu"] + tot["metrics_cpu"]) / tot["episode_cpu"],
+            "max_episode_share": max(r["metrics_cpu"] / r["episode_cpu"] for r in rows)}
+
+
 def build_parser() -> common.Parser:
     ap = common.parser("bench", "deft_gym.cli.bench", __doc__)
     ap.add_argument("--scenario", default="bench_highway",
                     help="scenario with the participants to benchmark (default: bench_highway, 5 reactive vehicles)")
     ap.add_argument("--repeats", type=common.positive_int, default=3, help="runs per measurement; the median is shown")
+    ap.add_argument("--metrics", nargs="+", default=None, metavar="SCENARIO",
+                    help="instead: what the driving-quality metrics cost on these scenarios (e.g. the seven seeds), "
+                    "--repeats jitter seeds each, against the episodes' CPU (target <= 5 %%)")
     common.add_out(ap, common.RUNS / "bench.json", help="JSON file for the figures", folder=False)
     common.add_output_flags(ap)
     return ap
@@ -106,6 +148,17 @@ def main(argv: list[str] | None = None) -> int:
     from deft_gym.planner import lattice
     from deft_gym.scenarios.scenario import load_scenario
 
+    if args.metrics:
+        cost = metrics_cost(common.split_list(args.metrics), args.repeats)
+        n = len(cost["episodes"])
+        console.print(f"driving-quality metrics on {n} episodes: {1e3 * cost['metrics_cpu'] / n:.1f} ms CPU per "
+                      f"episode, {100 * cost['metrics_share']:.2f} % of the episodes' CPU ({cost['episode_cpu']:.2f} s; "
+                      f"worst episode {100 * cost['max_episode_share']:.2f} %); with the trace recorder's hooks "
+                      f"{100 * cost['metrics_and_trace_share']:.2f} %; target <= 5 %", highlight=False)
+        if args.out:
+            write_atomic(Path(args.out), json.dumps(cost, indent=2))
+            console.print(f"wrote {args.out}")
+        return 0
     sc = load_scenario(args.scenario)
     ads = load_ads_config()
     n_part = len(sc.participants)

@@ -239,15 +239,19 @@ def kind_of(folder: Path) -> str | None:
 def section_run(page: Page, folder: Path, s: dict[str, Any]) -> str:
     reruns = s["reruns"]
     coll = [r for r in reruns if r.get("collision")]
+    agg = s.get("metrics") or {}
     head = kpis([("reruns", len(reruns)), ("collided", f"{len(coll)} of {len(reruns)}"),
-                 ("sim speed", f"{s.get('sim_speed') or 0:.0f}x real time")])
+                 ("sim speed", f"{s.get('sim_speed') or 0:.0f}x real time")]
+                + ([("mean driving score", f"{agg['mean_score']:.3f}")] if agg.get("mean_score") is not None else []))
     from deft_gym.cli.run import compared
 
     rows = [[r["rerun"], r["outcome"], (r.get("collision_detail") or {}).get("participant", ""),
              r["jitter_seed"], f"{r['sim_time']:.1f}",
-             compared(r, reruns[0]) or f"{r['divergence']['identical']} of {r['divergence']['paired']}"]
+             compared(r, reruns[0]) or f"{r['divergence']['identical']} of {r['divergence']['paired']}",
+             *quality(r.get("metrics"))]
             for r in reruns]
-    body = table(["rerun", "outcome", "hit", "jitter seed", "sim s", "plans identical to rerun 0"], rows)
+    body = table(["rerun", "outcome", "hit", "jitter seed", "sim s", "plans identical to rerun 0", "score",
+                  "violations (docs/metrics.md)"], rows)
     body += ('<p class="note">Plans are compared with rerun 0\'s only for reruns with its outcome; a rerun with '
              "another outcome drove elsewhere once they parted.</p>")
     items = []
@@ -260,8 +264,9 @@ def section_run(page: Page, folder: Path, s: dict[str, Any]) -> str:
         test = None
         for cand in (folder.parent / f"{folder.name}_tests" / str(r["rerun"]), folder / str(r["rerun"]) / "deft"):
             test = test or _tests_in(cand)
-        items.append(card(page, f"rerun {r['rerun']}: collision with {c['participant']} at {c['time']:.2f} s",
-                          log, replay, test))
+        score = quality(r.get("metrics"))
+        items.append(card(page, f"rerun {r['rerun']}: collision with {c['participant']} at {c['time']:.2f} s"
+                          + (f"; score {score[0]}, {score[1]}" if r.get("metrics") else ""), log, replay, test))
     return (f"<h2>System-level reruns: {esc(s['scenario'])}</h2>{head}"
             f'<p class="note">The same scenario rerun; only the module timing (jitter) differs, so the outcome '
             f"may too.</p>{body}" + (cards(items, len(coll)) if items else ""))
@@ -278,6 +283,13 @@ def _scenario_arg(path: str | None, name: str) -> str:
         return "configs/" + Path(path).resolve().relative_to(CONFIG_DIR.resolve()).as_posix()
     except ValueError:
         return common.shown(path)
+
+
+def quality(m: dict[str, Any] | None) -> list[str]:
+    """An episode's driving-quality cells: its score and the metrics it violated (docs/metrics.md)."""
+    if not m:
+        return ["-", "-"]
+    return [f"{m['score']:.3f}", ", ".join(m.get("violations") or []) or "none"]
 
 
 def section_extraction(page: Page, folder: Path, s: dict[str, Any]) -> str:
@@ -331,9 +343,12 @@ def _episode_cards(page: Page, episodes: list[Path]) -> list[str]:
     for d in episodes[:MAX_CARDS]:
         v = read_json(d / "episode.json") or {}
         replay = replay_command(d, v, d / "episode.mcap")
-        what = v.get("failure") or "failure"
+        what = v.get("failure") or v.get("oracle_signature") or "failure"
         title = f"{v.get('scenario', d.name)}: {what}" + (f" (IoU {v['iou']:.2f})" if isinstance(v.get("iou"), float)
                                                          and what == "nods" else "")
+        if isinstance(v.get("metrics"), dict):
+            score, violated = quality(v["metrics"])
+            title += f"; score {score}, {violated}"
         items.append(card(page, title, d / "episode.mcap", replay, _tests_in(d / "extracted"), note=d.name,
                           collision=what == "collision"))
     return items
@@ -368,7 +383,8 @@ def section_training(page: Page, folder: Path) -> str:
 
     progress = read_jsonl(folder / "progress.jsonl") if (folder / "progress.jsonl").exists() else []
     eps = sorted(p.parent for p in (folder / "episodes").glob("*/episode.json"))
-    fails = [d for d in eps if (read_json(d / "episode.json") or {}).get("failure")]
+    fails = [d for d in eps if any((read_json(d / "episode.json") or {}).get(k)
+                                   for k in ("failure", "oracle_signature"))]  # incl. a metric oracle's findings
     head = kpis([("env steps", f"{s.get('timesteps', 0):,}"), ("episodes", s.get("episodes", "-")),
                  ("collisions", s.get("collisions", "-")), ("NoDS", s.get("nods", "-")),
                  ("valid mutations", f"{100 * s['validity']:.1f} %" if "validity" in s else "-"),
@@ -402,6 +418,9 @@ def section_evaluation(page: Page, folder: Path) -> str:
         rc, fl = (cell.get("root_causes") or {}).get("mean"), (cell.get("failures") or {}).get("mean")
         if rc is not None:
             heads.append((f"{m}: root causes", f"{rc:.1f} ({fl:.0f} failures)" if fl is not None else f"{rc:.1f}"))
+        score = (cell.get("metric_score") or {}).get("mean")
+        if score is not None:  # driving quality (docs/metrics.md): the mean score of its simulated scenarios
+            heads.append((f"{m}: driving score", f"{score:.3f}"))
     if heads:
         parts.append(kpis(heads))
     found = folder / "findings" / "findings.md"

@@ -6,7 +6,8 @@
 Each rerun gets its own jitter seed (from the OS, or ``--jitter-seed S`` + rerun index for an
 exactly reproducible batch) and writes ``OUT/<rerun>/episode.mcap`` and ``truth.jsonl``; the
 table compares every rerun's planning outputs with rerun 0's (lock-step Euclidean distance of
-the i-th output against the i-th). ``OUT/summary.json`` holds the rows and the sim speed.
+the i-th output against the i-th). ``OUT/summary.json`` holds the rows, each with its driving-quality
+``metrics`` (docs/metrics.md), their per-run aggregate ``metrics`` and the sim speed.
 """
 
 from __future__ import annotations
@@ -109,20 +110,30 @@ def _main(args: argparse.Namespace) -> int:
 
 def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out: Path,
             eq: dict[str, Any] | None = None) -> int:
+    from deft_gym.metrics.episode import aggregate, simulation_metrics
     from deft_gym.search.episode import replay
+    from deft_gym.search.trace import TraceRecorder
     from deft_gym.sim.simulation import Simulation
 
     rows: list[dict[str, Any]] = []
     ref_plans: list[dict[str, Any]] = []
     sim_total = wall_total = 0.0
+    held: dict[str, Any] = {}  # this rerun's simulation and its trace recorder
+
+    def attach(sim: Simulation) -> None:  # ground truth per world step for the metrics (passive hooks)
+        held["sim"], held["trace"] = sim, TraceRecorder(sim)
+
     with common.bar(args, args.reruns, scenario.name) as bar:
         for i in range(args.reruns):
             seed = args.jitter_seed + i if args.jitter_seed is not None else common.fresh_seed()
             if eq is None:
-                result = Simulation(scenario, ads, jitter_seed=seed, out_dir=out / str(i), compress=args.compress).run()
+                sim = Simulation(scenario, ads, jitter_seed=seed, out_dir=out / str(i), compress=args.compress)
+                attach(sim)
+                result = sim.run()
             else:
-                result = replay(eq, ads, out / str(i), jitter_seed=seed, compress=args.compress)
+                result = replay(eq, ads, out / str(i), jitter_seed=seed, compress=args.compress, attach=attach)
             summary = result.summary()
+            summary["metrics"] = simulation_metrics(held["sim"], held["trace"], result).as_dict()
             if i == 0:
                 ref_plans = result.planning
             summary["divergence"] = divergence_stats(ref_plans, result.planning)
@@ -139,6 +150,10 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
     common.print_table(console, _table(scenario.name, rows))
     sim_speed = sim_total / wall_total if wall_total > 0 else None
     collided = sum(r["collision"] for r in rows)
+    agg = aggregate([r["metrics"] for r in rows])
+    console.print(f"driving quality: mean score {agg['mean_score']:.3f} (min {agg['min_score']:.3f}); violations "
+                  + (", ".join(f"{k} {v}/{len(rows)}" for k, v in agg["violations"].items()) or "none")
+                  + " (docs/metrics.md)", highlight=False, soft_wrap=True)
     console.print(f"{collided}/{len(rows)} reruns collided; outcomes {', '.join(sorted({r['outcome'] for r in rows}))}; "
                   f"sim speed {sim_speed:.0f}x real time")
     for r in rows:
@@ -150,10 +165,11 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
         "scenario_file": scenario.source,
         "reruns": [{k: r[k] for k in ("rerun", "outcome", "collision", "collision_detail", "task_completed",
                                       "sim_time", "wall_time", "jitter_seed", "min_distance",
-                                      "planning_outputs", "divergence", "log", "truth", "plot", "video")
+                                      "planning_outputs", "divergence", "metrics", "log", "truth", "plot", "video")
                      if k in r}
                    for r in rows],
         "sim_speed": sim_speed,
+        "metrics": aggregate([r["metrics"] for r in rows]),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     write_atomic(out / "summary.json", json.dumps(summary_doc, indent=2))

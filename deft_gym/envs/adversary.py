@@ -32,7 +32,11 @@ cause this env was rewarded for n times before (distinct root causes are the hea
 small penalty for a timeout/stuck ego (a task failure, no NoDS) or for a participant running into
 the ego (not the ego's fault), and shaping by 1 - IoU.
 
-**info** (final step): ``collision``, ``ego_at_fault``, ``nods``, ``failure``, ``iou``, ``f_p``, ``f_b``,
+**Oracle** (``oracle:``, default ``default``): a driving-quality metric oracle instead
+(:mod:`deft_gym.metrics.oracle`): the end bonus goes to its finding on a valid mutation, novelty
+by its signature, and a run without one earns ``iou_shaping`` x its severity.
+
+**info** (final step): ``metrics`` (docs/metrics.md), ``oracle_signature``, ``collision``, ``ego_at_fault``, ``nods``, ``failure``, ``iou``, ``f_p``, ``f_b``,
 ``valid``, ``invasive``, ``outcome``, ``signature``, ``scenario``, ``jitter_seed``, ``added``,
 ``env_steps`` (the env's steps so far, all episodes), and the log / extraction results when logging.
 """
@@ -54,6 +58,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.config import load_mapping, validate
 from deft_gym.envs.sink import EpisodeSink
+from deft_gym.metrics.oracle import ORACLES, run_metrics, seed_finding, severity
 from deft_gym.scenarios.scenario import with_participants
 from deft_gym.search.context import SEED_SCENARIOS, SeedContext, ads_config, robust, seed_context
 from deft_gym.search.episode import replay_record, run_scenario
@@ -109,6 +114,10 @@ class AdversaryConfig(BaseModel):
                             "configs/ads/default.yaml); configs/ads/commonroad.yaml puts CommonRoad's reactive "
                             "planner under test")
     objective: Literal["collision", "nods", "both"] = "both"
+    oracle: Literal[ORACLES] = Field("default", description="what the end-of-episode bonus rewards: default "  # type: ignore[valid-type]
+                                     "(the objective's failures: NoDS, at-fault collisions) or a driving-quality "
+                                     "metric oracle (deft_gym.metrics.oracle, docs/metrics.md): its finding on a "
+                                     "valid mutation, novelty by its signature; the shaping stays the objective's")
     variant_prob: float = Field(0.0, ge=0.0, le=1.0, description="share of episodes on a training variant")
     variant_seeds: int = Field(200, ge=1, description="training variants use seeds [0, variant_seeds)")
     feasible: FeasibleConfig = FeasibleConfig()
@@ -481,10 +490,17 @@ class AdversaryEnv(gym.Env):
         trace = self.recorder.trace(o.outcome, o.sim_time)
         verdict = ctx.oracle.judge(trace, o.collision.as_dict() if o.collision else None)
         self.last_verdict = verdict
+        metrics = self.last_metrics = run_metrics(ctx, trace, o.collision.as_dict() if o.collision else None)
         rw = cfg.reward
         r = 0.0
         if not verdict.valid:
             r += rw.invalid
+        elif cfg.oracle != "default":  # a metric oracle: its finding, novelty by its signature
+            sig = seed_finding(ctx, verdict.valid, metrics, cfg.oracle)
+            if sig is not None:
+                r += self._failure_bonus(verdict, sig)
+            else:
+                r += rw.iou_shaping * severity(metrics, cfg.oracle)
         else:
             if (verdict.failure == "collision" and cfg.objective in ("collision", "both")) or \
                     (verdict.nods and cfg.objective in ("nods", "both")):
@@ -493,7 +509,9 @@ class AdversaryEnv(gym.Env):
                 r += rw.task_failure  # no failure of the ADS, and the scenario is spent
             if o.outcome == "completed" and not verdict.nods and cfg.objective in ("nods", "both"):
                 r += rw.iou_shaping * (1.0 - verdict.iou)
-        info = {**verdict.as_dict(), "scenario": ctx.name, "jitter_seed": self.jitter_seed,
+        info = {**verdict.as_dict(), "metrics": metrics.as_dict(),
+                "oracle_signature": seed_finding(ctx, verdict.valid, metrics, cfg.oracle),
+                "scenario": ctx.name, "jitter_seed": self.jitter_seed,
                 "pid": os.getpid(), "process_cpu": round(time.process_time() - self._cpu0, 3),
                 "added": len(self.layout.placed), "sim_time": round(o.sim_time, 3),
                 "wall_time": round(result.wall_time, 3)}
@@ -509,14 +527,17 @@ class AdversaryEnv(gym.Env):
             info["extraction"] = done.get("extraction")
         return r, info
 
-    def _failure_bonus(self, verdict: Any) -> float:
+    def _failure_bonus(self, verdict: Any, sig: str | None = None) -> float:
         """``failure_bonus`` for a failure, less for a trigger inside the ego's lane and for a
-        root cause this env was rewarded for before (:class:`RewardConfig`)."""
+        root cause this env was rewarded for before (:class:`RewardConfig`); ``sig``: a metric
+        oracle's signature (then the novelty counts it, and the lane band does not apply)."""
         rw = self.cfg.reward
-        bonus = rw.failure_bonus * (rw.in_lane_share if verdict.finding and verdict.finding.band == IN_LANE else 1.0)
+        inside = sig is None and verdict.finding and verdict.finding.band == IN_LANE
+        bonus = rw.failure_bonus * (rw.in_lane_share if inside else 1.0)
+        key = verdict.signature if sig is None else sig
         if rw.novelty:
-            n = self._rewarded.get(verdict.signature, 0)
-            self._rewarded[verdict.signature] = n + 1
+            n = self._rewarded.get(key, 0)
+            self._rewarded[key] = n + 1
             bonus /= math.sqrt(1.0 + n)
         return bonus
 

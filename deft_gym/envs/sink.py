@@ -4,7 +4,8 @@ Every episode that logs writes ``<root>/episodes/<tag>/episode.mcap``. When it e
 :meth:`EpisodeSink.finish` appends one line to ``<root>/episodes-<worker>.jsonl`` (append-only,
 one file per worker process, so parallel workers never interleave) and then:
 
-- a failing episode (collision or non-optimal decision of a valid mutation) keeps its log plus
+- a failing episode (collision or non-optimal decision of a valid mutation, or a finding on the
+  env's metric oracle: docs/metrics.md) keeps its log plus
   ``episode.json`` (verdict, equivalent scenario, seeds) and is passed to the DeFT extractor
   (``extract.extract_episode``), which writes the extracted frames and a pytest module into
   ``<episode>/extracted``;
@@ -81,7 +82,7 @@ class EpisodeSink:
         set aside by a resume, and its journal lines), so a resumed run continues after it."""
         lines = read_jsonl(self.journal) if self.journal.exists() else []
         for r in lines:
-            if r.get("failure") and r.get("dir") and Path(r["dir"]).is_dir():
+            if _finding(r) and r.get("dir") and Path(r["dir"]).is_dir():
                 self.kept_failures.setdefault(_failure_key(r), r["dir"])
         n = len(lines)
         pat = re.compile(rf"w{self.worker}-(\d+)-")
@@ -110,7 +111,7 @@ class EpisodeSink:
         """Whether the episode's log is kept: for a failure, always (with ``distinct``: unless
         it duplicates a kept one); with probability ``keep_passing`` otherwise (one draw of the
         sink's RNG)."""
-        if record.get("failure"):
+        if _finding(record):
             return not (self.distinct and self.kept_log(record) is not None)
         return bool(self.rng.random() < self.keep_passing)
 
@@ -143,7 +144,7 @@ class EpisodeSink:
                     r = json.loads(line)
                 except json.JSONDecodeError:
                     continue
-                if r.get("failure") and r.get("kept") and r.get("dir") and Path(r["dir"]).is_dir():
+                if _finding(r) and r.get("kept") and r.get("dir") and Path(r["dir"]).is_dir():
                     key, seen = _failure_key(r), (int(r.get("env_steps", 0)), str(r["dir"]))
                     self.others_kept[key] = min(self.others_kept.get(key, seen), seen)
 
@@ -152,7 +153,7 @@ class EpisodeSink:
         """Extract / keep / delete; returns what was done (also added to the journal line).
         ``keep``: decided earlier with :meth:`keeps` (a log recorded after the fact, by replay);
         ``episode_dir`` None: nothing was recorded."""
-        failing = bool(record.get("failure"))
+        failing = _finding(record)
         done: dict[str, Any] = {"kept": False, "extraction": None}
         if keep is None:
             keep = self.keeps(record)
@@ -177,8 +178,13 @@ class EpisodeSink:
         return extract_log(episode_dir, **{"test_suffix": episode_dir.name, **self.extract_kwargs})
 
 
+def _finding(record: dict[str, Any]) -> bool:
+    """A failure, or a finding on the env's metric oracle (``oracle_signature``, docs/metrics.md)."""
+    return bool(record.get("failure") or record.get("oracle_signature"))
+
+
 def _failure_key(record: dict[str, Any]) -> tuple[str, str]:
-    return str(record.get("scenario")), str(record.get("signature"))
+    return str(record.get("scenario")), str(record.get("oracle_signature") or record.get("signature"))
 
 
 def extract_log(episode_dir: Path, **kwargs: Any) -> dict[str, Any]:

@@ -129,16 +129,17 @@ def load_replay(path: Path | str) -> dict[str, Any] | None:
 
 
 def replay(eq: dict[str, Any], ads: Any, out_dir: Path | str | None = None, jitter_seed: int | None = None,
-           keep_planning: bool = True, compress: bool = False) -> EpisodeResult:
+           keep_planning: bool = True, compress: bool = False,
+           attach: Callable[[Simulation], Any] | None = None) -> EpisodeResult:
     """Simulate a failure's scenario (:func:`replay_record`) again, with its jitter seed unless
-    ``jitter_seed`` is given."""
+    ``jitter_seed`` is given; ``attach(sim)`` runs before the episode starts."""
     data = eq["scenario"]
     added_at = eq.get("added_at") or {}
     start = {**data, "participants": [p for p in data.get("participants", []) if p["id"] not in added_at]}
     later = [p for p in data.get("participants", []) if p["id"] in added_at]
     seed = eq["jitter_seed"] if jitter_seed is None else jitter_seed
     return simulate(start, ads, seed, out_dir, later, added_at, source=f"{data.get('name', 'scenario')} (replay)",
-                    keep_planning=keep_planning, compress=compress)
+                    attach=attach, keep_planning=keep_planning, compress=compress)
 
 
 def replay_of_log(log: Path | str) -> dict[str, Any] | None:

@@ -1,0 +1,162 @@
+"""Metric oracles: a driving-quality metric as a failure that the adversary's reward and the
+baselines' fitness can aim at (``oracle:`` in the train and evaluation configs; docs/metrics.md).
+
+A finding on a metric oracle counts as the decision oracle's do: on a valid mutation only, not
+when the seed's reference run has the same signature (the seed fails it without any mutation),
+reproduced on a second jitter seed with the same signature (:func:`confirm_oracle`, the rule of
+:func:`agents.search.confirm`), and distinct by signature per oracle. ``default`` keeps the present objective (NoDS and at-fault
+collisions, docs/search.md).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+from deft_gym.metrics.episode import (
+    COMFORT_BOUNDS,
+    DIRECTION_BAD,
+    STANDSTILL_BOUND,
+    TTC_BOUND,
+    EpisodeMetrics,
+    MetricsContext,
+    episode_metrics,
+)
+from deft_gym.search.context import SeedContext
+from deft_gym.search.trace import Trace
+
+#: the oracles a config may name (``default``: the decision oracle, no metric)
+ORACLES = ("default", "collision", "ttc", "drivable_area", "direction", "red_light", "progress", "comfort",
+           "speed_limit", "standstill", "score")
+PROGRESS_BAD = 0.8  # progress ratio below this is a progress violation
+SCORE_BAD = 0.5  # score below this is a score violation
+
+
+def violated(m: EpisodeMetrics, oracle: str) -> bool:
+    """Whether episode ``m`` fails ``oracle``."""
+    if oracle == "progress":
+        return m.progress_ratio < PROGRESS_BAD
+    if oracle == "score":
+        return m.score < SCORE_BAD
+    return oracle in m.violations()
+
+
+def severity(m: EpisodeMetrics, oracle: str) -> float:
+    """How close ``m`` is to failing ``oracle``, in [0, 1] (1: failed badly): the GA's fitness
+    and the env's shaping when a config aims at a metric."""
+    if oracle == "collision":
+        return 1.0 if m.at_fault_collision else 0.0
+    if oracle == "ttc":
+        return 0.0 if m.min_ttc is None else math.exp(-max(m.min_ttc, 0.0) / TTC_BOUND)
+    if oracle == "drivable_area":
+        return min(1.0, m.off_road_max / 1.0)
+    if oracle == "direction":
+        return min(1.0, m.wrong_way_max_1s / DIRECTION_BAD)
+    if oracle == "red_light":
+        return 1.0 if m.red_lights else 0.0
+    if oracle == "progress":
+        return 1.0 - m.progress_ratio
+    if oracle == "comfort":
+        return min(1.0, max(abs(v) / max(abs(b) for b in COMFORT_BOUNDS[k]) for k, v in m.comfort.items())) \
+            if m.comfort else 0.0
+    if oracle == "speed_limit":
+        return 1.0 - m.speed_score
+    if oracle == "standstill":
+        return min(1.0, m.standstill_max_s / (2 * STANDSTILL_BOUND))
+    if oracle == "score":
+        return 1.0 - m.score
+    raise ValueError(f"unknown oracle {oracle!r}; expected one of {ORACLES[1:]}")
+
+
+def signature(m: EpisodeMetrics, oracle: str) -> str | None:
+    """The root cause of a metric finding, ``metric:<oracle>:<detail>`` (None: no finding):
+    what kind of participant was closest in TTC, which light was run, which comfort signal
+    broke first, how the collision happened; one class per oracle otherwise."""
+    if not violated(m, oracle):
+        return None
+    detail = {"collision": m.collision_how or "unknown", "ttc": m.ttc_trigger or "unknown",
+              "red_light": ",".join(sorted({r["light"] for r in m.red_lights})),
+              "comfort": m.uncomfortable[0] if m.uncomfortable else "",
+              "score": "+".join(v for v in m.violations() if v != "standstill") or "low"}.get(oracle, oracle)
+    return f"metric:{oracle}:{detail}"
+
+
+_CONTEXTS: dict[int, tuple[Any, MetricsContext]] = {}
+
+
+def seed_metrics_context(ctx: SeedContext) -> MetricsContext:
+    """The :class:`MetricsContext` of a seed context: its map, lights and the reference run as
+    the expert (progress along the expert's path, as nuPlan's); memoised per context."""
+    hit = _CONTEXTS.get(id(ctx))
+    if hit is not None and hit[0] is ctx:
+        return hit[1]
+    if len(_CONTEXTS) > 512:
+        _CONTEXTS.clear()
+    mc = MetricsContext.of_scenario(ctx.scenario, ctx.roadmap, ctx.ref)
+    _CONTEXTS[id(ctx)] = (ctx, mc)
+    return mc
+
+
+def run_metrics(ctx: SeedContext, trace: Trace, collision: dict[str, Any] | None) -> EpisodeMetrics:
+    """The metrics of a run of a seed context's scenario (mutated or not)."""
+    return episode_metrics(trace, seed_metrics_context(ctx), collision)
+
+
+def record_columns(m: EpisodeMetrics) -> dict[str, Any]:
+    """The columns an evaluation record keeps of an episode's metrics (``metric_*``)."""
+    d = m.as_dict()
+    return {"metric_score": d["score"], "metric_min_ttc": d["min_ttc"], "metric_ttc_below_s": d["ttc_below_s"],
+            "metric_off_road_max": d["off_road_max"], "metric_wrong_way_m": d["wrong_way_m"],
+            "metric_red_lights": len(d["red_lights"]), "metric_progress_ratio": d["progress_ratio"],
+            "metric_uncomfortable": d["uncomfortable"], "metric_overspeed_integral": d["overspeed_integral"],
+            "metric_standstill_s": d["standstill_s"], "metric_violations": d["violations"],
+            "metric_cpu_s": d["cpu_s"]}
+
+
+def oracle_finding(valid: bool, m: EpisodeMetrics, oracle: str, reference: str | None = None) -> str | None:
+    """The signature of a finding on ``oracle`` - only for a valid mutation, and only when it is
+    not the ``reference`` run's own signature on that oracle (what the seed scenario does
+    without any mutation is no finding: the seed's parked car that every run closes on) - or None."""
+    if oracle == "default" or not valid:
+        return None
+    sig = signature(m, oracle)
+    return None if sig is not None and sig == reference else sig
+
+
+_REFERENCE: dict[tuple[int, str], tuple[Any, str | None]] = {}
+
+
+def reference_signature(ctx: SeedContext, oracle: str) -> str | None:
+    """The seed context's reference run's own signature on ``oracle`` (None: it passes)."""
+    hit = _REFERENCE.get((id(ctx), oracle))
+    if hit is not None and hit[0] is ctx:
+        return hit[1]
+    if len(_REFERENCE) > 4096:
+        _REFERENCE.clear()
+    sig = signature(run_metrics(ctx, ctx.ref, None), oracle) if oracle != "default" else None
+    _REFERENCE[(id(ctx), oracle)] = (ctx, sig)
+    return sig
+
+
+def seed_finding(ctx: SeedContext, valid: bool, m: EpisodeMetrics, oracle: str) -> str | None:
+    """:func:`oracle_finding` of a run of ``ctx``'s scenario, its reference run's signature left out."""
+    if oracle == "default" or not valid:
+        return None
+    return oracle_finding(valid, m, oracle, reference_signature(ctx, oracle))
+
+
+def confirm_oracle(ctx: SeedContext, oracle: str, sig: str | None, specs: list[dict[str, Any]], jitter_seed: int,
+                   added_at: dict[str, float] | None = None) -> tuple[bool | None, float, float]:
+    """:func:`agents.search.confirm` for a metric oracle: the scenario again on another jitter
+    seed; ``(reproduced, wall s, cpu s)``, reproduced when that run is valid and has the same
+    signature on ``oracle``; None when there is no finding to confirm."""
+    if sig is None:
+        return None, 0.0, 0.0
+    from deft_gym.search.episode import run_scenario
+
+    w0, c0 = time.perf_counter(), time.process_time()
+    again = run_scenario(ctx, specs, jitter_seed, added_at=added_at)
+    m = run_metrics(ctx, again.trace, again.verdict.collision_detail)
+    same = seed_finding(ctx, again.verdict.valid, m, oracle) == sig
+    return bool(same), time.perf_counter() - w0, time.process_time() - c0

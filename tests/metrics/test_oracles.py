@@ -1,0 +1,101 @@
+"""Metric oracles wired into the search baselines and the adversary env (docs/metrics.md): the
+records carry the metrics, a finding counts only on a valid mutation, re-checked on a second
+jitter seed with the same signature."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from deft_gym.metrics.oracle import ORACLES
+
+
+@pytest.mark.parametrize("oracle", ["default", "ttc"])
+def test_search_records_carry_the_metrics_and_the_oracle(oracle: str) -> None:
+    from agents.search import search
+    from deft_gym.search.context import seed_context
+
+    ctx = seed_context("blocked_red_light")
+    recs = list(search("random_delta", ctx, 3, seed=0, oracle=oracle))
+    assert len(recs) == 3
+    for r in recs:
+        assert 0.0 <= r["metric_score"] <= 1.0
+        assert set(r["metric_violations"]) <= set(ORACLES)
+        if oracle == "default":
+            assert "oracle" not in r
+            continue
+        assert r["oracle"] == "ttc"
+        # the seed's own TTC finding (its reference run closes on the parked blocker) never counts
+        assert r["oracle_signature"] != "metric:ttc:seed:parked"
+        sig = r["oracle_signature"]
+        if sig is None:  # no finding: nothing re-checked
+            assert r["oracle_confirmed"] is None
+        else:  # a finding: a valid mutation that violated the oracle, re-checked once more
+            assert r["valid"] and "ttc" in r["metric_violations"] and sig.startswith("metric:ttc:")
+            assert isinstance(r["oracle_confirmed"], bool) and r["sims"] >= 2
+
+
+def test_the_ga_finds_a_confirmed_ttc_finding() -> None:
+    """Decictor-GA aimed at TTC on left_turn (budget 4, seed 0): one of its mutations brings the
+    ego within 1.5 s TTC of an added cone, on two jitter seeds - a counted finding."""
+    from agents.search import search
+    from deft_gym.search.context import seed_context
+
+    recs = list(search("decictor", seed_context("left_turn"), 4, seed=0, oracle="ttc"))
+    found = [r for r in recs if r["oracle_signature"]]
+    assert found, [(r["metric_violations"], r["metric_min_ttc"]) for r in recs]
+    for r in found:
+        assert r["valid"] and r["metric_ttc_below_s"] > 0.0 and r["metric_min_ttc"] < 1.5
+        assert r["oracle_signature"] == "metric:ttc:cone" and r["oracle_confirmed"] is True
+        assert "scenario_equivalent" in r  # kept for the findings, as a failure's is
+
+
+def test_a_finding_the_reference_run_has_is_none() -> None:
+    from deft_gym.metrics.episode import EpisodeMetrics
+    from deft_gym.metrics.oracle import oracle_finding
+
+    m = EpisodeMetrics(duration=10.0, min_ttc=0.8, ttc_below_s=0.5, ttc_trigger="cone")
+    assert oracle_finding(True, m, "ttc") == "metric:ttc:cone"
+    assert oracle_finding(False, m, "ttc") is None  # an invalid mutation
+    assert oracle_finding(True, m, "ttc", reference="metric:ttc:cone") is None  # the seed does it anyway
+    assert oracle_finding(True, m, "ttc", reference="metric:ttc:seed:parked") == "metric:ttc:cone"
+    assert oracle_finding(True, m, "default") is None
+
+
+def test_the_env_aims_at_its_metric_oracle() -> None:
+    """blocked_red_light's reference run closes on the parked blocker at a TTC of about 1.07 s <
+    1.5 s. With ``oracle: ttc`` and no-op actions the episode violates TTC the same way - no
+    finding, no failure bonus (10), only the severity shaping (2 x exp(-TTC / 1.5 s))."""
+    import math
+
+    from deft_gym.envs.adversary import AdversaryEnv
+
+    env = AdversaryEnv("blocked_red_light", oracle="ttc")
+    env.reset(seed=0, options={"jitter_seed": 0})
+    done, total, info = False, 0.0, {}
+    while not done:
+        _, r, done, _, info = env.step(np.zeros(5, dtype=np.int64))  # no-op
+        total += r
+    env.close()
+    m = info["metrics"]
+    assert info["valid"] and "ttc" in m["violations"] and m["ttc_trigger"] == "seed:parked"
+    assert info["oracle_signature"] is None
+    assert env.last_metrics.min_ttc == pytest.approx(m["min_ttc"], abs=1e-4)
+    # the end reward is the severity shaping; the per-window shaping (objective: both) adds the rest
+    assert total < env.cfg.reward.failure_bonus / 2
+    assert total >= env.cfg.reward.iou_shaping * math.exp(-m["min_ttc"] / 1.5) - 1e-6
+
+
+def test_the_sink_keeps_a_metric_finding_once(tmp_path) -> None:
+    """A metric oracle's finding is kept (and extracted) as a failure is; a second one with the
+    same (scenario, signature) is a duplicate; a passing episode is not kept (keep_passing 0)."""
+    from deft_gym.envs.sink import EpisodeSink
+
+    sink = EpisodeSink(tmp_path, 0, keep_passing=0.0, extract=False, distinct=True)
+    rec = {"scenario": "left_turn", "failure": None, "signature": "", "oracle_signature": "metric:ttc:cone"}
+    assert sink.keeps(rec)
+    d = sink.episode_dir("left_turn")
+    done = sink.finish(d, rec, {})
+    assert done["kept"] and (d / "episode.json").exists()
+    assert not sink.keeps(rec)  # distinct: the same finding again
+    assert not sink.keeps({**rec, "oracle_signature": None})
