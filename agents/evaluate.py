@@ -479,7 +479,10 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
             done[(r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"])] += 1
     jobs = []
     copies: list[tuple[str, str, str, int]] = []
-    kinds = {**{s: "seed" for s in seeds}, **{h: "held_out" for h in held_out}}
+    from agents.stats import kind_of_name
+
+    kinds = {**{s: "seed" if kind_of_name(s) != "handwritten" else "handwritten" for s in seeds},
+             **{h: "held_out" for h in held_out}}
     for rep in range(cfg.repeats):
         for scn in seeds + held_out:
             for m in cfg.methods:
