@@ -304,8 +304,9 @@ def table_markdown(summary: dict[str, Any]) -> str:
     text = [
         "# Adversary evaluation", "",
         f"Budget: {cfg.get('budget', '-')} simulated scenarios per method, placement, scenario and repeat; "
-        f"{cfg.get('repeats', '-')} repeat(s); {len(summary['seeds'])} seed and {len(summary['held_out'])} held-out "
-        + (f"and {len(summary['handwritten'])} hand-written " if summary.get("handwritten") else "") +
+        f"{cfg.get('repeats', '-')} repeat(s); {len(summary['seeds'])} seed"
+        + (f", {len(summary['held_out'])} held-out and {len(summary['handwritten'])} hand-written "
+           if summary.get("handwritten") else f" and {len(summary['held_out'])} held-out ") +
         "scenario(s). Cells: mean ± sd over repeats of the per-repeat totals over the group's scenarios (sd - with "
         "one repeat). A failure (NoDS under the grid consistency check, or an ego-at-fault collision) counts only "
         "for a valid mutation and when it reproduced on a second jitter seed; local NoDS and task failures "

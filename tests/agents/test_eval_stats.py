@@ -389,7 +389,7 @@ def test_handwritten_scenarios_form_a_third_group(tmp_path):
     assert g["all"]["failures"]["values"] == [4] and g["all"]["scenarios"] == ["s1", *hand]
     table = eval_report.write_report(recs, summary, tmp_path)
     assert "## Hand-written scenarios" in table and "failures hand-written" in table
-    assert "| handwritten/b | hand-written |" in table and "1 seed and 0 held-out and 2 hand-written" in table
+    assert "| handwritten/b | hand-written |" in table and "1 seed, 0 held-out and 2 hand-written scenario(s)" in table
     assert stats.kind_of_name("handwritten/a") == "handwritten" and stats.kind_of_name("handwritten/a~v3") == "held_out"
     plain = eval_report.build_summary(recs[:4], {"methods": ["rl"], "placements": ["closest"]}, ["s1"], [])
     assert plain["handwritten"] == [] and set(plain["groups"]["rl"]["closest"]) == {"seeds", "all"}
