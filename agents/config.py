@@ -124,6 +124,7 @@ def check_train_settings(cfg: TrainConfig, source: Path | str | None) -> None:
                               f"{sorted(policy_params)}")
     if cfg.algo_kwargs.get("n_steps", params["n_steps"].default) * cfg.n_envs < 2:
         raise ConfigError(f"{name}: algo_kwargs.n_steps: n_steps x n_envs must be at least 2")
+    from deft_gym.scenarios.scenario import SCENARIO_GROUPS, is_group_scenario
     from deft_gym.search.context import (  # names, paths, gen:<seed>, <name>~v<seed>
         ads_config,
         resolve_scenario,
@@ -140,6 +141,9 @@ def check_train_settings(cfg: TrainConfig, source: Path | str | None) -> None:
         if scenario in seen:
             continue
         seen.add(scenario)
+        if scenario in SCENARIO_GROUPS or is_group_scenario(scenario.split("~v")[0]):
+            raise ConfigError(f"{name}: env.scenarios.{i}: {scenario!r} is an evaluation-only scenario "
+                              f"(groups {list(SCENARIO_GROUPS)}, configs/scenarios/<group>/); training never uses them")
         try:
             resolve_scenario(scenario)
         except (ConfigError, ValueError, OSError) as err:

@@ -21,7 +21,8 @@ from agents.stats import GROUP_LABELS, GROUPS, METHOD_LABELS, METHOD_ORDER, Reco
 from deft_gym.cli import common
 from deft_gym.files import read_jsonl, write_atomic, write_json_atomic
 
-GROUP_TITLES = {"seeds": "Seed scenarios", "held_out": "Held-out scenarios", "all": "All scenarios"}
+GROUP_TITLES = {"seeds": "Seed scenarios", "held_out": "Held-out scenarios", "handwritten": "Hand-written scenarios",
+                "all": "All scenarios"}
 TRAINING_METHODS = ("rl",)  # methods trained before the evaluation (a second budget column)
 
 
@@ -48,8 +49,11 @@ def rl_training(model: str | None) -> dict[str, Any] | None:
 def build_summary(records: list[dict[str, Any]], config: dict[str, Any], seeds: list[str], held_out: list[str],
                   source: str = "records") -> dict[str, Any]:
     """:func:`agents.stats.summarize` over ``config``'s methods and placements, plus the config,
-    RL's training budget and the simulation code the records ran."""
-    s = stats.summarize(records, config.get("methods"), config.get("placements"), seeds, held_out, source)
+    RL's training budget and the simulation code the records ran. Hand-written scenarios
+    (``handwritten/<name>``) among ``seeds`` form a group of their own."""
+    hand = [s for s in seeds if stats.kind_of_name(s) == "handwritten"]
+    seeds = [s for s in seeds if s not in hand]
+    s = stats.summarize(records, config.get("methods"), config.get("placements"), seeds, held_out, source, hand)
     s["config"] = config
     s["training"] = {m: (rl_training(config.get("model")) if m in TRAINING_METHODS else None)
                      for m in s["methods"]}
@@ -116,7 +120,7 @@ def headline_markdown(summary: dict[str, Any]) -> str:
     head = [key for key, *_ in GROUP_COLUMNS[:2]]
     cols = ["method", "placement", "budget", "training episodes"]
     cols += [label for key, label, *_ in GROUP_COLUMNS if key in head]
-    cols += [f"failures {GROUP_LABELS[g]}" for g in GROUPS]
+    cols += [f"failures {GROUP_LABELS[g]}" for g in stats.shown_groups(summary)]
     cols += [label for key, label, *_ in GROUP_COLUMNS if key not in head and key != "failures"]
     reps = sorted({len(c["repeats"]) for ps in summary["groups"].values() for gs in ps.values() for c in gs.values()})
     n_reps = "0" if not reps else str(reps[0]) if len(reps) == 1 else f"{reps[0]}-{reps[-1]}"
@@ -133,7 +137,7 @@ def headline_markdown(summary: dict[str, Any]) -> str:
         g_all = groups.get(m, {}).get(p, {}).get("all")
         cells = [_label(m), p, _budget(summary, m, p), _training(summary, m)]
         cells += [fmt(g_all and g_all[key], nd, scale) for key, _, nd, scale in GROUP_COLUMNS if key in head]
-        for g in GROUPS:
+        for g in stats.shown_groups(summary):
             c = groups.get(m, {}).get(p, {}).get(g)
             cells.append(fmt(c and c["failures"]) + _star(c))
         cells += [fmt(g_all and g_all[key], nd, scale) for key, _, nd, scale in GROUP_COLUMNS
@@ -163,8 +167,9 @@ def per_scenario_markdown(summary: dict[str, Any]) -> str:
     rows = _rows(summary)
     cols = ["scenario", "kind"] + [f"{_label(m)} ({p})" for m, p in rows]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    for s in summary["seeds"] + summary["held_out"]:
-        cells = [s, "seed" if summary["scenario_kinds"].get(s) == "seed" else "held-out"]
+    kind_labels = {"seed": "seed", "held_out": "held-out", "handwritten": "hand-written"}
+    for s in summary["seeds"] + summary["held_out"] + summary.get("handwritten", []):
+        cells = [s, kind_labels.get(summary["scenario_kinds"].get(s, "held_out"), "held-out")]
         cells += [fmt(summary["per_scenario"].get(m, {}).get(p, {}).get(s, {}).get("failures")) for m, p in rows]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -321,7 +326,9 @@ def table_markdown(summary: dict[str, Any]) -> str:
     text = [
         "# Adversary evaluation", "",
         f"Budget: {cfg.get('budget', '-')} simulated scenarios per method, placement, scenario and repeat; "
-        f"{cfg.get('repeats', '-')} repeat(s); {len(summary['seeds'])} seed and {len(summary['held_out'])} held-out "
+        f"{cfg.get('repeats', '-')} repeat(s); {len(summary['seeds'])} seed"
+        + (f", {len(summary['held_out'])} held-out and {len(summary['handwritten'])} hand-written "
+           if summary.get("handwritten") else f" and {len(summary['held_out'])} held-out ") +
         "scenario(s). Cells: mean ± sd over repeats of the per-repeat totals over the group's scenarios (sd - with "
         "one repeat). A failure (NoDS under the grid consistency check, or an ego-at-fault collision) counts only "
         "for a valid mutation and when it reproduced on a second jitter seed; local NoDS and task failures "
@@ -340,7 +347,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
                  f"score, the share of scenarios violating each metric, and the findings on the configured oracle "
                  f"`{oracle}` (valid, reproduced on a second jitter seed; root causes: distinct signatures).", "",
                  quality]
-    for g in GROUPS:
+    for g in stats.shown_groups(summary):
         text += [f"## {GROUP_TITLES[g]}", "", group_markdown(summary, g)]
     text += ["## Failures per scenario", "", per_scenario_markdown(summary),
              "## Statistics", "",
@@ -387,14 +394,18 @@ def plot_cumulative(records: list[dict[str, Any]], summary: dict[str, Any], path
     # a group without scenarios (no held-out ones) gets no panel; "all" then equals "seeds"
     groups = [g for g in GROUPS if summary["held_out"] or g != "held_out"]
     groups = [g for g in groups if summary["held_out"] or g != "all"] or list(GROUPS[:1])
+    members = {"seeds": summary["seeds"], "held_out": summary["held_out"], "handwritten": summary.get("handwritten", []),
+               "all": summary["seeds"] + summary["held_out"] + summary.get("handwritten", [])}
+    if members["handwritten"]:  # the non-empty groups, and all when there are two or more
+        groups = [g for g in ("seeds", "held_out", "handwritten") if members[g]]
+        groups += ["all"] if len(groups) > 1 else []
     fig, axes = plt.subplots(len(placements), len(groups), figsize=(4.2 * len(groups) + 1.5, 3.2 * len(placements)),
                              squeeze=False)
     handles: dict[str, Any] = {}
     for i, p in enumerate(placements):
         for j, g in enumerate(groups):
             ax = axes[i][j]
-            n_scn = len(summary["seeds"] if g == "seeds" else summary["held_out"] if g == "held_out"
-                        else summary["seeds"] + summary["held_out"])
+            n_scn = len(members[g])
             ax.set_title(f"{p} placement, {GROUP_LABELS[g]} ({n_scn} scenarios)", fontsize=9)
             lines = curves.get(p, {}).get(g, {})
             for m in summary["methods"]:
@@ -424,7 +435,7 @@ def plot_per_scenario(summary: dict[str, Any], path: Path) -> None:
     sd error bars), one bar per method, one panel per placement; seeds left of the dashed line,
     held-out scenarios right of it."""
     plt = _pyplot()
-    scns = summary["seeds"] + summary["held_out"]
+    scns = summary["seeds"] + summary["held_out"] + summary.get("handwritten", [])
     placements = summary["placements"] or ["closest"]
     methods = summary["methods"] or []
     width = 0.8 / max(len(methods), 1)
@@ -446,6 +457,8 @@ def plot_per_scenario(summary: dict[str, Any], path: Path) -> None:
                                 color=_color(m), capsize=2, error_kw={"lw": 0.8})
         if summary["seeds"] and summary["held_out"]:
             ax.axvline(len(summary["seeds"]) - 0.5, color="0.4", ls="--", lw=0.8)
+        if summary.get("handwritten") and (summary["seeds"] or summary["held_out"]):
+            ax.axvline(len(summary["seeds"]) + len(summary["held_out"]) - 0.5, color="0.4", ls=":", lw=0.8)
         ax.set_xticks(x, scns, rotation=40, ha="right", fontsize=8)
         ax.set_xlim(-0.6, max(len(scns), 1) - 0.4)
         ax.set_ylabel("failures per repeat\n(NoDS + collisions)", fontsize=9)

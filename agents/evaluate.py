@@ -28,7 +28,9 @@ Outputs in ``--out``:
 
 Held-out scenarios (``--held-out K``, default 10) are the first K *robust* generated scenarios
 ``gen:<seed>`` with seeds from 1000000 on (:mod:`deft_gym.scenarios.generate`; a model trained on
-any of them is refused); ``--variants K`` adds the first K robust perturbed variants
+any of them is refused); ``--scenarios handwritten`` adds the hand-written group
+(``configs/scenarios/handwritten``: scenarios written as users write them, never trained on;
+``--held-out 0`` evaluates on them alone); ``--variants K`` adds the first K robust perturbed variants
 ``<seed>~v<1000000+i>`` of each seed scenario. Robust: their unmutated runs complete consistently
 under eight jitter seeds (:func:`deft_gym.search.context.robust`).
 """
@@ -103,7 +105,9 @@ def build_parser() -> common.Parser:
                    help="simulated scenarios per method, scenario and repeat (default: 50)")
     p.add_argument("--repeats", type=common.int_range(1, 1000), default=None,
                    help="repeats with other seeds (default: 1)")
-    common.add_scenarios(p, help="seed scenarios: names or YAML paths (default: the seven seeds)")
+    common.add_scenarios(p, help="seed scenarios: names, YAML paths or specs; a group name (handwritten: the "
+                         "scenarios of configs/scenarios/handwritten, never trained on) stands for its scenarios "
+                         "(default: the seven seeds)")
     p.add_argument("--held-out", type=common.int_range(0, 10_000), default=None, dest="held_out",
                    help="held-out generated scenarios (default: 10)")
     p.add_argument("--variants", type=common.int_range(0, 1000), default=None, help="held-out perturbed variants per seed scenario "
@@ -161,6 +165,9 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
     if isinstance(flags["model"][1], str):
         flags["model"] = (flags["model"][0], resolve_model(flags["model"][1]))
     cfg = validate_with_flags(EvalConfig, data, name, flags)
+    from deft_gym.scenarios.scenario import expand_groups
+
+    cfg.scenarios = expand_groups(cfg.scenarios)  # handwritten -> handwritten/<name>, ...
 
     def where(key: str) -> str:  # a problem names the flag that set the value, else the file's field
         return flags[key][0] if flags[key][1] is not None else f"{name}: {key}"
@@ -496,7 +503,10 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
             done[(r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"])] += 1
     jobs = []
     copies: list[tuple[str, str, str, int]] = []
-    kinds = {**{s: "seed" for s in seeds}, **{h: "held_out" for h in held_out}}
+    from agents.stats import kind_of_name
+
+    kinds = {**{s: "seed" if kind_of_name(s) != "handwritten" else "handwritten" for s in seeds},
+             **{h: "held_out" for h in held_out}}
     for rep in range(cfg.repeats):
         for scn in seeds + held_out:
             for m in cfg.methods:

@@ -24,8 +24,9 @@ METHOD_LABELS = {"rl": "RL", "decictor": "Decictor-GA", "random_delta": "Random-
                  "random_online": "Random-online"}
 PLACEMENTS = ("closest", "uniform")
 GROUPS = ("seeds", "held_out", "all")
-GROUP_LABELS = {"seeds": "seeds", "held_out": "held-out", "all": "all"}
-KINDS = ("seed", "held_out")
+GROUP_LABELS = {"seeds": "seeds", "held_out": "held-out", "handwritten": "hand-written", "all": "all"}
+KINDS = ("seed", "held_out", "handwritten")
+HANDWRITTEN_PREFIX = "handwritten/"  #: specs of the hand-written group (configs/scenarios/handwritten)
 # methods whose mutations are non-invasive by construction (validity target); Random is not
 NON_INVASIVE = ("rl", "decictor", "random_delta", "random_online")
 # (x, y, measure): RL against each baseline in distinct root causes (the headline) and in raw
@@ -57,12 +58,26 @@ class RecordError(ValueError):
 
 
 # -- records --------------------------------------------------------------------------------------
+def kind_of_name(scenario: str) -> str:
+    """The kind of a scenario spec: ``held_out`` for a generated spec (``gen:<seed>``) or a
+    perturbed variant (``<seed>~v<n>``), ``handwritten`` for ``handwritten/<name>``, ``seed``
+    otherwise."""
+    if scenario.startswith("gen:") or "~v" in scenario:
+        return "held_out"
+    return "handwritten" if scenario.startswith(HANDWRITTEN_PREFIX) else "seed"
+
+
+def shown_groups(summary: dict[str, Any]) -> list[str]:
+    """The groups a report shows: :data:`GROUPS`, with ``handwritten`` before ``all`` when the
+    summary has hand-written scenarios."""
+    return ["seeds", "held_out", "handwritten", "all"] if summary.get("handwritten") else list(GROUPS)
+
+
 def _kind_of(scenario: str, kinds: dict[str, str]) -> str:
-    """The kind ``kinds`` gives ``scenario``; else ``held_out`` for a generated spec (``gen:<seed>``)
-    or a perturbed variant (``<seed>~v<n>``), ``seed`` otherwise."""
+    """The kind ``kinds`` gives ``scenario``; else :func:`kind_of_name`."""
     if scenario in kinds:
         return kinds[scenario]
-    return "held_out" if scenario.startswith("gen:") or "~v" in scenario else "seed"
+    return kind_of_name(scenario)
 
 
 def _field(rec: dict[str, Any], key: str, where: str, types: tuple[type, ...], default: Any = ...,
@@ -270,12 +285,13 @@ def _ordered(found: Iterable[str], expected: Sequence[str] | None, order: Sequen
 
 def summarize(records: Iterable[dict[str, Any]], methods: Sequence[str] | None = None,
               placements: Sequence[str] | None = None, seeds: Sequence[str] = (), held_out: Sequence[str] = (),
-              source: str = "records") -> dict[str, Any]:
+              source: str = "records", handwritten: Sequence[str] = ()) -> dict[str, Any]:
     """The comparison from the records: ``per_scenario[method][placement][scenario]`` and
     ``groups[method][placement][group]`` (each measure: mean, sd, n and the per-repeat values;
     cells without records are absent), ``statistics`` (per group and per scenario), ``targets``
     (:func:`check_targets`), the scenario lists and kinds, and the optional fields records lacked."""
-    kinds: dict[str, str] = {s: "seed" for s in seeds} | {s: "held_out" for s in held_out}
+    kinds: dict[str, str] = ({s: "seed" for s in seeds} | {s: "held_out" for s in held_out}
+                             | {s: "handwritten" for s in handwritten})
     rows, missing = normalize(records, source, kinds)
     for r in rows:
         if kinds.setdefault(r["scenario"], r["scenario_kind"]) != r["scenario_kind"]:
@@ -284,7 +300,10 @@ def summarize(records: Iterable[dict[str, Any]], methods: Sequence[str] | None =
                               "record or the configured lists")
     seed_list = list(seeds) + sorted({s for s, k in kinds.items() if k == "seed"} - set(seeds))
     held_list = list(held_out) + sorted({s for s, k in kinds.items() if k == "held_out"} - set(held_out))
-    members = {"seeds": seed_list, "held_out": held_list, "all": seed_list + held_list}
+    hand_list = list(handwritten) + sorted({s for s, k in kinds.items() if k == "handwritten"} - set(handwritten))
+    members = {"seeds": seed_list, "held_out": held_list, "all": seed_list + held_list + hand_list}
+    if hand_list:  # a group of its own, shown only when there are hand-written scenarios
+        members = {"seeds": seed_list, "held_out": held_list, "handwritten": hand_list, "all": members["all"]}
     methods = _ordered((r["method"] for r in rows), methods, METHOD_ORDER)
     placements = _ordered((r["placement"] for r in rows), placements, PLACEMENTS)
 
@@ -314,7 +333,7 @@ def summarize(records: Iterable[dict[str, Any]], methods: Sequence[str] | None =
                     "scenarios": have, "missing_scenarios": missing_scn, "dropped_repeats": sorted(everyone - reps),
                     "complete": not missing_scn and everyone == reps, **_cell(total)}
     summary: dict[str, Any] = {"methods": methods, "placements": placements, "seeds": seed_list,
-                               "held_out": held_list, "scenario_kinds": kinds, "per_scenario": per,
+                               "held_out": held_list, "handwritten": hand_list, "scenario_kinds": kinds, "per_scenario": per,
                                "groups": groups, "missing_fields": missing, "records": len(rows),
                                "findings": findings(rows, methods, placements)}
     summary["statistics"] = statistics(summary)
@@ -391,11 +410,11 @@ def statistics(summary: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
         for x, y, measure in COMPARISONS:
             if x not in present or y not in present:
                 continue
-            for g in GROUPS:
+            for g in shown_groups(summary):
                 cx, cy = _get(summary["groups"], x, p, g), _get(summary["groups"], y, p, g)
                 if cx or cy:
                     out["groups"].append(compare(x, y, measure, cx, cy, placement=p, group=g))
-            for s in summary["seeds"] + summary["held_out"]:
+            for s in summary["seeds"] + summary["held_out"] + summary.get("handwritten", []):
                 cx, cy = _get(summary["per_scenario"], x, p, s), _get(summary["per_scenario"], y, p, s)
                 if cx and cy:
                     out["per_scenario"].append(compare(x, y, measure, cx, cy, placement=p, scenario=s))

@@ -4,7 +4,8 @@
 :func:`resolve`) from one ``np.random.default_rng(seed)``:
 
 - a family: ``highway`` (through, or taking the exit ramp), ``intersection`` (straight, left or
-  right, with traffic lights) or ``uturn``;
+  right, with traffic lights) or ``uturn``; ``merge`` (an on-ramp merge or a lane drop) only when
+  its weight ``families.merge`` is set (default 0, which leaves every ``gen:<seed>`` as before);
 - a map sized so that the ego's route is 110-240 m long on multi-lane roads, with lane choices
   to make (a lane to reach before a junction or fork, a destination lane other than the start);
 - reactive traffic, an optional scripted vehicle, cones and parked vehicles on lane edges,
@@ -39,6 +40,9 @@ TRAIN_SEEDS = range(0, 100_000)  #: generator seeds an adversary may train on
 HELD_OUT_BASE = 1_000_000  #: the first held-out generator seed
 FAMILIES = ("highway", "highway-exit", "intersection-straight", "intersection-left",
             "intersection-right", "uturn")  #: the family labels :func:`build` reports
+#: labels of the families that are off unless their weight is set (``families.merge``): on
+#: ``merge`` maps, the ego merges from an on-ramp or out of a lane that drops
+OPTIONAL_FAMILIES = ("merge-ramp", "lane-drop")
 
 
 def _ordered(r: tuple[float, float]) -> tuple[float, float]:
@@ -71,6 +75,8 @@ class FamilyWeights(_Weights):
     highway: Weight = Field(1.0, description="straight multi-lane road with an exit ramp")
     intersection: Weight = Field(1.5, description="signalised four-way junction")
     uturn: Weight = Field(1.0, description="divided road with a U-turn bay")
+    merge: Weight = Field(0.0, description="road whose rightmost lane ends, fed by an on-ramp or dropping (off "
+                                           "by default: with weight 0 every gen:<seed> is as before)")
 
 
 class ManoeuvreWeights(_Weights):
@@ -111,6 +117,10 @@ class GeneratorConfig(Strict):
     intersection_lanes: LaneRange = Field((2, 3), description="lanes per intersection approach")
     manoeuvres: ManoeuvreWeights = ManoeuvreWeights()
     intersection_speed: Range = Field((9.0, 13.0), description="intersection speed limit [m/s]")
+    merge_ramp: Share = Field(0.5, description="merge family: probability that the ego comes up an on-ramp "
+                                               "(else it drives in a lane that drops)")
+    merge_section: Range = Field((60.0, 120.0), description="merge family: length [m] of the section the ending "
+                                                           "lane runs beside the others")
     uturn_lanes: LaneRange = Field((2, 3), description="lanes per direction of the U-turn road")
     uturn_speed: Range = Field((9.0, 13.0), description="U-turn road speed limit [m/s]")
     uturn_median: Range = Field((10.0, 16.0), description="U-turn median width [m] (below 10 m the "
@@ -294,7 +304,8 @@ class _Builder:
     def run(self) -> Generated:
         cfg = self.cfg
         kind = self.pick(cfg.families.model_dump())
-        plan = {"highway": self.highway, "intersection": self.intersection, "uturn": self.uturn}[kind]()
+        plan = {"highway": self.highway, "intersection": self.intersection, "uturn": self.uturn,
+                "merge": self.merge}[kind]()
         plan.s0, plan.dest_s = _r(plan.s0), _r(plan.dest_s)
         self.rm = shared_roadmap(plan.spec)
         self.plan = plan
@@ -389,6 +400,37 @@ class _Builder:
         s0 = spec["exit_at"] * length - pre  # keep the drawn distance to the fork exactly
         return _Plan("highway-exit" if exit_ else "highway", spec, ("a", "b", k), s0, dest, post, changes,
                      0 if exit_ else k)
+
+    def merge(self) -> _Plan:
+        """A road whose rightmost lane ends (map ``merge``): the ego comes up the on-ramp (with
+        probability ``merge_ramp``) or drives in the lane that drops, merges into the lane beside
+        it on the section [m] where both run, and ends in a lane of the road after it."""
+        cfg, rng = self.cfg, self.rng
+        n = self.integer(cfg.highway_lanes)
+        v = _r(self.uniform(cfg.highway_speed) * 2, 0) / 2
+        ramp = bool(rng.random() < cfg.merge_ramp)
+        section = _round_up(max(self.uniform(cfg.merge_section), 20.0))
+        route = self.uniform(cfg.route_length)
+        j = self.other_lane(n - 1, n - 2, cfg.route_length[1] - section)  # destination lane after the end
+        post = max(25.0 + cfg.change_room * abs(n - 2 - j), route - section - 60.0)
+        if ramp:
+            s0 = float(rng.uniform(5.0, 40.0))
+            pre = 80.0 - s0 + 60.0 * math.radians(20.0)  # up the ramp to b (roadmap.build_merge)
+            xb = _round_up(float(rng.uniform(40.0, 150.0)))
+            start: LaneId = ("j", "k", 0)
+        else:
+            pre = float(rng.uniform(40.0, 120.0))
+            s0 = self.uniform(cfg.ego_start)
+            xb = _round_up(s0 + pre)
+            start = ("a", "b", n - 1)
+        post = min(post, max(25.0 + cfg.change_room * abs(n - 2 - j), route - section - pre))
+        length = _round_up(xb + section + post + self.uniform(cfg.highway_tail))
+        spec = {"type": "merge", "lanes": n, "length": length, "speed_limit": v, "ramp": ramp,
+                "merge_at": _r(xb / length, 4), "merge_length": section}
+        if not ramp:
+            s0 = spec["merge_at"] * length - pre  # keep the drawn distance to the section exactly
+        return _Plan("merge-ramp" if ramp else "lane-drop", spec, start, s0, ("c", "d", j), post,
+                     1 + abs(n - 2 - j), n - 2)
 
     def intersection(self) -> _Plan:
         cfg, rng = self.cfg, self.rng
@@ -715,6 +757,9 @@ class _Builder:
             k = k + 1 if k >= plan.start[2] else k
             lanes = [("a", "b", k), ("b", "c", k)]
             s = plan.s0 + float(rng.uniform(30.0, 60.0))
+        elif t == "merge":  # along the road after the end, ahead of the ego
+            lanes = [("c", "d", int(rng.integers(rm.spec.lanes - 1)))]
+            s = float(rng.uniform(0.0, 20.0))
         elif t == "intersection":
             road = (f"il{plan.start[0][1:]}", plan.start[0]) if rng.random() < 0.5 else plan.dest[:2]
             lanes = [(*road, int(rng.integers(rm.spec.lanes)))]  # type: ignore[list-item]

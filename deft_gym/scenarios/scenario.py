@@ -431,5 +431,47 @@ def add_participant(world: World, p: StaticSpec | ScriptedSpec | ReactiveSpec) -
 
 
 def list_scenarios() -> list[Path]:
-    """The seed scenarios shipped in ``configs/scenarios``."""
+    """The seed scenarios shipped in ``configs/scenarios`` (not the groups in its subfolders)."""
     return sorted(SCENARIO_DIR.glob("*.yaml"))
+
+
+#: evaluation-only scenario groups, one subfolder of ``configs/scenarios`` each; ``handwritten``:
+#: scenarios written as users write them (never trained on, see :func:`is_group_scenario`)
+SCENARIO_GROUPS = ("handwritten",)
+
+
+def group_scenarios(group: str) -> list[str]:
+    """The specs ``<group>/<name>`` of a scenario group, sorted (ValueError for an unknown group)."""
+    if group not in SCENARIO_GROUPS:
+        raise ValueError(f"unknown scenario group {group!r}; expected one of {list(SCENARIO_GROUPS)}")
+    return [f"{group}/{p.stem}" for p in sorted((SCENARIO_DIR / group).glob("*.yaml"))]
+
+
+def group_path(spec: str) -> Path | None:
+    """The file of a group scenario spec ``<group>/<name>`` (an existing one), else None."""
+    group, sep, name = str(spec).partition("/")
+    if not sep or group not in SCENARIO_GROUPS or not name or "/" in name or "\\" in name or name.startswith("."):
+        return None
+    path = SCENARIO_DIR / group / f"{name}.yaml"
+    return path if path.is_file() else None
+
+
+def is_group_scenario(spec: str | Path) -> bool:
+    """Does ``spec`` (a ``<group>/<name>`` spec or a path) name a scenario of an evaluation-only
+    group? Training refuses them."""
+    if group_path(str(spec)) is not None:
+        return True
+    try:
+        path = Path(spec).resolve()
+    except (OSError, RuntimeError):
+        return False
+    return any(path.parent == (SCENARIO_DIR / g).resolve() for g in SCENARIO_GROUPS)
+
+
+def expand_groups(specs: list[str]) -> list[str]:
+    """``specs`` with each group name (``handwritten``) replaced by the group's scenarios, in order,
+    without repeats."""
+    out: list[str] = []
+    for s in specs:
+        out += group_scenarios(s) if s in SCENARIO_GROUPS else [s]
+    return list(dict.fromkeys(out))

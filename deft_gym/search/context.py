@@ -18,7 +18,7 @@ from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.config import ConfigError, resolve_config_path
 from deft_gym.planner.base import import_object
 from deft_gym.scenarios.generate import resolve as resolve_generated
-from deft_gym.scenarios.scenario import Scenario, list_scenarios, load_scenario
+from deft_gym.scenarios.scenario import Scenario, group_path, list_scenarios, load_scenario
 from deft_gym.search.feasible import FeasibleConfig, MotionAreas, motion_areas
 from deft_gym.search.nods import DecisionOracle
 from deft_gym.search.refpath import RefPath
@@ -43,7 +43,8 @@ STUCK_TIME = 10.0
 
 def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRENGTH) -> Scenario:
     """A scenario from a name, a YAML path, ``gen:<seed>`` (a generated scenario,
-    :mod:`deft_gym.scenarios.generate`) or ``<name>~v<seed>`` (a perturbed variant)."""
+    :mod:`deft_gym.scenarios.generate`), ``<group>/<name>`` (a scenario of a group such as
+    ``handwritten``, ``configs/scenarios/<group>/<name>.yaml``) or ``<name>~v<seed>`` (a perturbed variant)."""
     if isinstance(spec, Scenario):
         return spec
     text = str(spec)
@@ -59,6 +60,9 @@ def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRE
         except ValueError:
             raise ConfigError(f"scenario {text!r}: expected '<name>~v<integer seed>'") from None
         return perturb(resolve_scenario(base), vseed, strength)
+    grouped = group_path(text)  # handwritten/<name>
+    if grouped is not None:
+        return load_scenario(grouped)
     path = Path(text)
     if path.exists() or path.suffix:
         return load_scenario(path)

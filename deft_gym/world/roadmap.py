@@ -1,12 +1,14 @@
 """Road maps: highway-env road networks plus what an HD map adds (connectivity, stop lines,
 lane-change permissions, routing) and fast spatial queries.
 
-Three map families cover Decictor's six seed scenarios and the DeFT Figure 1 pattern:
+Three map families (``intersection``, ``highway``, ``uturn``) cover Decictor's six seed scenarios and the DeFT Figure 1 pattern:
 
 - ``intersection``: four approaches with ``lanes`` in and out, a traffic light per approach,
   left turns from the inner lane (id 0), right turns from the outer lane, straight from all;
 - ``highway``: a straight multi-lane road with an exit ramp leaving from the rightmost lane;
-- ``uturn``: a divided road with a U-turn bay from the inner lane at its end.
+- ``uturn``: a divided road with a U-turn bay from the inner lane at its end;
+- ``merge``: a straight road whose rightmost lane ends, fed by an on-ramp (``ramp``, default) or
+  a lane of the road itself (a lane drop); written for hand-made scenarios, no seed uses it.
 
 ``turn_lanes`` (default 1) makes the left turns of an intersection, or the U-turn, leave from
 that many inner lanes, lane k into lane k of the road it turns onto (double left-turn lanes, a
@@ -53,7 +55,7 @@ class MapSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    type: Literal["intersection", "highway", "uturn"]
+    type: Literal["intersection", "highway", "uturn", "merge"]
     lanes: int = Field(default=2, ge=1, le=5)
     lane_width: float = Field(default=3.5, gt=2.0, le=5.0)
     length: float = Field(default=120.0, gt=20.0, le=2000.0, description="approach/road length")
@@ -65,21 +67,34 @@ class MapSpec(BaseModel):
                             "this many inner lanes (lane k into lane k of the road turned onto)")
     right_turn_lanes: int = Field(default=1, ge=1, le=5, description="intersection: right turns from this many "
                                   "outer lanes (lane k into lane k of the road turned onto)")
+    ramp: bool = Field(default=True, description="merge: an on-ramp feeds the ending lane (false: a lane drop)")
+    merge_at: float = Field(default=0.4, gt=0.0, lt=0.9, description="merge: where the ending lane's last "
+                            "section begins, as a share of length")
+    merge_length: float = Field(default=80.0, ge=20.0, le=500.0, description="merge: length [m] of the "
+                                "section along which the ending lane runs beside the others")
 
     @model_validator(mode="after")
     def _turn_lanes_exist(self) -> MapSpec:
         for name in ("turn_lanes", "right_turn_lanes"):
             if getattr(self, name) > self.lanes:
                 raise ValueError(f"{name}: {getattr(self, name)} turning lanes but only {self.lanes} lanes")
+        if self.type == "merge":
+            if self.lanes < 2:
+                raise ValueError("lanes: a merge needs at least 2 lanes (the ending lane and one that goes on)")
+            if self.length * self.merge_at + self.merge_length > self.length - 20.0:
+                raise ValueError(f"merge_length: the section ends {self.length * self.merge_at + self.merge_length:g} m "
+                                 f"along a {self.length:g} m road; expected at least 20 m of road after it")
         return self
 
     @model_serializer(mode="wrap")
     def _without_default_turn_lanes(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
-        """``turn_lanes`` and ``right_turn_lanes`` are written only when they are not 1, so a map
-        without the options dumps as before they existed (logs, generated tests, cache keys)."""
+        """``turn_lanes``, ``right_turn_lanes`` and the merge options are written only when they are
+        not their defaults, so a map without the options dumps as before they existed (logs,
+        generated tests, cache keys)."""
         data = handler(self)
-        for name in ("turn_lanes", "right_turn_lanes"):
-            if getattr(self, name) == 1:
+        for name, default in (("turn_lanes", 1), ("right_turn_lanes", 1), ("ramp", True), ("merge_at", 0.4),
+                              ("merge_length", 80.0)):
+            if getattr(self, name) == default:
                 data.pop(name, None)
         return data
 
@@ -199,7 +214,36 @@ def build_uturn(spec: MapSpec) -> MapInfo:
     return info
 
 
-BUILDERS = {"intersection": build_intersection, "highway": build_highway, "uturn": build_uturn}
+def build_merge(spec: MapSpec) -> MapInfo:
+    """Straight road a->b->c->d heading +x whose rightmost lane (id ``lanes - 1``) ends at c: on
+    b->c (``merge_length`` [m] from ``merge_at`` x length) it runs beside the others behind a
+    striped line, and c->d has one lane less. With ``ramp`` an on-ramp j->k->b (a straight then
+    a left-curving arc, radius 60 m, 20 deg) feeds it (a merge; a->b has ``lanes - 1`` lanes);
+    without, it is a lane of a->b that drops (a lane drop)."""
+    w, n_l, L, v = spec.lane_width, spec.lanes, spec.length, spec.speed_limit
+    net = RoadNetwork()
+    info = MapInfo(net)
+    xb = L * spec.merge_at
+    xc = xb + spec.merge_length
+    for a, b, x0, x1, count in (("a", "b", 0.0, xb, n_l - 1 if spec.ramp else n_l), ("b", "c", xb, xc, n_l),
+                                ("c", "d", xc, L, n_l - 1)):
+        for k in range(count):
+            left = CL if k == 0 else S
+            right = CL if k == count - 1 else N
+            net.add_lane(a, b, StraightLane([x0, k * w], [x1, k * w], line_types=[left, right], speed_limit=v, width=w))
+    if spec.ramp:  # ends at b on the ending lane's centre, heading +x
+        y_e = (n_l - 1) * w
+        radius, ang = 60.0, np.radians(20.0)
+        center = np.array([xb, y_e + radius])
+        net.add_lane("k", "b", CircularLane(center, radius, -np.pi / 2 - ang, -np.pi / 2, clockwise=True,
+                                            line_types=[CL, CL], speed_limit=v, width=w))
+        p1 = center + radius * np.array([np.cos(-np.pi / 2 - ang), np.sin(-np.pi / 2 - ang)])
+        direction = np.array([np.cos(ang), -np.sin(ang)])
+        net.add_lane("j", "k", StraightLane(p1 - direction * 80.0, p1, line_types=[CL, CL], speed_limit=v, width=w))
+    return info
+
+
+BUILDERS = {"intersection": build_intersection, "highway": build_highway, "uturn": build_uturn, "merge": build_merge}
 
 
 class RoadMap:

@@ -368,3 +368,29 @@ def test_evaluation_config_placements(tmp_path):
     assert load_eval_config(parse_args([*base, "--placements", "uniform"])).placements == ["uniform"]
     with pytest.raises(ConfigError, match="placements"):
         load_eval_config(parse_args([*base, "--placements", "sideways"]))
+
+
+def test_handwritten_scenarios_form_a_third_group(tmp_path):
+    """``handwritten/<name>`` scenarios given with the seeds get a group of their own (totals,
+    a table section, a headline column, their kind per scenario) and count in ``all``; a report
+    without them shows the three groups as before."""
+    hand = ["handwritten/a", "handwritten/b"]
+    recs = (cell("rl", "s1", 0, 4, [("nods", "x")]) + cell("rl", "handwritten/a", 0, 4, [("nods", "y")])
+            + cell("rl", "handwritten/b", 0, 4, [("collision", "z"), ("nods", "w")]))
+    for r in recs:
+        if r["scenario"].startswith("handwritten/"):
+            r["scenario_kind"] = "handwritten"
+    summary = eval_report.build_summary(recs, {"methods": ["rl"], "placements": ["closest"], "budget": 4,
+                                               "repeats": 1}, ["s1", *hand], [])
+    assert summary["seeds"] == ["s1"] and summary["handwritten"] == hand
+    assert {s: summary["scenario_kinds"][s] for s in hand} == {s: "handwritten" for s in hand}
+    g = summary["groups"]["rl"]["closest"]
+    assert g["seeds"]["failures"]["values"] == [1] and g["handwritten"]["failures"]["values"] == [3]
+    assert g["all"]["failures"]["values"] == [4] and g["all"]["scenarios"] == ["s1", *hand]
+    table = eval_report.write_report(recs, summary, tmp_path)
+    assert "## Hand-written scenarios" in table and "failures hand-written" in table
+    assert "| handwritten/b | hand-written |" in table and "1 seed, 0 held-out and 2 hand-written scenario(s)" in table
+    assert stats.kind_of_name("handwritten/a") == "handwritten" and stats.kind_of_name("handwritten/a~v3") == "held_out"
+    plain = eval_report.build_summary(recs[:4], {"methods": ["rl"], "placements": ["closest"]}, ["s1"], [])
+    assert plain["handwritten"] == [] and set(plain["groups"]["rl"]["closest"]) == {"seeds", "all"}
+    assert "hand-written" not in eval_report.table_markdown(plain)

@@ -14,10 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from deft_gym.config import ConfigError
+from deft_gym.config import CONFIG_DIR, ConfigError, load_mapping
 from deft_gym.scenarios.generate import (
     FAMILIES,
     HELD_OUT_BASE,
+    OPTIONAL_FAMILIES,
     TRAIN_SEEDS,
     GeneratorConfig,
     build,
@@ -26,7 +27,13 @@ from deft_gym.scenarios.generate import (
     held_out_seeds,
     resolve,
 )
-from deft_gym.scenarios.scenario import list_scenarios, load_scenario, pose_xyh, scenario_to_dict
+from deft_gym.scenarios.scenario import (
+    list_scenarios,
+    load_scenario,
+    pose_xyh,
+    scenario_from_dict,
+    scenario_to_dict,
+)
 from deft_gym.world.roadmap import shared_roadmap
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -180,6 +187,38 @@ def test_config_is_validated_and_shapes_the_output() -> None:
         g = build(s, cfg)
         assert g.family == "highway-exit" and g.scenario.participants == []
         assert tuple(g.scenario.ego.destination.lane) == ("x", "y", 0)
+
+
+MERGE_ONLY = {"families": {"highway": 0.0, "intersection": 0.0, "uturn": 0.0, "merge": 1.0}}
+
+
+def test_merge_family_is_off_by_default_and_builds_merges_and_lane_drops() -> None:
+    """``families.merge`` (default 0) adds on-ramp merges and lane drops on ``merge`` maps; the
+    ego starts on the ramp or in the ending lane and ends on the road after the end."""
+    assert GeneratorConfig().families.merge == 0.0
+    cfg = GeneratorConfig.model_validate(MERGE_ONLY)
+    seen = set()
+    for s in range(12):
+        g = build(s, cfg)
+        sc = g.scenario
+        seen.add(g.family)
+        assert g.family in OPTIONAL_FAMILIES and sc.map.type == "merge"
+        assert sc.map.ramp == (g.family == "merge-ramp")
+        start = ("j", "k", 0) if sc.map.ramp else ("a", "b", sc.map.lanes - 1)
+        assert tuple(sc.ego.lane) == start and tuple(sc.ego.destination.lane)[:2] == ("c", "d")
+        assert tuple(sc.ego.destination.lane)[2] < sc.map.lanes - 1
+        assert scenario_to_dict(scenario_from_dict(scenario_to_dict(sc))) == scenario_to_dict(sc)
+    assert seen == set(OPTIONAL_FAMILIES)
+    configured = GeneratorConfig.model_validate(load_mapping(CONFIG_DIR / "generate" / "merge.yaml"))
+    assert configured.families.merge > 0.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])  # two on-ramp merges, two lane drops
+def test_merge_family_scenarios_are_robust(seed: int) -> None:
+    from deft_gym.search.context import robust, seed_context
+
+    assert robust(seed_context(build(seed, GeneratorConfig.model_validate(MERGE_ONLY)).scenario), cache_dir=None)
 
 
 @pytest.mark.parametrize("seed", [6, 11, 13, 20])  # left turn, exit, U-turn, highway; with traffic and objects

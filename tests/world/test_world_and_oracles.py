@@ -89,6 +89,36 @@ def test_turn_lanes_add_turns_from_the_next_lanes_only(kind: str) -> None:
         MapSpec(type=kind, lanes=2, turn_lanes=3)
 
 
+@pytest.mark.parametrize("ramp", [True, False])
+def test_merge_map_ends_its_rightmost_lane(ramp: bool) -> None:
+    """``merge``: the rightmost lane of b->c has no successor and only a lane change out of it,
+    c->d has one lane less; with ``ramp`` the on-ramp j->k->b feeds it, tangent at b; without,
+    it is a lane of a->b (a lane drop). Routes from it reach the lane beside it on c->d."""
+    rm = shared_roadmap({"type": "merge", "lanes": 3, "length": 400.0, "ramp": ramp})
+    assert len(rm.road_lanes(("b", "c"))) == 3 and len(rm.road_lanes(("c", "d"))) == 2
+    assert len(rm.road_lanes(("a", "b"))) == (2 if ramp else 3)
+    assert rm.successors[("b", "c", 2)] == [] and rm.changeable_neighbours(("b", "c", 2)) == [("b", "c", 1)]
+    start = ("j", "k", 0) if ramp else ("a", "b", 2)
+    route = rm.lane_route(start, ("c", "d", 1))
+    assert route is not None and route[-2:] == [("b", "c", 1), ("c", "d", 1)]
+    if ramp:
+        assert rm.successors[("k", "b", 0)] == [("b", "c", 2)]
+        g, e = rm.geom(("k", "b", 0)), rm.geom(("b", "c", 2))
+        assert np.allclose(g.xy(np.array(g.length)), e.xy(np.array(0.0)), atol=1e-9)
+        assert abs(float(g.heading(np.array(g.length)))) < 1e-9
+    with pytest.raises(ValueError, match="at least 2 lanes"):
+        MapSpec(type="merge", lanes=1)
+    with pytest.raises(ValueError, match="merge_length"):
+        MapSpec(type="merge", length=100.0, merge_at=0.5, merge_length=60.0)
+
+
+def test_merge_options_leave_other_maps_as_they_were() -> None:
+    """The merge options are dumped only when set: the other maps dump (and key caches) as before."""
+    for kind in ("highway", "intersection", "uturn"):
+        assert not {"ramp", "merge_at", "merge_length"} & set(MapSpec(type=kind).model_dump())
+    assert MapSpec(type="merge", length=300.0, ramp=False).model_dump()["ramp"] is False
+
+
 def test_right_turn_lanes_add_right_turns_from_the_next_outer_lanes_only() -> None:
     """``right_turn_lanes: 2`` on a 3-lane intersection: the right turn also leaves from lane 1,
     into lane 1 of the road turned onto (the turn road's lanes ordered left to right, as
