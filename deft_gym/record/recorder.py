@@ -31,6 +31,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Callable
+from itertools import accumulate
 from pathlib import Path
 from typing import Any
 
@@ -39,10 +40,17 @@ from mcap.opcode import Opcode
 
 from deft_gym.bus.codec import _default, encode
 from deft_gym.bus.messages import SCENE_TOPIC, SCHEMAS, Message, log_start_ns
-from deft_gym.files import write_atomic
+from deft_gym.files import checked_kernel, write_atomic
 from deft_gym.record.mcapwrite import MESSAGE_FIELDS, MESSAGE_HEAD, RecordBatch
 from deft_gym.record.scene import expand
 from deft_gym.record.worker import EpisodeLog, read_frame, write_frame
+
+try:  # the recorder's tap compiled (setup.py): the same records, no Python frame per message
+    from deft_gym.record import _tap_c
+except ImportError:  # pragma: no cover - the build is optional
+    _tap_c = None
+# a kernel built before recorder.py or _tap_c.c was edited is not used (the edit must count)
+_tap_c = checked_kernel(_tap_c, Path(__file__).with_name("_tap_c.c"), Path(__file__))
 
 EPISODE_METADATA = "deft_gym.episode"
 OUTCOME_METADATA = "deft_gym.outcome"
@@ -179,52 +187,43 @@ class RecordTap:
         self.count = 0  # messages handed on so far
         # the common path, without attribute look-ups: topics with a channel, scenes aside
         fast = {t: c for t, c in channels.items() if t != SCENE_TOPIC}
-        pieces: list[bytes] = []
-        ends: list[int] = []
+        pieces: list[bytes] = []  # two per message: its record's head and its JSON
         times: list[int] = []
         cids: list[int] = []
-        pos = 0
         pack, head, limit = MESSAGE_HEAD.pack, Opcode.MESSAGE, self.BATCH
         dumps, default, opts = orjson.dumps, _default, orjson.OPT_SERIALIZE_NUMPY
 
         def add(cid: int, publish_ns: int, data: bytes, seq: int) -> None:
-            nonlocal pos
             t = start_ns + publish_ns
             pieces.append(pack(head, MESSAGE_FIELDS + len(data), cid, seq, t, t))
             pieces.append(data)
-            pos += MESSAGE_HEAD.size + len(data)
-            ends.append(pos)
             times.append(t)
             cids.append(cid)
 
-        def tap(msg: Any) -> None:
-            nonlocal pos
+        def tap(msg: Any) -> None:  # compiled in _tap_c.c (the same bytes)
             cid = fast.get(msg.topic)
             if cid is None:
-                slow(msg)
+                general(msg)
                 return
             try:
                 data = dumps(msg.payload, default=default, option=opts)  # encode(), inlined
-                if b"null" in data:  # a non-finite float, tagged (or a None): encode() decides
-                    data = encode(msg.payload)
-            except TypeError:  # bytes (JSON already), or no JSON form: encode() decides
-                try:
-                    data = encode(msg.payload)
-                except TypeError as exc:
-                    fail(msg, exc)
-                    return
+            except TypeError:  # bytes (JSON already), or no JSON form: general decides
+                general(msg)
+                return
+            if b"null" in data:  # a non-finite float, tagged (or a None): general decides
+                general(msg)
+                return
             t = start_ns + msg.publish_ns
             pieces.append(pack(head, MESSAGE_FIELDS + len(data), cid, msg.seq, t, t))
             pieces.append(data)
-            pos += MESSAGE_HEAD.size + len(data)
-            ends.append(pos)
             times.append(t)
             cids.append(cid)
-            if len(ends) >= limit:
+            if len(cids) >= limit:
                 flush_all()
 
-        def slow(msg: Any) -> None:
-            """A scene state, or a topic's first message without a channel yet."""
+        def general(msg: Any) -> None:
+            """Any message: a scene state, a topic's first message without a channel yet, a
+            payload that orjson alone does not encode as the log needs."""
             topic, payload = msg.topic, msg.payload
             if topic == SCENE_TOPIC and (scene := expand(msg.publish_ns, msg.seq, payload, start_ns)) is not None:
                 entries = scene
@@ -242,7 +241,7 @@ class RecordTap:
                     if topic != SCENE_TOPIC:
                         fast[topic] = cid
                 add(cid, ns, data, seq)
-            if len(ends) >= limit:
+            if len(cids) >= limit:
                 flush_all()
 
         def fail(msg: Any, exc: Exception) -> None:
@@ -250,17 +249,19 @@ class RecordTap:
                 self.error = f"{msg.topic} message {msg.seq}: {exc}"
 
         def flush_all() -> None:
-            nonlocal pos
-            if ends:
-                self.count += len(ends)
-                batch = (pieces[:], ends[:], times[:], cids[:])
-                pieces.clear(), ends.clear(), times.clear(), cids.clear()
-                pos = 0
+            if cids:
+                self.count += len(cids)
+                ends = list(accumulate(map(len, pieces)))[1::2]  # [bytes] each record's end
+                batch = (pieces[:], ends, times[:], cids[:])
+                pieces.clear(), times.clear(), cids.clear()
                 flush(batch)
 
+        if _tap_c is not None and not os.environ.get("DEFT_GYM_PURE_PYTHON"):
+            tap = _tap_c.Tap(fast, start_ns, dumps, {"default": default, "option": opts}, general, flush_all,
+                             pieces, times, cids, limit)
         self.tap: Callable[[Any], None] = tap
         self.flush: Callable[[], None] = flush_all
-        self.pending: Callable[[], int] = ends.__len__
+        self.pending: Callable[[], int] = cids.__len__
 
     def __call__(self, msg: Any) -> None:
         self.tap(msg)
