@@ -4,7 +4,8 @@
 predicted obstacles (and their relevance test) and its longitudinal profiles in C;
 ``deft_gym.modules._control_c`` is the control module's conversion of a planned trajectory and
 its nearest-point search; ``deft_gym.record._snapshot_c`` is the recorder's payload snapshot (pickle
-is used without it). All are bit-identical to the Python and numpy versions (which are
+is used without it); ``deft_gym.record._tap_c`` is the recorder's bus tap (JSON-encoding and framing
+each message as an MCAP record). All are bit-identical to the Python and numpy versions (which are
 used when an extension is missing: ``optional=True`` turns a failed build into a warning). IEEE
 semantics are kept: no fast-math, no FMA contraction. Each records the digests of its C source and
 of the Python file it stands in for (``BUILT_FROM``): a kernel older than an edit of either is not
@@ -52,5 +53,6 @@ setup(
         kernel("deft_gym.planner._lattice_c", "deft_gym/planner/_lattice_c.c", "deft_gym/planner/lattice.py"),
         kernel("deft_gym.modules._control_c", "deft_gym/modules/_control_c.c", "deft_gym/modules/control.py"),
         kernel("deft_gym.record._snapshot_c", "deft_gym/record/_snapshot_c.c", "deft_gym/record/worker.py"),
+        kernel("deft_gym.record._tap_c", "deft_gym/record/_tap_c.c", "deft_gym/record/recorder.py"),
     ]
 )

@@ -7,10 +7,17 @@ Runs the same campaign - the adversary evaluation (``evaluate``, default) or the
 (``calibrate``: issue 21's 256 runs) - once per backend and worker count, each in a fresh
 interpreter (start-up, Ray's included, is part of the figure), and prints wall time, throughput
 [simulated scenarios/s], speed-up and efficiency against one worker of the same backend, the
-time the items themselves took (wall and, for the evaluation, CPU, summed over items: when it
-grows with workers, the cores are shared with something else), the load average, and the fit
-``T = a + b/W`` (``a``: what stays serial). It also checks that every run wrote the same
-records (timings aside) and measures the driver's cost per item of each backend (an empty item).
+time the items themselves took (wall and CPU, summed over items: when it grows with workers, the
+cores are shared with something else), the load average, and the fit ``T = a + b/W`` (``a``:
+what stays serial). It also checks that every run wrote the same records (timings aside: the
+calibration gets fixed jitter seeds, ``--jitter-seed``) and measures the driver's cost per item
+of each backend (an empty item).
+
+The serial part from CPU times, which a loaded machine measures where wall times do not: a
+run's CPU (``getrusage`` of its process tree) less the CPU of its items is the driver's and the
+start-up's; its share of the run's CPU is the serial share ``s`` of Amdahl's law, and the
+efficiency at ``W`` workers it implies is ``1 / (s W + 1 - s)``. Scaled to a campaign of
+``--eval-minutes`` of item CPU (default 10): the start-up once, the driver's part per item.
 Writes ``OUT/scale.json``.
 """
 
@@ -19,6 +26,7 @@ from __future__ import annotations
 import argparse
 import operator
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -43,16 +51,74 @@ def campaign_command(campaign: str, out: Path, workers: int, backend: str, a: ar
                 "--out", str(out), *ray]
     scen = [f"configs/scenarios/{s}.yaml" for s in (a.scenarios.split(",") if a.scenarios else CAL_SCENARIOS)]
     return [sys.executable, "-m", "deft_gym.cli.calibrate", "--scenarios", *scen, "--variants", "2", "--cut-ins", "3",
-            "--brakes", "3", "--reruns", str(a.reruns), "--workers", str(workers), "--out", str(out), *ray]
+            "--brakes", "3", "--reruns", str(a.reruns), "--jitter-seed", str(a.jitter_seed), "--workers", str(workers),
+            "--out", str(out), *ray]
 
 
-def driver_cost(backend: Backend, n: int) -> float:
-    """[ms] the driver's time per item: ``n`` empty items, after start-up."""
+def driver_cost(backend: Backend, n: int) -> tuple[float, float]:
+    """[ms] the driver's wall time and CPU time (its own and its workers') per item: ``n`` empty
+    items, after start-up."""
     with Executor(backend) as ex:
         list(ex.map(operator.pos, range(4 * backend.workers)))  # start the workers
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), _tree_cpu(children_running=True)
         list(ex.map(operator.pos, range(n)))
-        return (time.perf_counter() - t0) / n * 1000
+        return (time.perf_counter() - t0) / n * 1000, (_tree_cpu(children_running=True) - c0) / n * 1000
+
+
+def _become_subreaper() -> bool:
+    """Make this process the reaper of its orphaned descendants (Linux), so that the CPU of a
+    run's whole process tree - a forkserver's workers outlive their parent's wait - reaches
+    ``RUSAGE_CHILDREN`` once :func:`_reap_orphans` waits for them."""
+    try:
+        import ctypes
+
+        return ctypes.CDLL(None, use_errno=True).prctl(36, 1, 0, 0, 0) == 0  # PR_SET_CHILD_SUBREAPER
+    except (OSError, AttributeError):
+        return False
+
+
+def _reap_orphans(timeout: float = 30.0) -> None:
+    """Wait for the descendants left over from a run (reparented here): their CPU then counts."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            pid, _ = os.waitpid(-1, os.WNOHANG)
+        except ChildProcessError:
+            return
+        if pid == 0:
+            time.sleep(0.05)
+
+
+def _tree_cpu(children_running: bool = False) -> float:
+    """[s] CPU time of this process and of its children that have ended (with
+    ``children_running``: this process only, the workers' share read from /proc where it can be)."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    total = own.ru_utime + own.ru_stime
+    if not children_running:
+        kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return total + kids.ru_utime + kids.ru_stime
+    tick = os.sysconf("SC_CLK_TCK")
+    for pid in _child_pids(os.getpid()):
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / tick
+        except (OSError, IndexError, ValueError):
+            continue
+    return total
+
+
+def _child_pids(pid: int) -> list[int]:
+    """This process's children (Linux /proc; none elsewhere)."""
+    try:
+        return [int(c) for t in Path(f"/proc/{pid}/task").iterdir()
+                for c in (t / "children").read_text().split()]
+    except OSError:
+        return []
+
+
+def amdahl(serial_share: float, workers: int) -> float:
+    """Efficiency at ``workers`` workers of a campaign whose serial share is ``serial_share``."""
+    return 1.0 / (serial_share * workers + 1.0 - serial_share)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -65,6 +131,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reruns", type=common.int_range(1, 10_000), default=8,
                     help="calibrate: reruns per variant (8: 256 runs)")
     ap.add_argument("--scenarios", default=None, help="comma-separated seed scenarios (default: four)")
+    ap.add_argument("--jitter-seed", type=common.int_range(0, 2**63 - 1), default=1000,
+                    help="calibrate: jitter seed of each scenario's first run (default: 1000; the same for every run, "
+                         "so the records can be compared)")
+    ap.add_argument("--eval-minutes", type=common.finite_float(0.1, 1e6), default=10.0,
+                    help="the campaign size [min of item CPU] the serial share is scaled to (default: 10)")
     common.add_out(ap, common.RUNS / "bench_scale")
     common.add_output_flags(ap)
     a = ap.parse_args(argv)
@@ -89,10 +160,12 @@ def main(argv: list[str] | None = None) -> int:
 def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
     rows: list[dict[str, Any]] = []
     reference = None
+    if not _become_subreaper():
+        print("note: not a subreaper here (not Linux?): the CPU of workers that outlive their parent is missed")
     env = {**os.environ, "RAY_DEDUP_LOGS": "1"}
     print(f"{a.campaign}: {os.cpu_count()} CPUs here; each run in a fresh interpreter")
     print(f"{'backend':8s} {'workers':>7s} {'wall [s]':>9s} {'items':>6s} {'items/s':>8s} {'speed-up':>8s} "
-          f"{'efficiency':>10s} {'items [s]':>10s} {'CPU [s]':>9s} {'load':>5s}")
+          f"{'efficiency':>10s} {'items [s]':>10s} {'items CPU':>9s} {'run CPU':>8s} {'serial':>7s} {'load':>5s}")
     for backend in backends:
         for w in counts:
             out = a.out / f"{a.campaign}-{backend}-{w}"
@@ -100,10 +173,12 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
                 import shutil
 
                 shutil.rmtree(out)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), _tree_cpu()
             proc = subprocess.run(campaign_command(a.campaign, out, w, backend, a), capture_output=True, text=True,
                                   env=env)
             wall = time.perf_counter() - t0
+            _reap_orphans()
+            run_cpu = _tree_cpu() - c0  # the run's process tree, all of it
             if proc.returncode != 0:
                 print(proc.stdout[-2000:], proc.stderr[-3000:], file=sys.stderr)
                 print(f"error: the {backend} run with {w} workers failed", file=sys.stderr)
@@ -115,9 +190,14 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
             item_cpu = sum(r.get("cpu_seconds", 0.0) for r in raw)
             item_wall = sum(r.get("seconds", r.get("wall_time", 0.0)) for r in raw)
             base = next((r for r in rows if r["backend"] == backend and r["workers"] == 1), None)
+            # the serial part: the run's CPU that no item took (driver, start-up of the program, the
+            # workers and their recorder processes), as a share of the run's CPU
+            serial_cpu = max(0.0, run_cpu - item_cpu)
             row = {"backend": backend, "workers": w, "wall_s": round(wall, 2), "items": len(recs),
                    "items_per_s": round(len(recs) / wall, 3), "same_records": recs == reference,
                    "item_wall_s": round(item_wall, 2), "item_cpu_s": round(item_cpu, 2) if item_cpu else None,
+                   "run_cpu_s": round(run_cpu, 2), "serial_cpu_s": round(serial_cpu, 2),
+                   "serial_share": round(serial_cpu / run_cpu, 4) if run_cpu > 0 and item_cpu else None,
                    "load_average": os.getloadavg()[0]}
             if base is not None:
                 row["speedup"] = round(base["wall_s"] / wall, 3)
@@ -125,7 +205,8 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
             rows.append(row)
             print(f"{backend:8s} {w:7d} {wall:9.1f} {len(recs):6d} {row['items_per_s']:8.2f} "
                   f"{row.get('speedup', 1.0):8.2f} {row.get('efficiency', 1.0):10.0%} {item_wall:10.1f} "
-                  f"{item_cpu or float('nan'):9.1f} {row['load_average']:5.1f}", flush=True)
+                  f"{item_cpu:9.1f} {run_cpu:8.1f} {(row['serial_share'] or 0.0):7.1%} {row['load_average']:5.1f}",
+                  flush=True)
     fits = {}
     for backend in backends:
         pts = [(r["workers"], r["wall_s"]) for r in rows if r["backend"] == backend]
@@ -141,14 +222,54 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
                       f"items' wall time grows and their CPU time does not, the cores are shared: see the load)")
                 continue
             print(f"{backend}: T = {ser:.1f} s + {par:.1f} s / W  (serial share {ser / (ser + par):.0%} at W = 1)")
-    costs = {}
+    costs, amdahl_fits = {}, {}
     for backend in backends:
-        costs[backend] = round(driver_cost(Backend(backend, max(2, max(counts))), 400), 3)
-        print(f"{backend}: the driver's cost per item {costs[backend]:.2f} ms (400 empty items, after start-up)")
+        wall_ms, cpu_ms = driver_cost(Backend(backend, max(2, max(counts))), 400)
+        costs[backend] = {"wall_ms": round(wall_ms, 3), "cpu_ms": round(cpu_ms, 3)}
+        print(f"{backend}: the driver's cost per item {wall_ms:.2f} ms wall, {cpu_ms:.2f} ms CPU (400 empty items, "
+              f"after start-up)")
+        # Amdahl from CPU times: the serial CPU of the one-worker run (or the fewest workers) is
+        # start-up (once) + the driver's CPU per item; scaled to --eval-minutes of item CPU
+        one = min((r for r in rows if r["backend"] == backend and r["item_cpu_s"]), key=lambda r: r["workers"],
+                  default=None)
+        if one is None:
+            continue
+        per_item_cpu = one["item_cpu_s"] / max(1, one["items"])
+        startup = max(0.0, one["serial_cpu_s"] - cpu_ms / 1000 * one["items"])
+        items_eval = 60.0 * a.eval_minutes / per_item_cpu
+        serial_eval = startup + cpu_ms / 1000 * items_eval
+        share_eval = serial_eval / (serial_eval + 60.0 * a.eval_minutes)
+        # each worker's start-up (parallel, but CPU no item gets): the growth of the serial CPU
+        # from the fewest workers to the next count
+        two = sorted((r for r in rows if r["backend"] == backend and r["item_cpu_s"]), key=lambda r: r["workers"])[:2]
+        per_worker = (max(0.0, (two[1]["serial_cpu_s"] - two[0]["serial_cpu_s"]) / (two[1]["workers"] - two[0]["workers"]))
+                      if len(two) == 2 else 0.0)
+        total_eval = serial_eval + 60.0 * a.eval_minutes
+
+        def with_workers(n: int, total: float = total_eval, serial: float = serial_eval, pw: float = per_worker) -> float:
+            return total / (n * (serial + (total - serial) / n + pw))
+
+        amdahl_fits[backend] = {
+            "worker_startup_cpu_s": round(per_worker, 2),
+            "efficiency_with_worker_startup": {str(n): round(with_workers(n), 4) for n in (16, 64)},
+            "measured_serial_share": one["serial_share"], "workers_of_measurement": one["workers"],
+            "startup_cpu_s": round(startup, 2), "driver_cpu_ms_per_item": round(cpu_ms, 3),
+            "item_cpu_s": round(per_item_cpu, 3), "eval_minutes": a.eval_minutes,
+            "serial_share_eval": round(share_eval, 5),
+            "efficiency": {str(n): round(amdahl(share_eval, n), 4) for n in (2, 4, 8, 16, 32, 64)},
+            "efficiency_measured_share": {str(n): round(amdahl(one["serial_share"], n), 4) for n in (16, 64)}}
+        print(f"{backend}: serial share from CPU {one['serial_share']:.1%} of this run ({one['serial_cpu_s']:.1f} of "
+              f"{one['run_cpu_s']:.1f} CPU s at {one['workers']} worker(s): start-up {startup:.1f} s, driver "
+              f"{cpu_ms:.2f} ms per item); for {a.eval_minutes:g} min of item CPU ({items_eval:.0f} items of "
+              f"{per_item_cpu:.2f} s) {share_eval:.2%}: Amdahl efficiency {amdahl(share_eval, 16):.0%} at 16 workers, "
+              f"{amdahl(share_eval, 64):.0%} at 64 (this run's share: {amdahl(one['serial_share'], 16):.0%}, "
+              f"{amdahl(one['serial_share'], 64):.0%}); with each worker's start-up ({per_worker:.1f} CPU s) "
+              f"{with_workers(16):.0%} at 16, {with_workers(64):.0%} at 64")
     same = all(r["same_records"] for r in rows)
     print(f"records identical on every backend and worker count (timings aside): {'yes' if same else 'NO'}")
     write_json_atomic(a.out / "scale.json", {"campaign": a.campaign, "cpus": os.cpu_count(), "runs": rows,
-                                             "fit": fits, "driver_ms_per_item": costs, "same_records": same,
+                                             "fit": fits, "driver_per_item": costs, "amdahl": amdahl_fits,
+                                             "same_records": same,
                                              "command": " ".join(sys.argv)})
     return 0 if same else 1
 

@@ -26,6 +26,7 @@ import argparse
 import hashlib
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -41,12 +42,14 @@ def _job(args: tuple[dict[str, Any], int, str | None, str]) -> dict[str, Any]:
     from deft_gym.sim.simulation import run_episode
 
     data, seed, ads_path, key = args
+    c0 = time.process_time()
     sc = scenario_from_dict(data, source=data["name"])
     r = run_episode(sc, load_ads_config(ads_path), jitter_seed=seed, keep_planning=False)
     s = r.summary()
     return {"key": key, "name": sc.name, "seed": seed, "outcome": s["outcome"], "collision": s["collision"],
             "with": s["collision_detail"]["participant"] if s["collision"] else None,
-            "sim_time": s["sim_time"], "wall_time": s["wall_time"]}
+            "sim_time": s["sim_time"], "wall_time": s["wall_time"],
+            "cpu_seconds": round(time.process_time() - c0, 4)}  # this process's CPU [s] (a timing)
 
 
 def _variants(args: tuple[str, int, float, int, int, str | None]) -> list[tuple[dict[str, Any], str]]:

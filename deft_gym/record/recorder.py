@@ -7,10 +7,10 @@ records ``deft_gym.episode`` (scenario, seeds, configuration; written first) and
 ``deft_gym.outcome`` (written last). It is written to ``<name>.tmp`` and renamed when complete,
 so a finished log is never partial; a crashed run leaves the ``.tmp`` for inspection.
 
-Messages are snapshot when published and written by a recorder process of their own
-(:mod:`deft_gym.record.worker`), as Apollo's ``cyber_recorder`` is a process of its own: JSON
-encoding and the MCAP writer's per-message Python then run beside the simulation instead of
-inside it. Set ``DEFT_GYM_RECORDER=inline`` (or pass ``background=False``) to encode and write
+Messages are JSON-encoded and framed as MCAP records when published (:class:`RecordTap`) and
+written by a recorder process of their own (:mod:`deft_gym.record.worker`), as Apollo's
+``cyber_recorder`` is a process of its own: chunks, CRCs, indexes and the file then run beside
+the simulation instead of inside it. Set ``DEFT_GYM_RECORDER=inline`` (or pass ``background=False``) to encode and write
 in the simulation's process; both write the same bytes. That is the default where the process
 may use only one CPU (``auto``), and in the workers of a pool of simulation processes that fill the
 CPUs (:func:`init_pool_worker`: training envs, evaluation, extraction accuracy, robustness).
@@ -31,16 +31,26 @@ import subprocess
 import sys
 import threading
 from collections.abc import Callable
+from itertools import accumulate
 from pathlib import Path
 from typing import Any
 
 import orjson
+from mcap.opcode import Opcode
 
-from deft_gym.bus.codec import encode
+from deft_gym.bus.codec import _default, encode
 from deft_gym.bus.messages import SCENE_TOPIC, SCHEMAS, Message, log_start_ns
-from deft_gym.files import write_atomic
+from deft_gym.files import checked_kernel, write_atomic
+from deft_gym.record.mcapwrite import MESSAGE_FIELDS, MESSAGE_HEAD, RecordBatch
 from deft_gym.record.scene import expand
-from deft_gym.record.worker import Batch, Entry, EpisodeLog, read_frame, write_frame
+from deft_gym.record.worker import EpisodeLog, read_frame, write_frame
+
+try:  # the recorder's tap compiled (setup.py): the same records, no Python frame per message
+    from deft_gym.record import _tap_c
+except ImportError:  # pragma: no cover - the build is optional
+    _tap_c = None
+# a kernel built before recorder.py or _tap_c.c was edited is not used (the edit must count)
+_tap_c = checked_kernel(_tap_c, Path(__file__).with_name("_tap_c.c"), Path(__file__))
 
 EPISODE_METADATA = "deft_gym.episode"
 OUTCOME_METADATA = "deft_gym.outcome"
@@ -134,10 +144,10 @@ class RecorderProcess:
         """A log id not used before in this recorder process."""
         return next(self._ids)
 
-    def send(self, *cmd: Any) -> None:
-        """Send a command without waiting."""
+    def send(self, *cmd: Any, raw: bytes | None = None) -> None:
+        """Send a command (and ``raw`` bytes after it) without waiting."""
         with self._lock:
-            self._send(cmd)
+            self._send(cmd, raw)
 
     def request(self, *cmd: Any) -> tuple[Any, ...]:
         """Send a command and wait for its answer; an ``error`` answer raises :class:`RecorderError`."""
@@ -150,30 +160,130 @@ class RecorderProcess:
             raise RecorderError(reply[1])
         return reply
 
-    def _send(self, cmd: tuple[Any, ...]) -> None:
+    def _send(self, cmd: tuple[Any, ...], raw: bytes | None = None) -> None:
         try:
-            write_frame(self.proc.stdin, cmd)
+            write_frame(self.proc.stdin, cmd, raw)
         except (BrokenPipeError, ValueError) as exc:
             raise RecorderError(f"the recorder process is gone (code {self.proc.poll()})") from exc
+
+
+class RecordTap:
+    """The bus tap of an episode log (:attr:`tap`): each message JSON-encoded and framed as an
+    MCAP ``Message`` record when it is published (log time = ``start_ns`` + publish time), handed
+    to ``flush`` in batches (:data:`RecordBatch`, the records as two pieces per message: nothing
+    is copied here). A compact scene state (:func:`deft_gym.record.scene.expand`) becomes the
+    scene and frame-transform messages; a topic outside ``channels`` gets a schemaless channel
+    through ``new_channel(topic) -> id`` just before its first message. A payload that cannot be
+    encoded is held in :attr:`error` (``"<topic> message <seq>: <reason>"``) and left out; the
+    log is then not finished."""
+
+    BATCH = 256
+
+    def __init__(self, channels: dict[str, int], start_ns: int, flush: Callable[[RecordBatch], None],
+                 new_channel: Callable[[str], int]) -> None:
+        self.channels = dict(channels)
+        self.start_ns = start_ns
+        self.error: str | None = None
+        self.count = 0  # messages handed on so far
+        # the common path, without attribute look-ups: topics with a channel, scenes aside
+        fast = {t: c for t, c in channels.items() if t != SCENE_TOPIC}
+        pieces: list[bytes] = []  # two per message: its record's head and its JSON
+        times: list[int] = []
+        cids: list[int] = []
+        pack, head, limit = MESSAGE_HEAD.pack, Opcode.MESSAGE, self.BATCH
+        dumps, default, opts = orjson.dumps, _default, orjson.OPT_SERIALIZE_NUMPY
+
+        def add(cid: int, publish_ns: int, data: bytes, seq: int) -> None:
+            t = start_ns + publish_ns
+            pieces.append(pack(head, MESSAGE_FIELDS + len(data), cid, seq, t, t))
+            pieces.append(data)
+            times.append(t)
+            cids.append(cid)
+
+        def tap(msg: Any) -> None:  # compiled in _tap_c.c (the same bytes)
+            cid = fast.get(msg.topic)
+            if cid is None:
+                general(msg)
+                return
+            try:
+                data = dumps(msg.payload, default=default, option=opts)  # encode(), inlined
+            except TypeError:  # bytes (JSON already), or no JSON form: general decides
+                general(msg)
+                return
+            if b"null" in data:  # a non-finite float, tagged (or a None): general decides
+                general(msg)
+                return
+            t = start_ns + msg.publish_ns
+            pieces.append(pack(head, MESSAGE_FIELDS + len(data), cid, msg.seq, t, t))
+            pieces.append(data)
+            times.append(t)
+            cids.append(cid)
+            if len(cids) >= limit:
+                flush_all()
+
+        def general(msg: Any) -> None:
+            """Any message: a scene state, a topic's first message without a channel yet, a
+            payload that orjson alone does not encode as the log needs."""
+            topic, payload = msg.topic, msg.payload
+            if topic == SCENE_TOPIC and (scene := expand(msg.publish_ns, msg.seq, payload, start_ns)) is not None:
+                entries = scene
+            else:
+                try:
+                    entries = [(topic, msg.publish_ns, encode(payload), msg.seq)]
+                except TypeError as exc:
+                    fail(msg, exc)
+                    return
+            for topic, ns, data, seq in entries:
+                cid = self.channels.get(topic)
+                if cid is None:  # its channel record goes into the log just before its first message
+                    flush_all()
+                    cid = self.channels[topic] = new_channel(topic)
+                    if topic != SCENE_TOPIC:
+                        fast[topic] = cid
+                add(cid, ns, data, seq)
+            if len(cids) >= limit:
+                flush_all()
+
+        def fail(msg: Any, exc: Exception) -> None:
+            if self.error is None:
+                self.error = f"{msg.topic} message {msg.seq}: {exc}"
+
+        def flush_all() -> None:
+            if cids:
+                self.count += len(cids)
+                ends = list(accumulate(map(len, pieces)))[1::2]  # [bytes] each record's end
+                batch = (pieces[:], ends, times[:], cids[:])
+                pieces.clear(), times.clear(), cids.clear()
+                flush(batch)
+
+        if _tap_c is not None and not os.environ.get("DEFT_GYM_PURE_PYTHON"):
+            tap = _tap_c.Tap(fast, start_ns, dumps, {"default": default, "option": opts}, general, flush_all,
+                             pieces, times, cids, limit)
+        self.tap: Callable[[Any], None] = tap
+        self.flush: Callable[[], None] = flush_all
+        self.pending: Callable[[], int] = cids.__len__
+
+    def __call__(self, msg: Any) -> None:
+        self.tap(msg)
 
 
 class McapRecorder:
     """A bus tap writing every message to an MCAP episode log (:attr:`tap` is the tap itself,
     without the method call of calling the recorder).
 
-    Each message's payload is snapshot (for the recorder process: ``background``, by default
-    unless :func:`recorder_in_process`; see :class:`deft_gym.record.worker.Batch`) or
-    JSON-encoded (for a log written in this process) when it is published, so the log holds the
-    payload as it was then; messages are handed on in batches of :attr:`BATCH`.
-    :meth:`close` returns once the log is complete and in place, and raises
-    :class:`RecorderError` if it could not be written.
+    Each message's payload is JSON-encoded and framed as an MCAP record when it is published
+    (:class:`RecordTap`), so the log holds the payload as it was then; the records are handed in
+    batches to the log's writer, in the recorder process (``background``, by default unless
+    :func:`recorder_in_process`) or in this one: the same bytes either way. :meth:`close` returns
+    once the log is complete and in place, and raises :class:`RecorderError` if it could not be
+    written.
 
     ``log_time`` is ``metadata["log_start_ns"]`` (an epoch time, 0 when absent) plus the
     publish time; ``extra_channels`` are ``(topic, "", schema title, JSON schema)`` of
     viewer-only topics (no role).
     """
 
-    BATCH = 256
+    BATCH = RecordTap.BATCH
 
     def __init__(self, path: Path | str, topics: dict[str, str], metadata: dict[str, Any],
                  compress: bool = False, background: bool | None = None,
@@ -188,17 +298,17 @@ class McapRecorder:
         args = (str(self.path), channels, EPISODE_METADATA, _meta(metadata), compress, self.start_ns)
         self._log: EpisodeLog | None = None
         self._proc: RecorderProcess | None = None
-        self._pending: list[Entry] = []
-        self._batch: Batch | None = None
-        self.tap: Callable[[Message], None] = self._encode
         if background:
             self._proc = RecorderProcess.get()
             self._id = self._proc.new_id()
             self._request("open", *args)
-            self.tap = self._batch = Batch(self.BATCH, self.flush)
+            # the ids the log gives its channels: in order, from 1 (LogWriter.register_channel)
+            ids = {topic: k for k, (topic, *_) in enumerate(channels, 1)}
+            self._tap = RecordTap(ids, self.start_ns, self._send_batch, self._send_channel)
         else:
             self._log = EpisodeLog(*args)
-        self._count = 0
+            self._tap = RecordTap(self._log.channels, self.start_ns, self._log.write, self._log.add_channel)
+        self.tap: Callable[[Message], None] = self._tap.tap
         self.closed = False
         self.process_seconds = 0.0  # CPU time the recorder process spent on this log (after close)
 
@@ -212,32 +322,28 @@ class McapRecorder:
         except RecorderError as exc:
             raise RecorderError(f"MCAP log {self.path}: {exc}") from None
 
+    def _send_batch(self, batch: RecordBatch) -> None:
+        pieces, ends, times, cids = batch
+        try:
+            self._proc.send("write", self._id, ends, times, cids, ends[-1], raw=pieces)
+        except RecorderError as exc:
+            raise RecorderError(f"MCAP log {self.path}: {exc}") from None
+
+    def _send_channel(self, topic: str) -> int:
+        self._request("channel", topic, wait=False)
+        return len(self._tap.channels) + 1  # the recorder process's writer numbers them alike
+
     def __call__(self, msg: Message) -> None:
         self.tap(msg)
 
     @property
     def count(self) -> int:
-        """Messages recorded so far."""
-        return self._batch.total if self._batch is not None else self._count
-
-    def _encode(self, msg: Message) -> None:
-        # the tap of a log written here: the payload encoded as it is now
-        if msg.topic == SCENE_TOPIC and (scene := expand(msg.publish_ns, msg.seq, msg.payload, self.start_ns)):
-            self._pending += scene
-        else:
-            self._pending.append((msg.topic, msg.publish_ns, encode(msg.payload), msg.seq))
-        self._count += 1
-        if len(self._pending) >= self.BATCH:
-            self.flush()
+        """Messages recorded so far (a scene state is two: the scene and the ego's transform)."""
+        return self._tap.count + self._tap.pending()
 
     def flush(self) -> None:
-        """Hand the messages held back (their payload snapshots) to the log, in publish order."""
-        if self._batch is not None:
-            if self._batch.count:
-                self._request("write", self._batch.take(), wait=False)
-        elif self._pending:
-            self._log.write(self._pending)
-            self._pending = []
+        """Hand the messages held back to the log, in publish order."""
+        self._tap.flush()
 
     def add_metadata(self, name: str, values: dict[str, Any]) -> None:
         """Add a metadata record (values that are not strings are JSON-encoded)."""
@@ -254,8 +360,14 @@ class McapRecorder:
         self.closed = True
         self.flush()
         args = (OUTCOME_METADATA, _meta(outcome)) if outcome is not None else (None, None)
+        error = self._tap.error
         if self._proc is not None:
+            if error is not None:
+                self._request("fail", error, wait=False)
             _, _, self.process_seconds = self._request("close", *args)
+        elif error is not None:
+            self._log.abandon()
+            raise RecorderError(f"MCAP log {self.path}: TypeError: {error}")
         else:
             self._log.close(*args)
         return self.path

@@ -1,20 +1,27 @@
 """The MCAP episode log, and the recorder process that writes it beside the simulation.
 
-The recorder process (``python -m deft_gym.record.worker``) is fed batches of messages,
-each with a snapshot of its payload taken at its publish time (:class:`Batch`, which costs the
-simulation less than JSON encoding), and does the rest: JSON encoding (:func:`deft_gym.bus.codec.encode`, the same bytes as encoding in
-the simulation's process), the Foxglove scene messages made from the compact scene states the
-simulation hands over (:func:`deft_gym.record.scene.expand`) and the MCAP writer's per-message
-Python. Apollo records the same
-way: ``cyber_recorder`` is a process of its own, fed serialised messages.
+The recorder process (``python -m deft_gym.record.worker``) is fed batches of messages that the
+simulation's process JSON-encoded (:func:`deft_gym.bus.codec.encode`) and framed as MCAP
+``Message`` records when they were published (:class:`deft_gym.record.mcapwrite.RecordTap`,
+a few microseconds per message), and does the rest: chunks, CRCs, indexes, the summary and the
+file (:class:`deft_gym.record.mcapwrite.LogWriter`, per chunk rather than per message). Apollo
+records the same way: ``cyber_recorder`` is a process of its own, fed serialised messages.
 
 It reads commands from its stdin and answers some on its stdout. A frame is a 4-byte
 little-endian length and a pickled tuple ``(op, log_id, *args)``:
 
 - ``("open", id, path, channels, metadata name, metadata, compress, start_ns)`` -> ``("ok",)`` or ``("error", text)``
-- ``("write", id, batch)``: ``batch`` is the bytes of :meth:`Batch.take`
+- ``("write", id, ends, times, cids, n)`` followed by ``n`` raw bytes, the message records: a
+  :data:`deft_gym.record.mcapwrite.RecordBatch` (not pickled: no copy)
+- ``("channel", id, topic)``: a schemaless channel for a topic outside the open's channels
+- ``("fail", id, text)``: a message could not be encoded; the log is not finished
 - ``("meta", id, name, values)``
 - ``("close", id, outcome)`` -> ``("ok", path, cpu_seconds)`` or ``("error", text)``
+
+The payload snapshot (:class:`Batch`, :func:`read_batch`, compiled in ``_snapshot_c.c``) is
+no longer on the recording path: a snapshot read back and then encoded in the recorder process
+cost about 3x the CPU, for both processes together, of encoding where a message is published
+(issue 36). It is kept, with its tests, but nothing records through it now.
 
 A failure while writing a log is held and answered at its ``close``. At end of input (the
 simulation's process is gone) every open log's file is closed and left as ``<name>.tmp``.
@@ -32,12 +39,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from mcap.writer import CompressionType, IndexType, Writer
-
-from deft_gym.bus.codec import encode
-from deft_gym.bus.messages import SCENE_TOPIC
 from deft_gym.files import checked_kernel
-from deft_gym.record.scene import expand
+from deft_gym.record.mcapwrite import CHUNK_BYTES, LogWriter, RecordBatch
 
 try:  # the payload snapshot compiled (setup.py), 3x faster than pickle for plain payloads
     from deft_gym.record import _snapshot_c
@@ -47,6 +50,7 @@ except ImportError:  # pragma: no cover - the build is optional
 _snapshot_c = checked_kernel(_snapshot_c, Path(__file__).with_name("_snapshot_c.c"), Path(__file__))
 
 FRAME = struct.Struct("<I")
+_IOV_MAX = min(1024, os.sysconf("SC_IOV_MAX")) if hasattr(os, "sysconf") else 1024
 _TOPIC = struct.Struct("=q")  # a batch entry: topic length, the topic (UTF-8),
 _REST = struct.Struct("=qqq")  # publish time [ns], sequence number, payload length, the payload
 
@@ -111,8 +115,8 @@ class EpisodeLog:
     """One MCAP episode log being written to ``<path>.tmp``, renamed to ``path`` by :meth:`close`.
 
     ``channels`` are ``(topic, role, schema title, JSON schema bytes)``; a topic outside them
-    gets a schemaless channel when its first message arrives. ``metadata`` is the episode
-    record (string values), written first.
+    gets a schemaless channel (:meth:`add_channel`) just before its first message. ``metadata``
+    is the episode record (string values), written first.
 
     Integrity: messages go into chunks of about :attr:`CHUNK_BYTES`, each with the CRC-32 of its
     content, the data section ends with its own CRC, and the summary section (schemas, channels,
@@ -121,10 +125,12 @@ class EpisodeLog:
     localise damage to a chunk (its offset and time range), find the next chunk from the index
     and check that it read as many messages as were written (:mod:`extract.logs`). Chunks are
     uncompressed (speed); ``compress`` makes them zstd (~5x smaller files). Message indexes are
-    left out: readers take whole chunks.
+    left out: readers take whole chunks. The bytes are those of the ``mcap`` library's writer
+    (:class:`deft_gym.record.mcapwrite.LogWriter`); messages arrive as batches of ready-made
+    records (:class:`deft_gym.record.mcapwrite.RecordTap`).
     """
 
-    CHUNK_BYTES = 32 * 1024
+    CHUNK_BYTES = CHUNK_BYTES
 
     def __init__(self, path: Path | str, channels: list[tuple[str, str, str, bytes]], metadata_name: str,
                  metadata: dict[str, str], compress: bool = False, start_ns: int = 0) -> None:
@@ -133,39 +139,23 @@ class EpisodeLog:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = self.path.with_name(self.path.name + ".tmp")
         self._file = open(self.tmp, "wb", buffering=1 << 20)  # noqa: SIM115 - closed in close()
-        self.writer = Writer(self._file, chunk_size=self.CHUNK_BYTES,
-                             compression=CompressionType.ZSTD if compress else CompressionType.NONE,
-                             index_types=IndexType.CHUNK | IndexType.METADATA, enable_crcs=True, enable_data_crcs=True)
+        self.writer = LogWriter(self._file, self.CHUNK_BYTES, compress)
         self.writer.start(profile="", library="deft_gym")
-        self._channels: dict[str, int] = {}
+        self.channels: dict[str, int] = {}
         for topic, role, title, schema in channels:
             sid = self.writer.register_schema(title, "jsonschema", schema)
             # a viewer-only topic (role "") carries no role: readers of bus messages skip it
-            self._channels[topic] = self.writer.register_channel(topic, "json", sid, {"role": role} if role else {})
+            self.channels[topic] = self.writer.register_channel(topic, "json", sid, {"role": role} if role else {})
         self.writer.add_metadata(metadata_name, metadata)
 
-    def write(self, batch: list[Entry]) -> None:
-        """Add messages in publish order; a new topic's channel record goes just before its
-        first message."""
-        channels, add, start = self._channels, self.writer.add_message, self.start_ns
-        for topic, ns, data, seq in batch:
-            cid = channels.get(topic)
-            if cid is None:
-                cid = channels[topic] = self.writer.register_channel(topic, "json", 0, {})
-            add(cid, start + ns, data, start + ns, seq)
+    def add_channel(self, topic: str) -> int:
+        """A schemaless channel for ``topic``, in the log before the messages that follow; its id."""
+        cid = self.channels[topic] = self.writer.register_channel(topic, "json", 0, {})
+        return cid
 
-    def write_batch(self, data: bytes) -> None:
-        """:meth:`write` of a batch of entries (:meth:`Batch.take`), payloads JSON-encoded here."""
-        out = []
-        for topic, ns, payload, seq in read_batch(data):
-            if topic == SCENE_TOPIC and (scene := expand(ns, seq, payload, self.start_ns)) is not None:
-                out += scene  # the Foxglove scene, made here rather than in the simulation
-                continue
-            try:
-                out.append((topic, ns, encode(payload), seq))
-            except TypeError as exc:
-                raise TypeError(f"{topic} message {seq}: {exc}") from None
-        self.write(out)
+    def write(self, batch: RecordBatch) -> None:
+        """Add a batch of message records (:meth:`RecordTap.flush`), in publish order."""
+        self.writer.add_batch(batch)
 
     def add_metadata(self, name: str, values: dict[str, str]) -> None:
         """A metadata record (string values)."""
@@ -195,11 +185,21 @@ def read_frame(stream: BinaryIO) -> Any:
     return pickle.loads(stream.read(n))
 
 
-def write_frame(stream: BinaryIO, obj: Any) -> None:
-    """Write one frame and flush it."""
+def write_frame(stream: BinaryIO, obj: Any, raw: list[bytes] | None = None) -> None:
+    """Write one frame (and the ``raw`` pieces after it: one gathering write to the pipe, no
+    copy) and flush it."""
     data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
     stream.write(FRAME.pack(len(data)) + data)
     stream.flush()
+    if raw:
+        fd = stream.fileno()
+        for at in range(0, len(raw), _IOV_MAX):
+            group = raw[at:at + _IOV_MAX]
+            done, total = os.writev(fd, group), sum(map(len, group))
+            if done < total:  # a write the pipe cut short (a signal): the rest as one piece
+                rest = b"".join(group)[done:]
+                while rest:
+                    rest = rest[os.write(fd, rest):]
 
 
 def serve(inp: BinaryIO, out: BinaryIO) -> None:
@@ -210,6 +210,8 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
     while (cmd := read_frame(inp)) is not None:
         op, lid, *args = cmd
         c0 = time.process_time()
+        if op == "write" and lid in errors:  # its records are read all the same
+            inp.read(args[3])
         try:
             if op == "open":
                 logs[lid] = EpisodeLog(*args)
@@ -217,8 +219,13 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
             elif lid in errors:
                 if op == "close":
                     write_frame(out, ("error", errors.pop(lid)))
-            elif op == "write":
-                logs[lid].write_batch(args[0])
+            elif op == "write":  # the records follow the frame as raw bytes
+                data = inp.read(args[3])
+                logs[lid].write((data, *args[:3]))
+            elif op == "channel":
+                logs[lid].add_channel(args[0])
+            elif op == "fail":  # the simulation could not encode a message: the log is not finished
+                raise TypeError(args[0])
             elif op == "meta":
                 logs[lid].add_metadata(*args)
             elif op == "close":

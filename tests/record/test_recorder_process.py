@@ -17,7 +17,6 @@ from mcap.reader import make_reader
 from deft_gym.bus.messages import DEFAULT_TOPICS, Message
 from deft_gym.record import recorder
 from deft_gym.record.recorder import McapRecorder, RecorderError, RecorderProcess
-from deft_gym.record.worker import PyBatch
 from deft_gym.sim.simulation import Simulation
 from tests.support.fixtures import SCENARIOS
 
@@ -35,10 +34,7 @@ def _write(path: Path, background: bool, n: int = 600) -> McapRecorder:
     return rec
 
 
-@pytest.mark.parametrize("batch", ["default", "python"])
-def test_recorder_process_writes_the_in_process_bytes(tmp_path: Path, monkeypatch, batch: str) -> None:
-    if batch == "python":  # without the compiled snapshot: payloads pickled
-        monkeypatch.setattr(recorder, "Batch", PyBatch)
+def test_recorder_process_writes_the_in_process_bytes(tmp_path: Path) -> None:
     a = _write(tmp_path / "a.mcap", background=True)
     b = _write(tmp_path / "b.mcap", background=False)
     assert a.path.read_bytes() == b.path.read_bytes()
