@@ -116,13 +116,11 @@ def write_replay(path: Path | str, eq: dict[str, Any]) -> Path:
 
 def load_replay(path: Path | str) -> dict[str, Any] | None:
     """The failure's scenario in the YAML file ``path`` (:func:`write_replay`), or None when the
-    file is something else (a plain scenario)."""
-    import yaml
+    file is something else (a plain scenario). Read as every config is (:func:`deft_gym.config.load_yaml`:
+    a FIFO, a device, an oversized or malformed file is a one-line ConfigError, never a block)."""
+    from deft_gym.config import load_yaml
 
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError):
-        return None
+    data = load_yaml(path)
     if not isinstance(data, dict) or data.get("format") != REPLAY_FORMAT:
         return None
     return read_replay(data)

@@ -55,6 +55,7 @@ def _same_outcome(again: dict, log: Path) -> None:
 def test_a_search_failure_card_replays_its_outcome(tmp_path: Path, monkeypatch) -> None:
     from agents.search import _run_record
     from deft_gym.cli.report import write_report
+    from deft_gym.metrics.oracle import run_metrics
     from deft_gym.search.context import seed_context
     from deft_gym.search.episode import REPLAY_FORMAT, run_scenario
     from deft_gym.search.feasible import Layout
@@ -66,7 +67,8 @@ def test_a_search_failure_card_replays_its_outcome(tmp_path: Path, monkeypatch) 
     ev = tmp_path / "eval"
     d = ev / "logs" / "decictor" / "lane_follow_static" / "0"
     run = run_scenario(ctx, added, 7, out_dir=d)
-    rec = _run_record(ctx, run, 0, 0.0, 0.0, np.random.default_rng(0), {"mutation": "add", "specs": added})
+    m = run_metrics(ctx, run.trace, run.verdict.collision_detail)
+    rec = _run_record(ctx, run, 0, 0.0, 0.0, np.random.default_rng(0), {"mutation": "add", "specs": added}, m)
     assert rec["failure"] == "nods" and rec["scenario_equivalent"]["format"] == REPLAY_FORMAT
     write_json_atomic(d / "episode.json", {**rec, "scenario": "lane_follow_static"})  # as agents.evaluate keeps it
     (ev / "records.jsonl").write_text(json.dumps(rec) + "\n")
