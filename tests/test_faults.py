@@ -1135,10 +1135,18 @@ def test_a_planner_that_ends_its_process_or_raises_anything_is_a_crash_of_planni
     stress. Now every one is the outcome crash of planning, at the time it happened, in the result
     and in the log - in the simulation's process (any BaseException) or, for a planner in a
     process of its own (os._exit, a signal, a segfault), from its exit status."""
+    import signal
+
     from deft_gym.sim.simulation import Simulation
 
     monkeypatch.setenv("DEFT_GYM_PLANNER_ISOLATION", isolation)
-    r = Simulation(LANE_FOLLOW, faulty_ads(fault), jitter_seed=7, out_dir=tmp_path).run()
+    # Ctrl-C is told from a planner's KeyboardInterrupt only under Python's own SIGINT handler (a
+    # test runner's worker, or a test before this one, may have installed another)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        r = Simulation(LANE_FOLLOW, faulty_ads(fault), jitter_seed=7, out_dir=tmp_path).run()
+    finally:
+        signal.signal(signal.SIGINT, previous)
     f = r.outcome.failure
     assert r.outcome.outcome == "crash" and f["module"] == "planning" and said in f["exception"], f
     assert 0 < f["time"] < 5 and "\n" not in f["exception"]
