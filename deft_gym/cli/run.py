@@ -153,7 +153,7 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
     agg = aggregate([r["metrics"] for r in rows])
     console.print(f"driving quality: mean score {agg['mean_score']:.3f} (min {agg['min_score']:.3f}); violations "
                   + (", ".join(f"{k} {v}/{len(rows)}" for k, v in agg["violations"].items()) or "none")
-                  + " (docs/metrics.md)", highlight=False, soft_wrap=True)
+                  + " (docs/metrics.md)", highlight=False)
     console.print(f"{collided}/{len(rows)} reruns collided; outcomes {', '.join(sorted({r['outcome'] for r in rows}))}; "
                   f"sim speed {sim_speed:.0f}x real time")
     for r in rows:

@@ -318,6 +318,9 @@ class CommonRoadPlanner(Planner):
     """CommonRoad's reactive planner on deft_gym's frames (see the module docstring)."""
 
     inputs = ("map", "routing", "localization", "traffic_light", "prediction")
+    #: memo caches: the CommonRoad road model of each map (keyed by the map's digest) and the last
+    #: map message with its digest (so an unchanged map is not hashed again)
+    caches = ("_models", "_last_map")
 
     def __init__(self, map_spec: Mapping[str, Any], **params: Any) -> None:
         if IMPORT_ERROR is not None:
