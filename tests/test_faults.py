@@ -1192,7 +1192,10 @@ def test_the_users_ctrl_c_ends_a_run_in_one_line_and_the_log_says_interrupted(tm
     proc = subprocess.Popen([PY, "-m", "deft_gym.cli.main", "run", str(LANE_FOLLOW), "--ads-config", str(ads),
                              "--reruns", "1", "--jitter-seed", "7", "--render", "none", "--quiet", "--out", str(out)],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**__import__("os").environ, "PYTHONPATH": str(ROOT)})
+                            env={**__import__("os").environ, "PYTHONPATH": str(ROOT)},
+                            # as from a shell: a test runner's worker (xdist) ignores SIGINT, and an
+                            # ignored signal stays ignored in its children
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 120
     while time.time() < deadline and not (out / "0" / "episode.mcap.tmp").exists():
         time.sleep(0.1)
