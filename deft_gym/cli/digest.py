@@ -25,7 +25,7 @@ from deft_gym.files import write_atomic
 if TYPE_CHECKING:
     from deft_gym.scenarios.scenario import Scenario
 
-DEFAULT_SEEDS = [7, 8]  # the jitter seeds of tests/support/data/digests.json
+DEFAULT_SEEDS = [7, 8]  # the jitter seeds of tests/support/data/digests-numpy*.json
 
 
 def run_digest(scenario: Scenario | str | Path, jitter_seed: int) -> dict[str, str]:
