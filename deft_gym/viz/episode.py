@@ -451,18 +451,19 @@ def save_video(ep: Episode, path: Path | str, fps: int = 5, span: float = 70.0, 
         fig.canvas.draw()
         frames.append(np.asarray(fig.canvas.buffer_rgba())[:, :, :3].copy())
     plt.close(fig)
-    if frames:  # the picture a page shows before the video plays: the collision, else the start
-        with atomic_path(poster_path(path)) as tmp:
-            imageio.imwrite(tmp, frames[-1] if ep.collision else frames[0], format="png")
     try:
         with atomic_path(path) as tmp:
             imageio.mimsave(tmp, frames, fps=fps, macro_block_size=1)
-        return path
+        out = path
     except Exception:  # no ffmpeg: a GIF
-        gif = path.with_suffix(".gif")
-        with atomic_path(gif) as tmp:
+        out = path.with_suffix(".gif")
+        with atomic_path(out) as tmp:
             imageio.mimsave(tmp, frames, duration=1.0 / fps)
-        return gif
+    if frames:  # the picture a page shows before the video plays: the collision, else the start
+        # (written after the video: a kill while the video is written leaves neither picture)
+        with atomic_path(poster_path(path)) as tmp:
+            imageio.imwrite(tmp, frames[-1] if ep.collision else frames[0], format="png")
+    return out
 
 
 def poster_path(video: Path | str) -> Path:
