@@ -102,7 +102,7 @@ class Campaign:
         scenarios = self.config.scenarios
         scenario = scenarios[index % len(scenarios)]
         jitter_seed = rng.choice(self.jitter_seeds())
-        policies = generate_policies(spec, self.config.generation, rng)
+        policies = generate_policies(spec, self.config.generation, rng, index)
         case = self.base_case(scenario, jitter_seed, f"run_{index:05d}")
         horizon = self.config.horizon_s
         stop_at = None if horizon is None else round(max(p.end for p in policies) + horizon, 3)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import random
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -55,6 +55,10 @@ class GenerationConfig(BaseModel):
     window_s: Range = Range(min=0.1, max=5.0)
     start_s: Range = Range(min=1.0, max=15.0)
     inject_delay_ms: Range = Range(min=0.0, max=150.0)
+    order: Literal["random", "covering"] = Field(
+        default="covering", description="covering: test i's first policy sets one field to one exceptional value, "
+        "the fields taken in turn (roles interleaved) and each field's values in the dictionary's order, so every "
+        "field meets its first exceptional value within the first (number of fields) tests")
 
     @field_validator("policies", "fields_per_policy")
     @classmethod
@@ -81,21 +85,50 @@ class GenerationConfig(BaseModel):
         return roles
 
 
-def generate_policies(spec: TestSpecification, cfg: GenerationConfig, rng: random.Random) -> list[Policy]:
-    """One test's policies."""
+STALE = "stale duplicate"  # a covering entry: inject a stale duplicate of the role's messages
+
+
+def covering_fields(spec: TestSpecification, cfg: GenerationConfig) -> list[tuple[str, FieldSpec | None]]:
+    """The entries a ``covering`` campaign takes in turn: (role, field) - the first field of every
+    role, then the second of every role, and so on (roles and fields in the specification's
+    order) - and after each role's fields (role, None): a stale duplicate of its messages."""
+    by_role: dict[str, list[FieldSpec]] = {}
+    for f in spec.select(cfg.roles, brittle=cfg.brittle):
+        by_role.setdefault(f.role, []).append(f)
+    rows: list[list[tuple[str, FieldSpec | None]]] = [[(r, f) for f in by_role[r]] + [(r, None)] for r in sorted(by_role)]
+    return [row[i] for i in range(max(map(len, rows), default=0)) for row in rows if i < len(row)]
+
+
+def covered(spec: TestSpecification, cfg: GenerationConfig, index: int) -> tuple[str, FieldSpec | None, str]:
+    """The role, field and exceptional value that test ``index`` of a ``covering`` campaign sets
+    (field None, value :data:`STALE`: a stale duplicate injected instead)."""
+    entries = covering_fields(spec, cfg)
+    role, f = entries[index % len(entries)]
+    if f is None:
+        return role, None, STALE
+    values = candidates(f, True) or candidates(f)
+    return role, f, values[(index // len(entries)) % len(values)]
+
+
+def generate_policies(spec: TestSpecification, cfg: GenerationConfig, rng: random.Random,
+                      index: int | None = None) -> list[Policy]:
+    """One test's policies (``index``: the test's number, which a ``covering`` order needs)."""
     fields = spec.select(cfg.roles, brittle=cfg.brittle)
     by_role: dict[str, list[FieldSpec]] = {}
     for f in fields:
         by_role.setdefault(f.role, []).append(f)
     roles = sorted(by_role)
     out = []
-    for _ in range(rng.randint(int(cfg.policies.min), int(cfg.policies.max))):
+    for n in range(rng.randint(int(cfg.policies.min), int(cfg.policies.max))):
         role = rng.choice(roles)
         mode = "inject" if rng.random() < cfg.inject_share else "intercept"
         k = rng.randint(int(cfg.fields_per_policy.min), int(cfg.fields_per_policy.max))
         chosen = rng.sample(by_role[role], min(k, len(by_role[role])))
         sets = [] if mode == "inject" and rng.random() < cfg.duplicate_share else \
             [Assignment(path=f.path, value=_value(f, cfg, rng)) for f in chosen]
+        if n == 0 and cfg.order == "covering" and index is not None:  # this test's field and value
+            role, f, value = covered(spec, cfg, index)
+            mode, sets = ("inject", []) if f is None else ("intercept", [Assignment(path=f.path, value=value)])
         if role in ONE_SHOT_ROLES:
             start, end = 0.0, 1.0
         else:

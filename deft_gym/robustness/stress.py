@@ -65,6 +65,10 @@ def campaign_parser() -> argparse.ArgumentParser:
     ap.add_argument("--hardening", choices=("off", "on"), default="off",
                     help="wrap prediction/planning/control in sanitisation + consistency checks")
     ap.add_argument("--brittle", action="store_true", help="also inject into brittle fields (stamps, seq numbers)")
+    ap.add_argument("--order", choices=("random", "covering"), default=None,
+                    help="how tests pick fields and values: covering (test i sets entry i mod the number of fields (and one "
+                         "stale duplicate per role) to its next exceptional value, so every field is hit early), or "
+                         "random (ASTAA's random draws); default: the config's generation.order (covering)")
     ap.add_argument("--invariants", default=None, help="invariants YAML (default configs/invariants/default.yaml)")
     common.add_workers(ap)
     add_backend_arguments(ap)
@@ -95,7 +99,9 @@ def _campaign(args: argparse.Namespace) -> int:
     if args.scenarios:
         overrides["scenarios"] = [_scenario_path(s) for s in args.scenarios]
     if args.brittle:
-        overrides["generation"] = {"brittle": True}
+        overrides.setdefault("generation", {})["brittle"] = True
+    if args.order:
+        overrides.setdefault("generation", {})["order"] = args.order
     if args.invariants:
         overrides["invariants"] = args.invariants
     if args.max_replays or args.max_signatures is not None:
