@@ -7,7 +7,13 @@ import random
 
 import pytest
 
-from deft_gym.robustness.generate import STALE, GenerationConfig, covered, covering_fields, generate_policies
+from deft_gym.robustness.generate import (
+    STALE,
+    GenerationConfig,
+    covered,
+    covering_fields,
+    generate_policies,
+)
 from deft_gym.robustness.spec import TestSpecification
 
 
