@@ -119,7 +119,10 @@ def generate_policies(spec: TestSpecification, cfg: GenerationConfig, rng: rando
         by_role.setdefault(f.role, []).append(f)
     roles = sorted(by_role)
     out = []
-    for n in range(rng.randint(int(cfg.policies.min), int(cfg.policies.max))):
+    count = rng.randint(int(cfg.policies.min), int(cfg.policies.max))
+    if cfg.order == "covering" and index is not None:
+        count = 1  # one field, one value: nothing else in the test can end it first or take the blame
+    for n in range(count):
         role = rng.choice(roles)
         mode = "inject" if rng.random() < cfg.inject_share else "intercept"
         k = rng.randint(int(cfg.fields_per_policy.min), int(cfg.fields_per_policy.max))
