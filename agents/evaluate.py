@@ -358,7 +358,6 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
 
     from agents.search import confirm, oracle_columns, record_of
     from deft_gym.envs.adversary import AdversaryEnv
-    from deft_gym.metrics.oracle import record_columns
 
     torch.set_num_threads(1)
     key = job["model"] if job["method"] == "rl" else None
@@ -398,9 +397,8 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
         eq = env.equivalent_scenario()
         specs = eq["scenario"]["participants"][len(env.ctx.scenario.participants):]
         confirmed, _, _ = confirm(env.ctx, v, specs, int(rng.integers(2**31 - 1)), eq["added_at"])
-        cols, _, _, n_o = oracle_columns(env.ctx, env.last_metrics, v.valid, env_cfg.oracle, specs,
-                                         int(rng.integers(2**31 - 1)), eq["added_at"]) \
-            if env_cfg.oracle != "default" else (record_columns(env.last_metrics), 0.0, 0.0, 0)
+        cols, _, _, n_o = oracle_columns(env.ctx, env.last_metrics, v.valid, env_cfg.oracle, specs, rng,
+                                         eq["added_at"])
         rec = record_of(v, i, time.perf_counter() - w0, time.process_time() - c0,
                         1 + (confirmed is not None) + n_o, confirmed, int(info["jitter_seed"]), int(info["added"]),
                         float(info["sim_time"]), cols)

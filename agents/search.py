@@ -93,16 +93,17 @@ def record_of(v: Verdict, index: int, seconds: float, cpu_seconds: float, sims: 
 
 
 def oracle_columns(ctx: SeedContext, m: EpisodeMetrics, valid: bool, oracle: str, specs: list[dict[str, Any]],
-                   jitter_seed: int, added_at: dict[str, float] | None = None) -> tuple[dict[str, Any], float, float, int]:
+                   rng: np.random.Generator, added_at: dict[str, float] | None = None
+                   ) -> tuple[dict[str, Any], float, float, int]:
     """The record's ``metric_*`` columns, and with a metric ``oracle`` its finding
-    (``oracle_signature``: on a valid mutation) and ``oracle_confirmed`` (re-checked on
-    ``jitter_seed``, :func:`deft_gym.metrics.oracle.confirm_oracle`); ``(columns, wall s, cpu s,
-    extra simulations)``."""
+    (``oracle_signature``: on a valid mutation) and ``oracle_confirmed`` (re-checked on a jitter
+    seed drawn from ``rng`` - only then - :func:`deft_gym.metrics.oracle.confirm_oracle`);
+    ``(columns, wall s, cpu s, extra simulations)``."""
     cols = record_columns(m)
     if oracle == "default":
         return cols, 0.0, 0.0, 0
     sig = seed_finding(ctx, valid, m, oracle)
-    ok, w, c = confirm_oracle(ctx, oracle, sig, specs, jitter_seed, added_at)
+    ok, w, c = confirm_oracle(ctx, oracle, sig, specs, int(rng.integers(2**31 - 1)), added_at)
     return {**cols, "oracle": oracle, "oracle_signature": sig, "oracle_confirmed": ok}, w, c, int(ok is not None)
 
 
@@ -111,8 +112,7 @@ def _run_record(ctx: SeedContext, run: EpisodeRun, index: int, t_mut: float, c_m
     v = run.verdict
     specs = extra.pop("specs")
     confirmed, w_c, c_c = confirm(ctx, v, specs, int(rng.integers(2**31 - 1)))
-    cols, w_o, c_o, n_o = oracle_columns(ctx, m, v.valid, oracle, specs, int(rng.integers(2**31 - 1))) \
-        if oracle != "default" else (record_columns(m), 0.0, 0.0, 0)
+    cols, w_o, c_o, n_o = oracle_columns(ctx, m, v.valid, oracle, specs, rng)
     rec = record_of(v, index, t_mut + run.seconds + w_c + w_o, c_mut + run.cpu_seconds + c_c + c_o,
                     1 + (confirmed is not None) + n_o, confirmed, run.result.jitter_seed,
                     sum(1 for a in run.trace.actors if a.added), run.result.sim_time, {**extra, **cols})
