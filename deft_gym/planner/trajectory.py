@@ -70,8 +70,3 @@ def hausdorff(ref: Mapping[str, Any], other: Mapping[str, Any]) -> float:
 MEASURES: dict[str, Callable[[Mapping[str, Any], Mapping[str, Any]], float]] = {
     "lsed": lsed, "frechet": frechet, "hausdorff": hausdorff,
 }
-
-
-def lockstep_divergence(ref: list[Mapping[str, Any]], other: list[Mapping[str, Any]]) -> list[float]:
-    """LSED of the i-th planning output of ``other`` against the i-th of ``ref`` (common prefix)."""
-    return [lsed(a, b) for a, b in zip(ref, other)]
