@@ -21,6 +21,7 @@ from deft_gym.scenarios.scenario import Scenario, destination_xy, pose_xyh
 from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH, collision_fault, trigger_type
 from deft_gym.search.trace import Trace
 from deft_gym.sim.oracles import held_by_light
+from deft_gym.world.geometry import box_corners
 from deft_gym.world.roadmap import RoadMap, lane_surface, shared_roadmap
 from deft_gym.world.traffic_lights import TrafficLights
 
@@ -306,18 +307,10 @@ def _ttc(trace: Trace, m: EpisodeMetrics, dt: float) -> np.ndarray:
     return gap_ahead
 
 
-def _corners(ego: np.ndarray) -> np.ndarray:
-    """The ego's footprint corners, shape (n, 4, 2) [m]."""
-    c, s = np.cos(ego[:, 2])[:, None], np.sin(ego[:, 2])[:, None]
-    lo = np.array([1, 1, -1, -1]) * EGO_LENGTH / 2
-    la = np.array([1, -1, -1, 1]) * EGO_WIDTH / 2
-    return np.stack([ego[:, :1] + lo * c - la * s, ego[:, 1:2] + lo * s + la * c], axis=-1)
-
-
 def _drivable(ego: np.ndarray, ctx: MetricsContext, m: EpisodeMetrics, dt: float) -> None:
     """nuPlan drivable_area_compliance (CommonRoad: the road-compliance check of the drivability
     checker): how far the footprint leaves the drivable area (:func:`drivable_area`)."""
-    pts = _corners(ego).reshape(-1, 2)
+    pts = box_corners(ego[:, 0], ego[:, 1], ego[:, 2], EGO_LENGTH, EGO_WIDTH).reshape(-1, 2)
     inside = shapely.contains_xy(ctx.area, pts[:, 0], pts[:, 1])
     out = np.zeros(len(pts))
     if not inside.all():
