@@ -33,7 +33,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -219,54 +219,35 @@ def watchdog_env(args: argparse.Namespace) -> Iterator[None]:
     ``DEFT_GYM_WATCHDOG_S`` and ``DEFT_GYM_RUN_WALL_S`` of this process, and of the worker
     processes it starts (the execution layer carries them); restored after. A variable that is
     not seconds >= 0 is one line, exit 2, before any work."""
-    with _run_wall_env(args), _watchdog_env(args):
+    from deft_gym.execution.watchdog import run_wall_seconds, watchdog_seconds
+
+    with _seconds_env(args, "run_wall_s", RUN_WALL_ENV, run_wall_seconds), \
+            _seconds_env(args, "watchdog_s", WATCHDOG_ENV, watchdog_seconds):
         yield
 
 
 @contextmanager
-def _run_wall_env(args: argparse.Namespace) -> Iterator[None]:
-    value = getattr(args, "run_wall_s", None)
-    old = os.environ.get(RUN_WALL_ENV)
+def _seconds_env(args: argparse.Namespace, attr: str, env: str, check: Callable[[], float]) -> Iterator[None]:
+    """The flag ``args.<attr>`` as the environment variable ``env`` while the block runs (restored
+    after); without the flag, ``check()`` - the check every watched run makes - runs here, before
+    any work, and a bad variable is one line, exit 2."""
+    value = getattr(args, attr, None)
+    old = os.environ.get(env)
     if value is None:
-        from deft_gym.execution.watchdog import run_wall_seconds
-
         try:
-            run_wall_seconds()
+            check()
         except ValueError as err:
-            raise SystemExit(cli_error(f"{err}; or give --run-wall-s SECONDS")) from None
+            raise SystemExit(cli_error(f"{err}; or give --{attr.replace('_', '-')} SECONDS")) from None
         yield
         return
-    os.environ[RUN_WALL_ENV] = repr(float(value))
+    os.environ[env] = repr(float(value))
     try:
         yield
     finally:
         if old is None:
-            os.environ.pop(RUN_WALL_ENV, None)
+            os.environ.pop(env, None)
         else:
-            os.environ[RUN_WALL_ENV] = old
-
-
-@contextmanager
-def _watchdog_env(args: argparse.Namespace) -> Iterator[None]:
-    value = getattr(args, "watchdog_s", None)
-    old = os.environ.get(WATCHDOG_ENV)
-    if value is None:
-        from deft_gym.execution.watchdog import watchdog_seconds
-
-        try:
-            watchdog_seconds()  # the check every watched run makes, here before any work
-        except ValueError as err:
-            raise SystemExit(cli_error(f"{err}; or give --watchdog-s SECONDS")) from None
-        yield
-        return
-    os.environ[WATCHDOG_ENV] = repr(float(value))
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop(WATCHDOG_ENV, None)
-        else:
-            os.environ[WATCHDOG_ENV] = old
+            os.environ[env] = old
 
 
 # the errors of a disk that cannot take the output: one line naming the file, never a traceback
