@@ -51,32 +51,28 @@ class ModuleHang(BaseException):
 def watchdog_seconds(value: float | None = None) -> float:
     """The watchdog limit: ``value``, else ``DEFT_GYM_WATCHDOG_S``, else the default (0 = off);
     ValueError (one line naming the variable or the setting) when it is not finite seconds >= 0."""
-    if value is None:
-        env = os.environ.get(ENV, "")
-        try:
-            value = float(env) if env.strip() else DEFAULT_WATCHDOG_S
-        except ValueError:
-            raise ValueError(f"{ENV}: expected seconds >= 0, got {env!r}") from None
-        if not (value >= 0 and math.isfinite(value)):
-            raise ValueError(f"{ENV}: expected finite seconds >= 0 (0 = off), got {env!r}")
-    if not (value >= 0 and math.isfinite(value)):
-        raise ValueError(f"watchdog_s: expected finite seconds >= 0 (0 = off), got {value}")
-    return float(value)
+    return _seconds(value, ENV, DEFAULT_WATCHDOG_S, "watchdog_s")
 
 
 def run_wall_seconds(value: float | None = None) -> float:
     """The whole-run cap: ``value``, else ``DEFT_GYM_RUN_WALL_S``, else the default (0 = off);
     ValueError (one line) when it is not finite seconds >= 0."""
+    return _seconds(value, RUN_ENV, DEFAULT_RUN_WALL_S, "run_wall_s")
+
+
+def _seconds(value: float | None, env_name: str, default: float, setting: str) -> float:
+    """``value``, else the environment variable ``env_name``, else ``default``, checked to be
+    finite seconds >= 0 (ValueError naming the variable or the ``setting``)."""
     if value is None:
-        env = os.environ.get(RUN_ENV, "")
+        env = os.environ.get(env_name, "")
         try:
-            value = float(env) if env.strip() else DEFAULT_RUN_WALL_S
+            value = float(env) if env.strip() else default
         except ValueError:
-            raise ValueError(f"{RUN_ENV}: expected seconds >= 0, got {env!r}") from None
+            raise ValueError(f"{env_name}: expected seconds >= 0, got {env!r}") from None
         if not (value >= 0 and math.isfinite(value)):
-            raise ValueError(f"{RUN_ENV}: expected finite seconds >= 0 (0 = off), got {env!r}")
+            raise ValueError(f"{env_name}: expected finite seconds >= 0 (0 = off), got {env!r}")
     if not (value >= 0 and math.isfinite(value)):
-        raise ValueError(f"run_wall_s: expected finite seconds >= 0 (0 = off), got {value}")
+        raise ValueError(f"{setting}: expected finite seconds >= 0 (0 = off), got {value}")
     return float(value)
 
 
