@@ -218,12 +218,12 @@ def read_log(log: Path | str) -> tuple[dict[str, Any], dict[str, Any], dict[str,
 
     from deft_gym.bus.codec import decode
     from deft_gym.bus.messages import NS_PER_S, SCENE_TOPIC, log_start_ns
+    from deft_gym.record import read_metadata
     from deft_gym.viz.episode import EPISODE_META, OUTCOME_META, _scene
 
     log = Path(log)
     try:
-        with open(log, "rb") as f:
-            meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+        meta = read_metadata(log)
     except Exception as exc:
         raise ValueError(f"{log}: cannot read the log: {type(exc).__name__}: {exc}") from None
     ep = {k: _json(v) for k, v in meta.get(EPISODE_META, {}).items()}

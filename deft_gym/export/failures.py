@@ -54,13 +54,11 @@ def failure_of_log(log: Path) -> str | None:
             verdict = None
     if verdict is not None:
         return failure_of("", None, verdict)
-    from mcap.reader import make_reader
-
+    from deft_gym.record import read_metadata
     from deft_gym.viz.episode import OUTCOME_META
 
     try:
-        with open(log, "rb") as f:
-            meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+        meta = read_metadata(log)
     except Exception:
         return None
     oc = meta.get(OUTCOME_META, {})

@@ -7,3 +7,17 @@
 
 Imports: :mod:`deft_gym.bus` (messages, codec), :mod:`deft_gym.config` and :mod:`deft_gym.files`.
 """
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def read_metadata(log: Path | str) -> dict[str, dict[str, str]]:
+    """The metadata records of an MCAP log by name (``deft_gym.episode``, ``deft_gym.outcome``,
+    ...); the reader's exception when the file is missing or not MCAP (callers decide what that
+    means)."""
+    from mcap.reader import make_reader
+
+    with open(log, "rb") as f:
+        return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}

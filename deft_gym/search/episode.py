@@ -146,12 +146,12 @@ def replay_of_log(log: Path | str) -> dict[str, Any] | None:
     log does not say (an old or damaged log)."""
     import json
 
-    from mcap.reader import make_reader
+    from deft_gym.record import read_metadata
+    from deft_gym.record.recorder import EPISODE_METADATA, OUTCOME_METADATA
 
     try:
-        with open(log, "rb") as f:
-            meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
-        ep, oc = meta.get("deft_gym.episode") or {}, meta.get("deft_gym.outcome") or {}
+        meta = read_metadata(log)
+        ep, oc = meta.get(EPISODE_METADATA) or {}, meta.get(OUTCOME_METADATA) or {}
         data = json.loads(ep["scenario"])
         seed = int(ep["jitter_seed"])
         added = json.loads(oc.get("participants_added") or "[]")

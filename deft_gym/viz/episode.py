@@ -104,11 +104,11 @@ def load_episode(log: Path | str) -> Episode:
     a readable MCAP log."""
     from mcap.reader import make_reader
 
+    from deft_gym.record import read_metadata
+
     log = Path(log)
     try:
-        with open(log, "rb") as f:
-            reader = make_reader(f)
-            meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        meta = read_metadata(log)
     except Exception as exc:  # not MCAP, damaged summary: one line naming the file
         raise ValueError(f"{log}: cannot read the log: {type(exc).__name__}: {exc}") from None
     ep = {k: _json(v) for k, v in meta.get(EPISODE_META, {}).items()}
