@@ -1,0 +1,98 @@
+"""The CommonRoad adapter's vectorised kinematic check (deft_gym/planner/commonroad_kinematics.py)
+is the library's ``ReactivePlanner._check_kinematics``, bit for bit: on every trajectory bundle
+of hand-made frames (both velocity modes) and of whole episodes, both run on copies of the same
+samples and every array, label and rejection count is compared. Skipped without the extra."""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytest.importorskip("commonroad_rp.reactive_planner", reason="CommonRoad's reactive planner is not installed: "
+                    "pip install -e '.[commonroad]'")
+
+from commonroad_rp.reactive_planner import ReactivePlanner  # noqa: E402
+
+import deft_gym.planner.commonroad as adapter  # noqa: E402
+from deft_gym.planner.commonroad import CommonRoadPlanner  # noqa: E402
+from deft_gym.planner.commonroad_kinematics import check_kinematics  # noqa: E402
+from tests.planner.test_commonroad import ADS, TOGGLING, road_frames  # noqa: E402
+
+SAMPLE_ARRAYS = {"cartesian": ("x", "y", "theta", "v", "a", "kappa", "kappa_dot"),
+                 "curvilinear": ("s", "d", "theta", "s_dot", "s_ddot", "d_dot", "d_ddot")}
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+class _BothChecks(ReactivePlanner):
+    """Runs the library's check and the vectorised one on copies of every bundle, asserts that
+    they agree bit for bit and goes on with the library's result."""
+
+    bundles: list[dict[str, Any]] = []
+
+    def _check_kinematics(self, trajectories: list[Any], queue_1: Any = None, queue_2: Any = None) -> Any:
+        copies = copy.deepcopy(trajectories)
+        before = dict(self._infeasible_reason_dict)
+        library, _ = ReactivePlanner._check_kinematics(self, trajectories)
+        library_reasons = dict(self._infeasible_reason_dict)
+        self._infeasible_reason_dict.clear()
+        self._infeasible_reason_dict.update(before)
+        fast, rest = check_kinematics(self, copies)
+        assert rest == [] and self._infeasible_reason_dict == library_reasons
+        index = {id(t): i for i, t in enumerate(trajectories)}
+        index_copy = {id(t): i for i, t in enumerate(copies)}
+        assert [index[id(t)] for t in library] == [index_copy[id(t)] for t in fast]
+        assert [t.feasibility_label for t in trajectories] == [t.feasibility_label for t in copies]
+        for a, b in zip(library, fast, strict=True):
+            for part, names in SAMPLE_ARRAYS.items():
+                pa, pb = getattr(a, part), getattr(b, part)
+                assert pa.current_time_step == pb.current_time_step
+                for name in names:
+                    assert _same_bits(np.asarray(getattr(pa, name)), np.asarray(getattr(pb, name))), (part, name)
+        _BothChecks.bundles.append({"samples": len(trajectories), "feasible": len(library),
+                                    "low_vel": bool(self._low_vel_mode), "reasons": library_reasons})
+        return library, []
+
+
+@pytest.fixture
+def both_checks(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
+    monkeypatch.setattr(adapter, "_FastReactivePlanner", _BothChecks)
+    _BothChecks.bundles = []
+    return _BothChecks.bundles
+
+
+def test_the_vectorised_check_is_the_librarys_on_hand_made_frames(both_checks) -> None:
+    """Both velocity modes, feasible and rejected samples (the speed crosses 4 m/s both ways)."""
+    planner = CommonRoadPlanner({})
+    for fr in road_frames(TOGGLING + [6.0, 8.0, 8.0]) + road_frames([0.0, 0.0, 0.3, 1.0]):
+        planner.plan(fr)
+    assert len(both_checks) >= len(TOGGLING) + 7
+    assert {b["low_vel"] for b in both_checks} == {True, False}
+    assert sum(b["feasible"] for b in both_checks) > 0
+    assert sum(b["samples"] - b["feasible"] for b in both_checks) > 0
+
+
+def test_the_planner_uses_it_unless_told_not_to() -> None:
+    fast, library = CommonRoadPlanner({}), CommonRoadPlanner({}, vectorised_kinematics=False)
+    outputs = []
+    for planner in (fast, library):
+        outputs.append([planner.plan(fr) for fr in road_frames(TOGGLING)])
+        model = next(iter(planner._models.values()))
+        assert isinstance(model.planner, adapter._FastReactivePlanner) == (planner is fast)
+    assert outputs[0] == outputs[1]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["lane_follow_static", "blocked_red_light", "handwritten/stopped_bus",
+                                      "handwritten/unprotected_left"])
+def test_the_vectorised_check_is_the_librarys_through_whole_episodes(both_checks, scenario) -> None:
+    from deft_gym.bus.ads import load_ads_config
+    from deft_gym.sim.simulation import Simulation
+
+    res = Simulation(scenario, load_ads_config(ADS), jitter_seed=5).run()
+    assert res.planning and len(both_checks) >= len(res.planning) // 2
