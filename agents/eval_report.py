@@ -335,6 +335,9 @@ def table_markdown(summary: dict[str, Any]) -> str:
         "(timeout/stuck of a valid mutation) are separate columns. Distinct: distinct root-cause signatures. "
         "Training episodes: scenarios simulated to train the method before the evaluation (a second budget). "
         "`*`: scenarios or repeats missing in the cell.", ""]
+    if summary.get("unfit"):
+        text += ["Left out, not seeds for the planner under test (its reference run does not complete them "
+                 "unmutated): " + "; ".join(f"`{k}`: {v}" for k, v in summary["unfit"].items()) + ".", ""]
     if missing:
         text += ["Fields absent from records (defaults used): "
                  + ", ".join(f"{k} ({v})" for k, v in sorted(missing.items())) + ".", ""]
@@ -485,12 +488,116 @@ def write_report(records: list[dict[str, Any]], summary: dict[str, Any], out: Pa
     return table
 
 
+# -- several planners ------------------------------------------------------------------------------
+#: the hand-written group's targets (issue 33): RL finds a confirmed failure on this share of its
+#: scenarios, and this many times Decictor-GA's distinct failures, p below TARGET_P
+TARGET_COVERAGE, TARGET_RATIO, TARGET_P = 0.75, 1.5, 0.05
+PLANNER_MEASURES = (("failures", "failures", 1), ("distinct", "distinct", 1), ("root_causes", "root causes", 1),
+                    ("collisions", "collisions", 1), ("validity", "valid %", 1))
+
+
+def coverage(summary: dict[str, Any], method: str, group: str = "handwritten") -> tuple[int, int]:
+    """``(scenarios of the group where the method counted a confirmed failure in some repeat and
+    placement, scenarios of the group)``."""
+    found, names = 0, summary.get(group, [])
+    for name in names:
+        cells = [c for pl in summary["per_scenario"].get(method, {}).values() if (c := pl.get(name))]
+        found += any(sum(v or 0 for v in c["failures"]["values"]) > 0 for c in cells)
+    return found, len(names)
+
+
+def planner_targets(summary: dict[str, Any]) -> dict[str, Any]:
+    """The hand-written group's targets on one planner's evaluation, per placement."""
+    out: dict[str, Any] = {}
+    found, n = coverage(summary, "rl")
+    out["coverage"] = {"found": found, "scenarios": n, "share": found / n if n else None,
+                       "met": bool(n) and found / n >= TARGET_COVERAGE}
+    for pl in summary["placements"]:
+        cx = summary["groups"].get("rl", {}).get(pl, {}).get("handwritten")
+        cy = summary["groups"].get("decictor", {}).get(pl, {}).get("handwritten")
+        row = stats.compare("rl", "decictor", "distinct", cx, cy, placement=pl, group="handwritten")
+        row["met"] = (row["ratio"] is not None and row["ratio"] >= TARGET_RATIO and row["p"] is not None
+                      and row["p"] < TARGET_P) or (row["mean_y"] == 0 and (row["mean_x"] or 0) > 0
+                                                    and row["p"] is not None and row["p"] < TARGET_P)
+        out[pl] = row
+    return out
+
+
+def planners_markdown(summaries: dict[str, dict[str, Any]]) -> str:
+    """``planners.md``: per planner and group, every method's counted failures, distinct failures,
+    root causes outside the lane, at-fault collisions and validity (mean ± sd over repeats, per
+    placement), then the hand-written group's targets (issue 33)."""
+    lines = ["# Evaluation across planners and groups", "",
+             "Cells: mean ± sd over repeats of per-repeat totals over the group's scenarios. Failures: valid "
+             "mutations whose NoDS or ego-at-fault collision reproduced with the same root cause on a second jitter "
+             "seed; distinct: distinct failure signatures; root causes: distinct root causes leaving out triggers "
+             "inside the ego's lane.", ""]
+    for label, summary in summaries.items():
+        cfg = summary.get("config", {})
+        lines += [f"## {label}", "", f"ADS config `{cfg.get('ads') or 'configs/ads/default.yaml'}`; budget "
+                  f"{cfg.get('budget')} per scenario and repeat; methods {', '.join(summary['methods'])}.", ""]
+        if summary.get("unfit"):
+            lines += ["Left out: not seeds for this planner (it does not complete them unmutated): "
+                      + "; ".join(f"`{k}` ({v.split(': ', 1)[-1]})" for k, v in summary["unfit"].items()), ""]
+        cols = ["group", "scenarios", "method", "placement"] + [name for _, name, _ in PLANNER_MEASURES]
+        lines += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        members = {g: summary.get(g, []) for g in ("seeds", "held_out", "handwritten")}
+        for g in ("seeds", "held_out", "handwritten"):
+            if not members[g]:
+                continue
+            for m, p in _rows(summary):
+                c = summary["groups"].get(m, {}).get(p, {}).get(g)
+                cells = [GROUP_LABELS[g], str(len(members[g])), _label(m), p]
+                cells += [fmt(c and c[key], nd, 100.0 if key == "validity" else 1.0) for key, _, nd in PLANNER_MEASURES]
+                lines.append("| " + " | ".join(cells) + " |")
+        lines.append("")
+        if members["handwritten"] and "rl" in summary["methods"] and "decictor" in summary["methods"]:
+            t = planner_targets(summary)
+            cov = t["coverage"]
+            lines.append(f"- RL found a confirmed failure on {cov['found']} of {cov['scenarios']} hand-written "
+                         f"scenarios (target >= {TARGET_COVERAGE:.0%}): {_met(cov['met'])}")
+            for pl in summary["placements"]:
+                r = t[pl]
+                ratio = f"{r['ratio']:.2f}x" if r["ratio"] is not None else r["note"] or "n/a"
+                lines.append(f"- {pl}: RL {_num(r['mean_x'])} vs Decictor-GA {_num(r['mean_y'])} distinct failures on "
+                             f"the hand-written group, {ratio}, p = {_p(r['p'])}, A12 = {_num(r.get('a12'), 2)} "
+                             f"(target >= {TARGET_RATIO}x, p < {TARGET_P}): {_met(r['met'])}")
+            lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def write_planners_report(out: Path) -> str:
+    """``planners.md`` and ``planners.json`` in ``out`` from the evaluations in its sub-folders
+    (one per planner, each with a ``summary.json``); returns the table's text."""
+    summaries = {}
+    for sub in sorted(p.parent for p in out.glob("*/summary.json")):
+        try:
+            summaries[sub.name] = json.loads((sub / "summary.json").read_text())
+        except json.JSONDecodeError as err:
+            raise RecordError(f"{sub / 'summary.json'}: not JSON ({err})") from None
+    if not summaries:
+        raise RecordError(f"{out}: no planner evaluations (sub-folders with summary.json)")
+    text = planners_markdown(summaries)
+    write_atomic(out / "planners.md", text)
+    write_json_atomic(out / "planners.json", {label: {"config": s.get("config"), "targets": planner_targets(s)
+                                                      if s.get("handwritten") else None}
+                                              for label, s in summaries.items()})
+    return text
+
+
 def main(argv: list[str] | None = None) -> int:
     p = common.parser("eval-report", "agents.eval_report", __doc__)
-    p.add_argument("out", type=Path, help="evaluation folder (records.jsonl, eval_config.json)")
+    p.add_argument("out", type=Path, help="evaluation folder (records.jsonl, eval_config.json), or a folder of "
+                   "one evaluation per planner (deft-gym evaluate --ads-config A.yaml B.yaml): planners.md")
     p.add_argument("--model", default=None, help="trained model.zip (its training summary; default: the config's)")
     args = p.parse_args(argv)
     cfg_path, rec_path = args.out / "eval_config.json", args.out / "records.jsonl"
+    if not rec_path.exists() and any(args.out.glob("*/summary.json")):
+        try:
+            print(write_planners_report(args.out))
+        except RecordError as err:
+            return common.cli_error(str(err))
+        return 0
     try:
         if not rec_path.exists():
             raise RecordError(f"{rec_path}: no such file")
@@ -503,8 +610,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.model:
             cfg["model"] = args.model
         records = read_jsonl(rec_path)
-        summary = build_summary(records, cfg, list(cfg.get("scenarios") or []), list(cfg.get("held_out") or []),
-                                str(rec_path))
+        unfit = dict(cfg.get("unfit") or {})
+        summary = build_summary(records, cfg, [s for s in cfg.get("scenarios") or [] if s not in unfit],
+                                [s for s in cfg.get("held_out") or [] if s not in unfit], str(rec_path))
+        summary["unfit"] = unfit
     except RecordError as err:
         return common.cli_error(str(err))
     print(write_report(records, summary, args.out))

@@ -120,7 +120,10 @@ def build_parser() -> common.Parser:
                    "default: the model's training env.oracle, else default)")
     p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl', or 'default': the "
                    "adversary shipped in the package (deft_gym/models/adversary; default: none)")
-    common.add_ads_config(p, "the config's ads, else the model's training env.ads, else configs/ads/default.yaml")
+    p.add_argument("--ads-config", type=Path, nargs="+", default=None, metavar="YAML",
+                   help="ADS config, the planner under test included, e.g. configs/ads/commonroad.yaml; several: "
+                   "one evaluation per planner in OUT/<file stem>, then OUT/planners.md compares them (default: the "
+                   "config's ads, else the model's training env.ads, else configs/ads/default.yaml)")
     p.add_argument("--deterministic", action="store_true", default=None, help="greedy RL actions (default: off)")
     p.add_argument("--workers", type=common.positive_int, default=None, metavar="N",
                    help=f"parallel worker processes (default: the config's, else the CPUs, {common.cpus()} here)")
@@ -262,6 +265,19 @@ def _copy_placement_free(records: list[dict[str, Any]], copies: list[tuple[str, 
 
 # -- one job --------------------------------------------------------------------------------------
 _POLICIES: dict[str, Any] = {}
+
+
+def seed_problem(item: dict[str, Any]) -> str | None:
+    """Why ``item["scenario"]`` is no seed for the planner under test (its reference run - the
+    medoid of five jitter seeds - does not complete its task, e.g. a timeout), else None; builds
+    and caches the reference the jobs use (in a worker process)."""
+    from deft_gym.envs.adversary import load_env_config
+
+    try:
+        load_env_config(item["env"]).context(item["scenario"])
+    except ValueError as err:
+        return str(err)
+    return None
 
 
 def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
@@ -430,7 +446,32 @@ def worker_preload(methods: list[str]) -> tuple[str, ...]:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     with common.watchdog_env(args):
-        return _main(args)
+        planners = args.ads_config or [None]
+        if len(planners) == 1:
+            args.ads_config = planners[0]
+            return _main(args)
+        return _planners(args, planners)
+
+
+def _planners(args: argparse.Namespace, planners: list[Path]) -> int:
+    """One evaluation per ADS config (planner) in ``OUT/<file stem>``, then ``OUT/planners.md``."""
+    labels = [p.stem for p in planners]
+    if len(set(labels)) < len(labels):
+        return common.cli_error(f"--ads-config: two configs share a file name ({labels}); each planner's "
+                                "evaluation goes to OUT/<file stem>")
+    out: Path = args.out
+    for path, label in zip(planners, labels, strict=True):
+        sub = argparse.Namespace(**{**vars(args), "ads_config": path, "out": out / label})
+        code = _main(sub)
+        if code:
+            return code
+    from agents.eval_report import write_planners_report
+
+    text = write_planners_report(out)
+    common.print_markdown(common.console(args), text)
+    if args.quiet:
+        print(f"planners: {out / 'planners.md'}")
+    return 0
 
 
 def _main(args: argparse.Namespace) -> int:
@@ -499,6 +540,27 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
                       "scenario: simulating them again")
         for r in records:
             done[(r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"])] += 1
+    # a scenario is a seed only where the planner under test completes it unmutated: check each
+    # (building the references the jobs use, in parallel) and leave out the others, named
+    todo = seeds + held_out
+    unfit: dict[str, str] = {}
+    if todo:
+        con.print(f"checking {len(todo)} scenario(s): does the planner under test complete each unmutated ...")
+        bar = common.Bar(len(todo), "scenarios checked", common.show_progress(args))
+        with Executor(backend, initializer=init_pool_worker, initargs=(cfg.workers,),
+                      preload=("deft_gym.envs.adversary",), run_dir=out) as ex:
+            for name, problem in zip(todo, ex.map(seed_problem, [{"scenario": s, "env": env} for s in todo],
+                                                  progress=bar.update), strict=True):
+                if problem:
+                    unfit[name] = problem
+        bar.close()
+        for name, problem in unfit.items():
+            con.print(f"left out {name}: {problem}", highlight=False)
+        seeds = [s for s in seeds if s not in unfit]
+        held_out = [s for s in held_out if s not in unfit]
+        if not seeds + held_out:
+            print("error: no scenario is a seed for the planner under test (see above)", file=sys.stderr)
+            return 2
     jobs = []
     copies: list[tuple[str, str, str, int]] = []
     from agents.stats import kind_of_name
@@ -520,7 +582,8 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
                                  "repeat": rep, "budget": cfg.budget, "seed": cfg.seed * 1000 + rep, "env": env,
                                  "model": cfg.model, "deterministic": cfg.deterministic, "out": str(out),
                                  "log_failures": cfg.log_failures, "max_added": cfg.max_added})
-    write_json_atomic(out / "eval_config.json", {**cfg.model_dump(), "ads": env.get("ads"), "held_out": held_out})
+    write_json_atomic(out / "eval_config.json", {**cfg.model_dump(), "ads": env.get("ads"), "held_out": held_out,
+                                                 "unfit": unfit})
     # rewrite the journal without partial jobs and stale records (set aside, never deleted), then
     # append as jobs finish
     kept, aside = {id(r) for r in records}, out / "records.set_aside.jsonl"
@@ -553,6 +616,7 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
         print(f"error: {err}", file=sys.stderr)
         return 2
     summary["wall_seconds"] = round(time.time() - t0, 1)
+    summary["unfit"] = unfit
     write_report(records, summary, out)
     if args.render != "none":  # pictures of the failing scenarios whose logs were kept
         from deft_gym.viz.episode import render_failures

@@ -35,6 +35,10 @@ def build_parser() -> common.Parser:
                    help="failures re-simulated and drawn per root cause (default: 2)")
     p.add_argument("--methods", nargs="+", action=common.ListAction, default=None, metavar="METHOD",
                    help="only these methods' failures (default: all)")
+    p.add_argument("--tests", type=common.int_range(0, 100), default=0, metavar="N",
+                   help="also record each drawn failure's re-simulation, extract its planning-module tests, run "
+                   "them once with pytest and each failure test (a collision's P_faulty, a non-optimal decision's "
+                   "P_departure) N times: how often it fails (default: 0, off)")
     common.add_ads_config(p, "the evaluation's (eval_config.json), else configs/ads/default.yaml")
     common.add_out(p, None, "output folder (default: FOLDER/findings)")
     common.add_output_flags(p)
@@ -53,16 +57,62 @@ def split_equivalent(rec: dict[str, Any]) -> tuple[dict[str, Any], dict[str, flo
     return eq["scenario"], eq["added_at"] or None, eq["jitter_seed"]
 
 
-def resimulate(rec: dict[str, Any], ads: str | None = None) -> tuple[Any, Any]:
+def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None) -> tuple[Any, Any]:
     """``(context, run)``: the record's failure simulated again with its jitter seed (on the ADS
-    config ``ads``, default: the default one)."""
+    config ``ads``, default: the default one; its MCAP log in ``out_dir`` when given)."""
     from deft_gym.search.context import ads_config, seed_context
     from deft_gym.search.episode import run_scenario
 
     ctx = seed_context(rec["scenario"], ads=ads_config(ads))
     data, added_at, jitter = split_equivalent(rec)
     specs = data["participants"][len(ctx.scenario.participants):]
-    return ctx, run_scenario(ctx, specs, jitter, added_at=added_at)
+    return ctx, run_scenario(ctx, specs, jitter, out_dir, added_at=added_at)
+
+
+#: the failure tests an extraction emits: a collision's (P_faulty) and a non-optimal decision's
+#: (P_departure, when the log carries the optimal path)
+FAILURE_TESTS = {"does_not_plan_into_collision": "collision (P_faulty)",
+                 "keeps_to_the_optimal_path": "non-optimal decision (P_departure)"}
+
+
+def run_tests(folder: Path, times: int) -> dict[str, Any]:
+    """Run the pytest modules in ``folder`` once (every reproduction test must pass), then each
+    failure test they hold (:data:`FAILURE_TESTS`) ``times`` times, each in a fresh process: how
+    often it failed."""
+    text = "".join(f.read_text() for f in folder.glob("test_*.py"))
+    failed = _pytest(folder)
+    reproduced = failed is not None and not any("_reproduces" in n for n in failed)
+    counts = {}
+    for name in (n for n in FAILURE_TESTS if n in text):
+        counts[name] = sum(bool((f := _pytest(folder, name)) and any(name in n for n in f)) for _ in range(times))
+    return {"runs": times, "failure_tests": counts, "reproduced": reproduced}
+
+
+def _pytest(folder: Path, select: str | None = None) -> list[str] | None:
+    """Names of the failed test cases of one pytest run of ``folder`` (``-k select``); None when
+    pytest did not run them (a usage or collection error)."""
+    import subprocess
+    import sys
+
+    report = folder / "junit.xml"
+    report.unlink(missing_ok=True)
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=", "--junitxml",
+           str(report), str(folder)] + (["-k", select] if select else [])
+    res = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    if res.returncode not in (0, 1) or not report.exists():
+        return None
+    return _failed_cases(report.read_text())
+
+
+def _failed_cases(junit_xml: str) -> list[str]:
+    """Names of the failed or erroring test cases in a JUnit XML report."""
+    import xml.etree.ElementTree as ET
+
+    if not junit_xml:
+        return []
+    root = ET.fromstring(junit_xml)
+    return [case.get("name", "") for case in root.iter("testcase")
+            if case.find("failure") is not None or case.find("error") is not None]
 
 
 def leaving_decision(trace: Any, dist: np.ndarray, half_lane: float) -> str:
@@ -202,10 +252,17 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             if cause != current:
                 lines += ["", f"## `{cause}`", ""]
                 current = cause
-            ctx, run = resimulate(rec, ads)
+            stem = f"{n:03d}_{rec['method']}_{rec['scenario'].replace(':', '_').replace('/', '_')}_r{rec['repeat']}_{rec['index']}"
+            log_dir = out / f"{stem}_log" if args.tests else None
+            ctx, run = resimulate(rec, ads, log_dir)
             v = run.verdict
             same = v.signature == rec.get("signature") and v.failure == rec.get("failure")
-            name = f"{n:03d}_{rec['method']}_{rec['scenario'].replace(':', '_')}_r{rec['repeat']}_{rec['index']}.png"
+            name = f"{stem}.png"
+            from deft_gym.search.episode import read_replay, write_replay
+
+            replay = write_replay(out / f"{stem}.replay.yaml", read_replay(rec.get("scenario_equivalent"),
+                                                                           rec.get("jitter_seed")))
+            replay_cmd = f"deft-gym run {replay} --reruns 1" + (f" --ads-config {ads}" if ads else "")
             title = (f"{METHOD_LABELS.get(rec['method'], rec['method'])} {rec['placement']} on {rec['scenario']} "
                      f"(repeat {rec['repeat']}, #{rec['index']}): {v.signature or v.outcome}")
             draw(ctx, run, out / name, title)
@@ -217,11 +274,32 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
                       f"- IoU {v.iou:.2f}, off the optimal path for {v.off_length:.0f} m, outcome {v.outcome}"
                       + (f", clearance of the trigger {clear:.2f} m" if clear is not None and math.isfinite(clear) else ""),
                       f"- the planner when it left the path: {leaving_decision(run.trace, dist, ctx.roadmap.spec.lane_width / 2)}",
-                      ""]
+                      f"- replay: `{replay_cmd}`"]
+            if args.tests:
+                lines.append(_test_line(run, out / f"{stem}_tests", args.tests))
+            lines.append("")
             b.update(1)
     write_atomic(out / "findings.md", "\n".join(lines) + "\n")
     con.print(f"{len(causes)} root causes, {len(sample)} failures drawn -> {out / 'findings.md'}")
     return 0
+
+
+def _test_line(run: Any, tests_dir: Path, times: int) -> str:
+    """Extract the re-simulation's log into ``tests_dir``, run the tests ``times`` times: one line."""
+    from extract import extract_episode
+
+    log = run.result.log_path
+    if log is None:
+        return "- tests: no log was written"
+    ext = extract_episode(log, tests_dir)
+    if not ext.ok or ext.test_path is None:
+        return f"- tests: extraction failed ({ext.summary.get('error', 'no test module')})"
+    r = run_tests(tests_dir, times)
+    failure = "; ".join(f"its {FAILURE_TESTS[name]} test fails **{n} of {r['runs']}** runs"
+                        for name, n in r["failure_tests"].items()) or "no failure test"
+    return (f"- extracted tests `pytest {ext.test_path}`: {failure}; the reproduction tests "
+            f"{'pass' if r['reproduced'] else 'FAIL'} ({ext.summary['reproduced_at_theta']} of "
+            f"{ext.summary['frames']} outputs reproduced at extraction)")
 
 
 if __name__ == "__main__":

@@ -70,6 +70,10 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
         f"frames   : {summary['frames']} in {frames_name} (mode {summary['mode']}, measure "
         f"{summary['measure']}, theta {summary['theta']:g} m; {repro} reproduced at extraction)",
     ]
+    dep = (header.get("oracle") or {}).get("departure")
+    if dep:
+        lines.append(f"P_departure: frame {dep['index']} (t={dep['time']:.3f} s) plans the ego {dep['distance']:.2f} m "
+                     f"off the optimal path (limit {dep['limit']:.2f} m); the ego left it at t={dep['left_at']:.2f} s")
     if faulty:
         lines.append(f"P_faulty : frame {faulty['index']} (t={faulty['time']:.3f} s) plans the ego into "
                      f"{faulty['participant']} at t={faulty['point_time']:.2f} s")
@@ -115,6 +119,18 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
             """Oracle transformation: fails while the planner still plans the ego into the
             participant it hit in the system-level run (P_faulty); passes once it stops."""
             problem = EPISODE.faulty_hit(index)
+            assert problem is None, problem
+        '''
+    departure = (header.get("oracle") or {}).get("departure")
+    if departure:
+        src += f'''
+
+        @pytest.mark.parametrize("index", EPISODE.departure_cases())
+        def test_{name}_keeps_to_the_optimal_path(index: int) -> None:
+            """Non-optimal decision: fails while the planner still plans the ego off the optimal
+            path the run was judged against (P_departure, the plan that took it off); passes
+            once it keeps within half a lane of it."""
+            problem = EPISODE.departure_problem(index)
             assert problem is None, problem
         '''
     return textwrap.dedent(src)

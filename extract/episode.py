@@ -21,12 +21,13 @@ import numpy as np
 from deft_gym.execution.watchdog import ModuleHang
 from deft_gym.files import write_atomic
 from deft_gym.planner.base import load_planner, planner_provenance, validate_output
+from deft_gym.record.recorder import OPTIMAL_PATH_METADATA
 from extract.emit import slug, test_module, write_frames
 from extract.io_filter import PlanningIOFilter
 from extract.logs import EpisodeLog, LogError, log_id, read_log
 from extract.mapping import MappingError, TopicMapping, get_field, load_mapping
 from extract.minimize import Minimised, Seed, frame_getter, seeded_start, shortest_replay
-from extract.oracle import Faulty, ego_size, find_faulty, participant_track
+from extract.oracle import Faulty, ego_size, find_departure, find_faulty, participant_track
 from extract.runtime import FORMAT, finite_or_none
 from extract.search import FrameChoice, InputSearch, SearchConfig
 from extract.truth import truth_agreement
@@ -171,6 +172,9 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     findings["after_lost_outputs"] = len(after_lost)
     faulty, oracle, oracle_note = _oracle(elog, mp, outcome, choices, distances, reproduced, ego, theta,
                                           minimize if minimize_failure and engine.hang is None else None)
+    departure = _departure(elog, choices)
+    if departure is not None:
+        oracle = {**oracle, **departure}
 
     header = {
         "format": FORMAT, "planner": planner_spec, "roles": list(pif.roles), "scenario": scenario,
@@ -400,6 +404,22 @@ def _oracle(elog: EpisodeLog, mp: TopicMapping, outcome: dict[str, Any], choices
         oracle["seed"] = seed
     note = None if reproduced[faulty.index] else "P_faulty itself was not reproduced (whole output within tolerances)"
     return faulty, oracle, note
+
+
+def _departure(elog: EpisodeLog, choices: list[FrameChoice]) -> dict[str, Any] | None:
+    """The oracle of a non-optimal decision (``optimal_path`` and ``departure``, P_departure) when
+    the log carries the optimal path it was judged against (a search run's log) and a plan took
+    the ego off it; else None."""
+    meta = elog.metadata.get(OPTIMAL_PATH_METADATA)
+    if not isinstance(meta, dict) or not isinstance(meta.get("x"), list) or len(meta["x"]) < 2:
+        return None
+    path = np.column_stack([np.asarray(meta["x"], float), np.asarray(meta["y"], float)])
+    limit = float(meta.get("limit", 1.75))
+    outputs = [(c.output.index, c.time, c.output.payload) for c in choices]
+    dep = find_departure(outputs, path, limit)
+    if dep is None:
+        return None
+    return {"optimal_path": {"x": meta["x"], "y": meta["y"], "limit": limit}, "departure": dep}
 
 
 def _summary(elog: EpisodeLog, log_path: Path, scenario: str, meta: dict[str, Any], outcome: dict[str, Any],

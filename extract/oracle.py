@@ -198,3 +198,49 @@ def ego_size(override: tuple[float | None, float | None], logged: Mapping[str, A
 
 def _positive(v: Any) -> float | None:
     return float(v) if isinstance(v, int | float) and not isinstance(v, bool) and v > 0 else None
+
+
+# -- non-optimal decisions: leaving the optimal path ---------------------------------------------
+# (a search run writes the optimal path it is judged against into its log: the metadata record
+# deft_gym.record.recorder.OPTIMAL_PATH_METADATA with ``x``, ``y`` [m] and ``limit`` [m], half a lane)
+
+
+def path_distances(x: Sequence[float], y: Sequence[float], path: np.ndarray) -> np.ndarray:
+    """Distance [m] of each point ``(x[i], y[i])`` to the polyline ``path`` (n x 2)."""
+    p = np.column_stack([np.asarray(x, float), np.asarray(y, float)])[:, None, :]
+    a, b = path[:-1][None], path[1:][None]
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
+    gap = p - (a + t[..., None] * ab)
+    return np.min(np.hypot(gap[..., 0], gap[..., 1]), axis=1)
+
+
+def off_path(trajectory: Mapping[str, Any], path: np.ndarray, limit: float) -> tuple[int, float] | None:
+    """``(point index, distance [m])`` of the first planned point farther than ``limit`` from the
+    optimal path, else None."""
+    d = path_distances(trajectory.get("x") or [], trajectory.get("y") or [], path) if trajectory.get("x") else None
+    if d is None or not len(d):
+        return None
+    far = np.flatnonzero(d > limit)
+    return (int(far[0]), float(d[far[0]])) if len(far) else None
+
+
+def find_departure(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], path: np.ndarray,
+                   limit: float) -> dict[str, Any] | None:
+    """P_departure, the plan that took the ego off the optimal path: among the planning outputs
+    ``(index, time, payload)`` in order, the first plan of the unbroken run of plans that leave
+    the path (a planned point farther than ``limit``) which ends with the first plan that starts
+    off it (the ego left). None when no plan starts off the path (the ego kept to it)."""
+    left = next((k for k, (_, _, out) in enumerate(outputs)
+                 if (tr := out.get("trajectory") or {}).get("x")
+                 and path_distances(tr["x"][:1], tr["y"][:1], path)[0] > limit), None)
+    if left is None:
+        return None
+    k = left
+    while k > 0 and off_path(outputs[k - 1][2].get("trajectory") or {}, path, limit) is not None:
+        k -= 1
+    index, t, out = outputs[k]
+    hit = off_path(out.get("trajectory") or {}, path, limit)
+    point, dist = hit if hit is not None else (0, 0.0)
+    return {"index": int(index), "time": float(t), "point": point, "distance": dist, "limit": float(limit),
+            "left_at": float(outputs[left][1])}

@@ -351,6 +351,36 @@ class EpisodeReplay:
         return None
 
 
+    # -- the non-optimal-decision test ---------------------------------------------------------
+    def departure_cases(self) -> list[Any]:
+        """The P_departure frame as one ``pytest.param`` named by frame and time."""
+        import pytest
+
+        d = self.header.get("oracle", {}).get("departure")
+        return [pytest.param(d["index"], id=f"{frame_id(d['index'], d['time'])}-off-path")] if d else []
+
+    def departure_problem(self, index: int) -> str | None:
+        """Why the replayed output of frame ``index`` still leaves the optimal path, or None."""
+        import numpy as np
+
+        from extract.oracle import off_path
+
+        o = self.header["oracle"]
+        path = np.column_stack([np.asarray(o["optimal_path"]["x"], float), np.asarray(o["optimal_path"]["y"], float)])
+        limit = float(o["optimal_path"]["limit"])
+        out = self.output(index)
+        if out is None:
+            return None
+        hit = off_path(out.get("trajectory") or {}, path, limit)
+        if hit is None:
+            return None
+        k, dist = hit
+        tr = out["trajectory"]
+        return (self._notes() + f"the planner still leaves the optimal path: frame {index} "
+                f"(t={self.frame(index)['time']:.3f} s) plans the ego at ({tr['x'][k]!r}, {tr['y'][k]!r}) at "
+                f"t={tr['t'][k]!r} s, {dist:.2f} m from the optimal path (limit {limit:.2f} m)")
+
+
 def import_planner(header: dict[str, Any]) -> type:
     """The planner class of a frames header (``DEFT_PLANNER`` overrides it). When it cannot be
     imported from here, the folder it was imported from at extraction (``provenance.root``) is

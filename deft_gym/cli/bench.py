@@ -2,6 +2,7 @@
 
     deft-gym bench [--scenario bench_highway] [--repeats 3]      # -> runs/bench.json
     deft-gym bench --metrics left_turn right_turn --repeats 2 --out runs/bench_metrics.json
+    deft-gym bench --commonroad handwritten/stopped_bus left_turn --out runs/bench_commonroad.json
 
 Measures simulated seconds per wall second (one simulation process) of
 
@@ -21,7 +22,10 @@ stretches wall time but hardly CPU time), wall time beside it. The recorder proc
 time and printed apart.
 Each figure is the median over ``--repeats`` runs; the runs of the three kinds are interleaved.
 ``--metrics SCENARIO...`` measures instead what the driving-quality metrics (docs/metrics.md) cost
-against the episodes' CPU.
+against the episodes' CPU. ``--commonroad SCENARIO...`` runs each scenario with CommonRoad's
+reactive planner (configs/ads/commonroad.yaml) twice, with the adapter's vectorised kinematic check
+and with the library's own loop (``vectorised_kinematics: false``), and prints both CPU times and
+whether the two runs' planning outputs are identical.
 """
 
 from __future__ import annotations
@@ -132,6 +136,34 @@ def metrics_cost(scenarios: list[str], seeds: int) -> dict[str, Any]:
             "max_episode_share": max(r["metrics_cpu"] / r["episode_cpu"] for r in rows)}
 
 
+def commonroad_cost(scenarios: list[str], seeds: int) -> dict[str, Any]:
+    """CPU seconds of episodes with CommonRoad's planner, its kinematic check vectorised and the
+    library's, on the same jitter seeds, and whether their planning outputs are identical."""
+    from deft_gym.bus.ads import load_ads_config
+    from deft_gym.config import CONFIG_DIR
+    from deft_gym.sim.simulation import Simulation
+
+    fast = load_ads_config(CONFIG_DIR / "ads" / "commonroad.yaml")
+    planner = fast.planning.planner
+    slow_planner = planner.model_copy(update={"params": {**planner.params, "vectorised_kinematics": False}})
+    library = fast.model_copy(update={"planning": fast.planning.model_copy(update={"planner": slow_planner})})
+    rows = []
+    for name in scenarios:
+        for seed in range(seeds):
+            cpu, outputs = {}, {}
+            for label, ads in (("vectorised", fast), ("library", library)):
+                c0 = time.process_time()
+                res = Simulation(name, ads, jitter_seed=seed).run()
+                cpu[label] = time.process_time() - c0
+                outputs[label] = [{k: p[k] for k in ("trajectory", "decision")} for p in res.planning]
+            rows.append({"scenario": name, "jitter_seed": seed, "plans": len(outputs["library"]),
+                         "cpu_vectorised": round(cpu["vectorised"], 3), "cpu_library": round(cpu["library"], 3),
+                         "identical": outputs["vectorised"] == outputs["library"]})
+    tot = {k: sum(r[k] for r in rows) for k in ("cpu_vectorised", "cpu_library", "plans")}
+    return {"episodes": rows, **tot, "speedup": tot["cpu_library"] / tot["cpu_vectorised"],
+            "all_identical": all(r["identical"] for r in rows)}
+
+
 def build_parser() -> common.Parser:
     ap = common.parser("bench", "deft_gym.cli.bench", __doc__)
     ap.add_argument("--scenario", default="bench_highway",
@@ -140,6 +172,9 @@ def build_parser() -> common.Parser:
     ap.add_argument("--metrics", nargs="+", default=None, metavar="SCENARIO",
                     help="instead: what the driving-quality metrics cost on these scenarios (e.g. the seven seeds), "
                     "--repeats jitter seeds each, against the episodes' CPU (target <= 5 %%)")
+    ap.add_argument("--commonroad", nargs="+", default=None, metavar="SCENARIO",
+                    help="instead: CPU of CommonRoad's planner on these scenarios, its kinematic check vectorised "
+                    "and the library's loop, --repeats jitter seeds each, and whether the outputs are identical")
     common.add_out(ap, common.RUNS / "bench.json", help="JSON file for the figures", folder=False)
     common.add_output_flags(ap)
     return ap
@@ -165,6 +200,21 @@ def main(argv: list[str] | None = None) -> int:
             write_atomic(Path(args.out), json.dumps(cost, indent=2))
             console.print(f"wrote {args.out}")
         return 0
+    if args.commonroad:
+        cost = commonroad_cost(common.split_list(args.commonroad), args.repeats)
+        for r in cost["episodes"]:
+            console.print(f"{r['scenario']} (jitter seed {r['jitter_seed']}, {r['plans']} plans): vectorised "
+                          f"{r['cpu_vectorised']:.1f} CPU-s, library {r['cpu_library']:.1f} CPU-s, outputs "
+                          f"{'identical' if r['identical'] else 'DIFFERENT'}", highlight=False)
+        console.print(f"CommonRoad planner: {cost['speedup']:.2f}x less CPU vectorised ("
+                      f"{1e3 * cost['cpu_vectorised'] / cost['plans']:.0f} vs {1e3 * cost['cpu_library'] / cost['plans']:.0f}"
+                      f" ms per plan, simulation included); outputs identical in "
+                      f"{sum(r['identical'] for r in cost['episodes'])} of {len(cost['episodes'])} episodes",
+                      highlight=False)
+        if args.out:
+            write_atomic(Path(args.out), json.dumps(cost, indent=2))
+            console.print(f"wrote {args.out}")
+        return 0 if cost["all_identical"] else 1
     sc = load_scenario(args.scenario)
     ads = load_ads_config()
     n_part = len(sc.participants)

@@ -54,6 +54,9 @@ _tap_c = checked_kernel(_tap_c, Path(__file__).with_name("_tap_c.c"), Path(__fil
 
 EPISODE_METADATA = "deft_gym.episode"
 OUTCOME_METADATA = "deft_gym.outcome"
+#: a search run's optimal (reference) path and the half lane a plan may stray from it (the
+#: extractor's non-optimal-decision test reads it)
+OPTIMAL_PATH_METADATA = "deft_gym.optimal_path"
 RECORDER_ENV = "DEFT_GYM_RECORDER"
 
 

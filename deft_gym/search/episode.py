@@ -39,13 +39,29 @@ def run_scenario(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int
     added_at = added_at or {}
     data = with_participants(ctx.scenario, f"{ctx.name}+mut", [s for s in specs if s["id"] not in added_at])
     recorder: list[TraceRecorder] = []
+
+    def attach(sim: Simulation) -> None:
+        recorder.append(TraceRecorder(sim, {s["id"] for s in specs}))
+        if sim.recorder is not None:  # the log says what the run is judged against (extraction's NoDS test)
+            write_optimal_path(sim.recorder, ctx)
+
     res = simulate(data, ctx.ads, jitter_seed, out_dir, [s for s in specs if s["id"] in added_at], added_at,
-                   source=f"{ctx.name} (mutated)",
-                   attach=lambda sim: recorder.append(TraceRecorder(sim, {s["id"] for s in specs})))
+                   source=f"{ctx.name} (mutated)", attach=attach)
     o = res.outcome
     trace = recorder[0].trace(o.outcome, o.sim_time)
     verdict = ctx.oracle.judge(trace, o.collision.as_dict() if o.collision else None)
     return EpisodeRun(verdict, trace, res, data, time.perf_counter() - t0, time.process_time() - c0)
+
+
+def write_optimal_path(recorder: Any, ctx: SeedContext) -> None:
+    """Add the optimal (reference) path of ``ctx`` and the half lane a plan may stray from it to a
+    log being recorded (metadata ``deft_gym.optimal_path``, read by the extractor's NoDS test)."""
+    from deft_gym.record.recorder import OPTIMAL_PATH_METADATA
+
+    xy = ctx.ref.xy
+    recorder.add_metadata(OPTIMAL_PATH_METADATA, {"x": [round(float(v), 3) for v in xy[:, 0]],
+                                                  "y": [round(float(v), 3) for v in xy[:, 1]],
+                                                  "limit": ctx.roadmap.spec.lane_width / 2})
 
 
 def simulate(data: dict[str, Any], ads: Any, jitter_seed: int, out_dir: Path | str | None = None,

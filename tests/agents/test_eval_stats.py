@@ -394,3 +394,68 @@ def test_handwritten_scenarios_form_a_third_group(tmp_path):
     plain = eval_report.build_summary(recs[:4], {"methods": ["rl"], "placements": ["closest"]}, ["s1"], [])
     assert plain["handwritten"] == [] and set(plain["groups"]["rl"]["closest"]) == {"seeds", "all"}
     assert "hand-written" not in eval_report.table_markdown(plain)
+
+
+def test_one_evaluation_per_planner_gives_a_table_per_planner_and_group(tmp_path):
+    """``deft-gym evaluate --ads-config A.yaml B.yaml`` writes OUT/A and OUT/B; planners.md shows
+    each planner's groups and the hand-written targets: RL's coverage of the group and RL vs
+    Decictor-GA in distinct failures (Mann-Whitney over repeats)."""
+    hand = [f"handwritten/h{i}" for i in range(4)]
+    for label, rl_hits in (("lane_keeper", 4), ("other", 2)):
+        recs = []
+        for rep in range(5):
+            for k, s in enumerate(["s1", *hand]):
+                rl = [("nods", f"r{s}{j}") for j in range(2)] if k < rl_hits + 1 else []
+                recs += cell("rl", s, rep, 4, rl) + cell("decictor", s, rep, 4, [("nods", "g")] if k == 1 else [])
+        for r in recs:
+            if r["scenario"].startswith("handwritten/"):
+                r["scenario_kind"] = "handwritten"
+        cfg = {"methods": ["rl", "decictor"], "placements": ["closest"], "budget": 4, "repeats": 5,
+               "ads": f"configs/ads/{label}.yaml"}
+        summary = eval_report.build_summary(recs, cfg, ["s1", *hand], [])
+        (tmp_path / label).mkdir()
+        eval_report.write_report(recs, summary, tmp_path / label)
+    assert eval_report.main([str(tmp_path)]) == 0
+    text = (tmp_path / "planners.md").read_text()
+    assert "## lane_keeper" in text and "## other" in text and "configs/ads/other.yaml" in text
+    assert "| hand-written | 4 | RL | closest | 8.0 ± 0.0 | 8.0 ± 0.0 |" in text
+    assert "RL found a confirmed failure on 4 of 4 hand-written scenarios (target >= 75%): **met**" in text
+    assert "RL found a confirmed failure on 2 of 4 hand-written scenarios (target >= 75%): **not met**" in text
+    targets = json.loads((tmp_path / "planners.json").read_text())
+    assert targets["lane_keeper"]["targets"]["closest"]["ratio"] == 8.0
+    assert targets["lane_keeper"]["targets"]["closest"]["met"] is True
+
+
+def test_several_ads_configs_must_have_distinct_names(tmp_path):
+    from agents.evaluate import main
+
+    a = tmp_path / "x" / "same.yaml"
+    b = tmp_path / "y" / "same.yaml"
+    code = main(["--methods", "random", "--ads-config", str(a), str(b), "--out", str(tmp_path / "o"), "--quiet"])
+    assert code == 2
+
+
+def test_a_scenario_the_planner_does_not_complete_is_left_out_by_name(tmp_path, monkeypatch):
+    """A scenario whose reference run does not complete on the planner under test is no seed for
+    it: the evaluation leaves it out, says why, and evaluates the others (it used to stop)."""
+    from agents import evaluate
+
+    def problem(item):
+        if item["scenario"] == "left_turn":
+            return "scenario 'left_turn': the reference run ended 'timeout' at 45.0 s"
+        return None
+
+    monkeypatch.setattr(evaluate, "seed_problem", problem)
+    out = tmp_path / "ev"
+    code = evaluate.main(["--methods", "random", "--budget", "1", "--scenarios", "lane_follow_static", "left_turn",
+                          "--held-out", "0", "--placements", "closest", "--workers", "1", "--render", "none",
+                          "--out", str(out), "--quiet"])
+    assert code == 0
+    cfg = json.loads((out / "eval_config.json").read_text())
+    assert list(cfg["unfit"]) == ["left_turn"]
+    from deft_gym.files import read_jsonl
+
+    assert {r["scenario"] for r in read_jsonl(out / "records.jsonl")} == {"lane_follow_static"}
+    assert "Left out, not seeds for the planner under test" in (out / "table.md").read_text()
+    assert eval_report.main([str(out)]) == 0  # re-rendered the same way
+    assert "`left_turn`" in (out / "table.md").read_text()

@@ -20,7 +20,14 @@ pytest.importorskip("commonroad_rp.reactive_planner", reason="CommonRoad's react
 
 from deft_gym.bus.ads import load_ads_config
 from deft_gym.config import CONFIG_DIR
-from deft_gym.planner.base import Frame, load_planner, planner_class, source_digest, validate_output
+from deft_gym.planner.base import (
+    Frame,
+    load_planner,
+    planner_class,
+    planner_sources,
+    source_digest,
+    validate_output,
+)
 from deft_gym.planner.commonroad import CommonRoadParams, CommonRoadPlanner
 from extract.contract import assert_contract, check_contract
 
@@ -180,9 +187,11 @@ def test_the_code_fingerprint_leaves_it_out_and_the_cache_key_takes_its_source()
     from deft_gym.search import trace
 
     pkg = Path(trace.__file__).resolve().parent.parent
-    edited = trace.code_fingerprint(pkg, read=lambda f: f.read_bytes() + (b"# edited\n" if f.name == "commonroad.py"
+    adapter = ("commonroad.py", "commonroad_kinematics.py")
+    edited = trace.code_fingerprint(pkg, read=lambda f: f.read_bytes() + (b"# edited\n" if f.name in adapter
                                                                           else b""))
     assert edited == trace.code_fingerprint(pkg)
+    assert {f.name for f in planner_sources(CommonRoadPlanner)} >= set(adapter)  # ... and its key hashes both
     sc = load_scenario("lane_follow_static")
     default, ours = load_ads_config(), load_ads_config(ADS)
     assert trace.planner_source(default) is None
@@ -210,7 +219,8 @@ def test_campaigns_take_the_ads_config() -> None:
     for parser, argv in ((run_parser, ["x"]), (train_parser, []), (evaluate_parser, []), (findings_parser, ["x"]),
                          (stress_parser, [])):
         args = parser().parse_args([*argv, "--ads-config", "configs/ads/commonroad.yaml"])
-        assert str(args.ads_config) == "configs/ads/commonroad.yaml"
+        named = args.ads_config if isinstance(args.ads_config, list) else [args.ads_config]  # evaluate: several
+        assert [str(p) for p in named] == ["configs/ads/commonroad.yaml"]
     env = load_env_config({"ads": "configs/ads/commonroad.yaml"})
     assert ads_config(env.ads).planning.planner.cls == CLASS
     assert ads_config(None).planning.planner.cls != CLASS

@@ -14,12 +14,12 @@ import pytest
 pytest.importorskip("commonroad_rp.reactive_planner", reason="CommonRoad's reactive planner is not installed: "
                     "pip install -e '.[commonroad]'")
 
-from commonroad_rp.reactive_planner import ReactivePlanner  # noqa: E402
+from commonroad_rp.reactive_planner import ReactivePlanner
 
-import deft_gym.planner.commonroad as adapter  # noqa: E402
-from deft_gym.planner.commonroad import CommonRoadPlanner  # noqa: E402
-from deft_gym.planner.commonroad_kinematics import check_kinematics  # noqa: E402
-from tests.planner.test_commonroad import ADS, TOGGLING, road_frames  # noqa: E402
+import deft_gym.planner.commonroad as adapter
+from deft_gym.planner.commonroad import CommonRoadPlanner
+from deft_gym.planner.commonroad_kinematics import check_kinematics
+from tests.planner.test_commonroad import ADS, TOGGLING, road_frames
 
 SAMPLE_ARRAYS = {"cartesian": ("x", "y", "theta", "v", "a", "kappa", "kappa_dot"),
                  "curvilinear": ("s", "d", "theta", "s_dot", "s_ddot", "d_dot", "d_ddot")}
@@ -69,7 +69,7 @@ def both_checks(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
 def test_the_vectorised_check_is_the_librarys_on_hand_made_frames(both_checks) -> None:
     """Both velocity modes, feasible and rejected samples (the speed crosses 4 m/s both ways)."""
     planner = CommonRoadPlanner({})
-    for fr in road_frames(TOGGLING + [6.0, 8.0, 8.0]) + road_frames([0.0, 0.0, 0.3, 1.0]):
+    for fr in road_frames([*TOGGLING, 6.0, 8.0, 8.0]) + road_frames([0.0, 0.0, 0.3, 1.0]):
         planner.plan(fr)
     assert len(both_checks) >= len(TOGGLING) + 7
     assert {b["low_vel"] for b in both_checks} == {True, False}
