@@ -36,3 +36,31 @@ def test_a_counted_failure_is_simulated_again_drawn_and_listed(tmp_path) -> None
 def test_no_records_is_a_one_line_error(tmp_path, capsys) -> None:
     assert findings.main([str(tmp_path)]) == 2
     assert "records.jsonl: no such file" in capsys.readouterr().err
+
+
+def test_a_drawn_failure_gets_a_replay_command_and_a_failing_test(tmp_path) -> None:
+    """``--tests N``: the re-simulation is recorded with the optimal path it is judged against, its
+    planning-module tests are extracted, and the non-optimal decision's test (P_departure: the plan
+    that took the ego off the optimal path) fails every run; a planner that keeps its lane passes it."""
+    import os
+    import subprocess
+    import sys
+
+    ctx = seed_context("lane_follow_static")
+    added = [place_static(ctx, Layout(ctx.areas), "STATIC_VEHICLE", 40.0, -0.5, "added_0")]
+    run = run_scenario(ctx, added, 0)
+    rec = {"method": "decictor", "placement": "closest", "scenario": "lane_follow_static", "repeat": 0,
+           **record_of(run.verdict, 3, 1.0, 1.0, 2, True, 0, 1, run.result.sim_time),
+           "scenario_equivalent": run.scenario}
+    (tmp_path / "records.jsonl").write_text(json.dumps(rec) + "\n")
+    assert findings.main([str(tmp_path), "--tests", "2", "--no-progress"]) == 0
+    out = tmp_path / "findings"
+    text = (out / "findings.md").read_text()
+    assert "replay: `deft-gym run " in text and next(out.glob("*.replay.yaml")).exists()
+    assert "its non-optimal decision (P_departure) test fails **2 of 2** runs" in text
+    assert "the reproduction tests pass" in text
+    tests = next(out.glob("*_tests"))
+    env = {**os.environ, "DEFT_PLANNER": "tests.support.lane_keeper:LaneKeeperPlanner"}
+    kept = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
+                           "-k", "keeps_to_the_optimal_path", str(tests)], env=env, capture_output=True, text=True)
+    assert kept.returncode == 0, kept.stdout[-2000:]

@@ -233,3 +233,26 @@ def test_tolerance_options() -> None:
     for bad in (["v"], ["v=-1"], ["v=abc"], ["x=0.1"]):
         with pytest.raises(ValueError, match="tolerance"):
             parse_tolerances(bad)
+
+
+def test_p_departure_is_the_first_plan_of_the_run_that_took_the_ego_off_the_path() -> None:
+    """A non-optimal decision's oracle: the unbroken run of plans leaving the optimal path (a point
+    farther than the limit) that ends where a plan starts off it; its first plan is P_departure.
+    An earlier plan that strayed and came back is not it; no plan starting off the path: none."""
+    import numpy as np
+
+    from extract.oracle import find_departure, off_path, path_distances
+
+    path = np.array([[0.0, 0.0], [50.0, 0.0], [100.0, 0.0]])
+    assert list(path_distances([10.0, 120.0], [3.0, 0.0], path)) == [3.0, 20.0]
+
+    def plan(y0: float, y1: float) -> dict:
+        x = list(np.linspace(0.0, 40.0, 11))
+        return {"trajectory": {"x": x, "y": list(np.linspace(y0, y1, 11)), "t": list(range(11))}}
+
+    outs = [(0, 0.0, plan(0.0, 0.0)), (1, 0.1, plan(0.0, 2.5)), (2, 0.2, plan(0.0, 0.0)),
+            (3, 0.3, plan(0.0, 3.0)), (4, 0.4, plan(0.5, 3.2)), (5, 0.5, plan(2.0, 3.5))]
+    dep = find_departure(outs, path, 1.75)
+    assert dep is not None and (dep["index"], dep["left_at"], dep["point"]) == (3, 0.5, 6)
+    assert dep["distance"] > 1.75 and off_path(plan(0.0, 1.0)["trajectory"], path, 1.75) is None
+    assert find_departure(outs[:5], path, 1.75) is None
