@@ -125,7 +125,10 @@ def leaving_decision(trace: Any, dist: np.ndarray, half_lane: float) -> str:
     t = float(trace.t[off[0]]) if len(off) else float(trace.t[-1])
     e = [x for x in timeline if x["t"] <= t + 1e-9][-1:] or timeline[:1]
     e = e[0]
-    parts = [f"t {e['t']:.1f} s: {e['reason']} in {'-'.join(map(str, e['lane'])) or '-'}"]
+    reason = e["reason"] or "(no reason published)"
+    parts = [f"t {e['t']:.1f} s: {reason} in {'-'.join(map(str, e['lane'])) or '-'}"]
+    if e.get("target") and e["target"] != e["lane"]:
+        parts.append("target " + "-".join(map(str, e["target"])))
     if e["blocked"]:
         parts.append("blocked " + ", ".join(e["blocked"]))
     if e["tight"]:

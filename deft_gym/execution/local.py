@@ -3,14 +3,18 @@
 Workers are forks of a forkserver that imported the item function's module (and ``preload``)
 once, so a worker starts in milliseconds instead of importing torch and highway-env again;
 items are submitted one at a time (no chunks: a slow item never holds others back) and at most
-two per worker wait in the queue.
+two per worker wait in the queue. A worker ends when the process that started it is gone (killed,
+``kill -9`` included): it does not go on simulating, or writing into the run folder, beside the
+run that resumes it.
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import queue as queue_mod
 import sys
+import threading
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -22,9 +26,24 @@ from deft_gym.execution.watchdog import apply_env, carried_env
 _QUEUE: Any = None  # this worker's progress queue (set by _init)
 
 
+def _exit_with_parent() -> None:
+    """End this worker as soon as the process that started it is gone (a daemon thread waits on
+    the parent's sentinel, which closes when it exits, however it exits)."""
+    parent = mp.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        parent.join()
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 def _init(q: Any, initializer: Callable[..., None] | None, initargs: tuple[Any, ...],
           env: dict[str, str | None] | None = None) -> None:
     global _QUEUE
+    _exit_with_parent()
     _QUEUE = q
     apply_env(env)  # the forkserver may be older than the setting (e.g. --watchdog-s)
     if initializer is not None:

@@ -181,3 +181,51 @@ def test_rl_evaluation_records_do_not_depend_on_what_the_worker_ran_before(tmp_p
     again = evaluate.run_job(job)
     assert without_timings(first) == without_timings(again)
     assert any(r["added"] for r in first)  # the policy acted
+
+
+def test_workers_end_when_the_campaign_process_is_killed(tmp_path: Path) -> None:
+    """``kill -9`` of the process that runs the pool: its workers end too (they used to go on
+    simulating, and writing into the run folder, beside the run that resumes it)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "campaign.py"
+    script.write_text(
+        "import os, sys, time\n"
+        "from deft_gym.execution import Backend, Executor\n"
+        "def work(item):\n"
+        "    print(os.getpid(), flush=True)\n"
+        "    time.sleep(60)\n"
+        "if __name__ == '__main__':\n"
+        "    sys.path.insert(0, os.path.dirname(__file__))\n"
+        "    import campaign\n"
+        "    with Executor(Backend(workers=2)) as ex:\n"
+        "        list(ex.map(campaign.work, [1, 2]))\n")
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": f"{tmp_path}:{os.environ.get('PYTHONPATH', '')}"})
+    workers = [int(proc.stdout.readline()) for _ in range(2)]
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    deadline = time.time() + 20
+    alive = workers
+    while alive and time.time() < deadline:
+        time.sleep(0.2)
+        alive = [p for p in alive if _alive(p)]
+    assert not alive, f"workers {alive} outlived the killed campaign"
+
+
+def _alive(pid: int) -> bool:
+    import os
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped by its parent) is gone too
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
