@@ -173,7 +173,12 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     faulty, oracle, oracle_note = _oracle(elog, mp, outcome, choices, distances, reproduced, ego, theta,
                                           minimize if minimize_failure and engine.hang is None else None)
     departure = _departure(elog, choices)
-    if departure is not None:
+    if departure is not None:  # its test starts where P_faulty's would: seeded, else the shortest suffix
+        dep = departure["departure"]
+        if minimize_failure and engine.hang is None and reproduced[dep["index"]] and choices[dep["index"]].exact:
+            dep["replay_from"], dep_seed = minimize(dep["index"])
+            if dep_seed is not None:
+                departure["departure_seed"] = dep_seed
         oracle = {**oracle, **departure}
 
     header = {

@@ -302,10 +302,14 @@ class EpisodeReplay:
         reproduced P_faulty (``replay_from``), else every frame. ``DEFT_FULL_PREFIX=1`` replays
         them all."""
         oracle = self.header["oracle"]
-        f = oracle["faulty"]
-        if os.environ.get("DEFT_FULL_PREFIX") or index != f["index"]:
+        return self._oracle_output(index, oracle["faulty"], oracle.get("seed"))
+
+    def _oracle_output(self, index: int, target: dict[str, Any], seed: dict[str, Any] | None) -> dict[str, Any] | None:
+        """The output at a failure test's frame ``target["index"]`` (P_faulty, P_departure): from
+        the ``seed`` state recorded there, else the shortest suffix from ``target["replay_from"]``,
+        else every frame (see :meth:`faulty_output`)."""
+        if os.environ.get("DEFT_FULL_PREFIX") or index != target["index"]:
             return self.output(index)
-        seed = oracle.get("seed")
         if seed is not None and int(seed["frame"]) == index:
             planner = make_planner(self.header)
             try:
@@ -314,10 +318,10 @@ class EpisodeReplay:
                 self.seed_note = f"seeding failed ({exc}); replayed frames instead"
             else:
                 return planner.plan(to_frame(self.frame(index)))
-        start = int(f.get("replay_from", 0))
+        start = int(target.get("replay_from", 0))
         if start == 0:
             return self.output(index)
-        planner = make_planner(self.header)  # the shortest suffix that reproduced P_faulty (extract.minimize)
+        planner = make_planner(self.header)  # the shortest suffix that reproduced the frame (extract.minimize)
         out = None
         for j in range(start, index + 1):
             out = planner.plan(to_frame(self.frame(j)))
@@ -368,7 +372,7 @@ class EpisodeReplay:
         o = self.header["oracle"]
         path = np.column_stack([np.asarray(o["optimal_path"]["x"], float), np.asarray(o["optimal_path"]["y"], float)])
         limit = float(o["optimal_path"]["limit"])
-        out = self.output(index)
+        out = self._oracle_output(index, o["departure"], o.get("departure_seed"))
         if out is None:
             return None
         hit = off_path(out.get("trajectory") or {}, path, limit)
