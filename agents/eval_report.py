@@ -42,7 +42,8 @@ def rl_training(model: str | None) -> dict[str, Any] | None:
                 raise RecordError(f"{f}: not JSON ({err})") from None
             if not isinstance(data, dict) or not isinstance(data.get("episodes"), int):
                 raise RecordError(f"{f}: field 'episodes': expected an integer")
-            return {"episodes": data["episodes"], "train_seconds": data.get("train_seconds"), "summary": str(f)}
+            return {"episodes": data["episodes"], "train_seconds": data.get("train_seconds"),
+                    "cpu_seconds": data.get("cpu_seconds"), "summary": str(f)}
     return None
 
 
@@ -493,7 +494,8 @@ def write_report(records: list[dict[str, Any]], summary: dict[str, Any], out: Pa
 #: scenarios, and this many times Decictor-GA's distinct failures, p below TARGET_P
 TARGET_COVERAGE, TARGET_RATIO, TARGET_P = 0.75, 1.5, 0.05
 PLANNER_MEASURES = (("failures", "failures", 1), ("distinct", "distinct", 1), ("root_causes", "root causes", 1),
-                    ("collisions", "collisions", 1), ("validity", "valid %", 1))
+                    ("collisions", "collisions", 1), ("validity", "valid %", 1),
+                    ("distinct_per_cpu_hour", "distinct/CPU-h", 1))
 
 
 def coverage(summary: dict[str, Any], method: str, group: str = "handwritten") -> tuple[int, int]:
@@ -521,6 +523,22 @@ def planner_targets(summary: dict[str, Any]) -> dict[str, Any]:
                                                     and row["p"] is not None and row["p"] < TARGET_P)
         out[pl] = row
     return out
+
+
+def rl_rate_with_training(summary: dict[str, Any], placement: str | None = None) -> dict[str, float] | None:
+    """RL's distinct failures per CPU-hour on all scenarios with its training's CPU added once
+    (the training run's ``cpu_seconds``), over all repeats of ``placement`` (default: the
+    first); None without RL, its records or its training summary."""
+    train = (summary.get("training") or {}).get("rl") or {}
+    pl = placement or (summary.get("placements") or [None])[0]
+    cell = summary["groups"].get("rl", {}).get(pl, {}).get("all")
+    if not train.get("cpu_seconds") or not cell:
+        return None
+    distinct = sum(v or 0 for v in cell["distinct"]["values"])
+    cpu = sum(v or 0 for v in cell["cpu_seconds"]["values"])
+    total = cpu + float(train["cpu_seconds"])
+    return {"distinct": distinct, "eval_cpu_seconds": cpu, "training_cpu_seconds": float(train["cpu_seconds"]),
+            "cpu_seconds": total, "per_cpu_hour": distinct / (total / 3600.0)}
 
 
 def planners_markdown(summaries: dict[str, dict[str, Any]]) -> str:
@@ -551,6 +569,12 @@ def planners_markdown(summaries: dict[str, dict[str, Any]]) -> str:
                 cells += [fmt(c and c[key], nd, 100.0 if key == "validity" else 1.0) for key, _, nd in PLANNER_MEASURES]
                 lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
+        rate = rl_rate_with_training(summary)
+        if rate is not None:
+            lines += [f"RL with its training counted: {rate['distinct']:.0f} distinct failures over all repeats and "
+                      f"scenarios in {rate['cpu_seconds'] / 3600:.2f} CPU-h ({rate['eval_cpu_seconds'] / 3600:.2f} "
+                      f"evaluating + {rate['training_cpu_seconds'] / 3600:.2f} training, charged in full to this "
+                      f"planner's evaluation): {rate['per_cpu_hour']:.1f} distinct per CPU-hour.", ""]
         if members["handwritten"] and "rl" in summary["methods"] and "decictor" in summary["methods"]:
             t = planner_targets(summary)
             cov = t["coverage"]
