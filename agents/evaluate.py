@@ -268,15 +268,20 @@ _POLICIES: dict[str, Any] = {}
 
 
 def seed_problem(item: dict[str, Any]) -> str | None:
-    """Why ``item["scenario"]`` is no seed for the planner under test (its reference run - the
-    medoid of five jitter seeds - does not complete its task, e.g. a timeout), else None; builds
-    and caches the reference the jobs use (in a worker process)."""
+    """Why ``item["scenario"]`` is no seed for the planner under test, else None: its reference run
+    (the medoid of five jitter seeds) does not complete its task, or it is not robust (its unmutated
+    runs on jitter seeds 1-8 do not all complete consistently with the reference; skipped for the
+    held-out scenarios, chosen robust). Builds and caches what the jobs use (in a worker process)."""
     from deft_gym.envs.adversary import load_env_config
+    from deft_gym.search.context import robust
 
     try:
-        load_env_config(item["env"]).context(item["scenario"])
+        ctx = load_env_config(item["env"]).context(item["scenario"])
     except ValueError as err:
         return str(err)
+    if item.get("check_robust", True) and not robust(ctx):
+        return (f"scenario {ctx.name!r}: not robust on this planner: its unmutated runs on jitter seeds 1-8 do "
+                "not all complete consistently with the reference (or the reference gives up a lane change)")
     return None
 
 
@@ -545,12 +550,13 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
     todo = seeds + held_out
     unfit: dict[str, str] = {}
     if todo:
-        con.print(f"checking {len(todo)} scenario(s): does the planner under test complete each unmutated ...")
+        con.print(f"checking {len(todo)} scenario(s): does the planner under test complete each unmutated, "
+                  "robustly ...")
         bar = common.Bar(len(todo), "scenarios checked", common.show_progress(args))
         with Executor(backend, initializer=init_pool_worker, initargs=(cfg.workers,),
                       preload=("deft_gym.envs.adversary",), run_dir=out) as ex:
-            for name, problem in zip(todo, ex.map(seed_problem, [{"scenario": s, "env": env} for s in todo],
-                                                  progress=bar.update), strict=True):
+            items = [{"scenario": s, "env": env, "check_robust": s not in held_out} for s in todo]
+            for name, problem in zip(todo, ex.map(seed_problem, items, progress=bar.update), strict=True):
                 if problem:
                     unfit[name] = problem
         bar.close()

@@ -21,7 +21,6 @@ import numpy as np
 from deft_gym.execution.watchdog import ModuleHang
 from deft_gym.files import write_atomic
 from deft_gym.planner.base import load_planner, planner_provenance, validate_output
-from deft_gym.record.recorder import OPTIMAL_PATH_METADATA
 from extract.emit import slug, test_module, write_frames
 from extract.io_filter import PlanningIOFilter
 from extract.logs import EpisodeLog, LogError, log_id, read_log
@@ -172,7 +171,7 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     findings["after_lost_outputs"] = len(after_lost)
     faulty, oracle, oracle_note = _oracle(elog, mp, outcome, choices, distances, reproduced, ego, theta,
                                           minimize if minimize_failure and engine.hang is None else None)
-    departure = _departure(elog, choices)
+    departure = _departure(elog, mp, choices)
     if departure is not None:  # its test starts where P_faulty's would: seeded, else the shortest suffix
         dep = departure["departure"]
         if minimize_failure and engine.hang is None and reproduced[dep["index"]] and choices[dep["index"]].exact:
@@ -411,11 +410,11 @@ def _oracle(elog: EpisodeLog, mp: TopicMapping, outcome: dict[str, Any], choices
     return faulty, oracle, note
 
 
-def _departure(elog: EpisodeLog, choices: list[FrameChoice]) -> dict[str, Any] | None:
+def _departure(elog: EpisodeLog, mp: TopicMapping, choices: list[FrameChoice]) -> dict[str, Any] | None:
     """The oracle of a non-optimal decision (``optimal_path`` and ``departure``, P_departure) when
     the log carries the optimal path it was judged against (a search run's log) and a plan took
     the ego off it; else None."""
-    meta = elog.metadata.get(OPTIMAL_PATH_METADATA)
+    meta = elog.metadata.get(mp.optimal_path_metadata or "")
     if not isinstance(meta, dict) or not isinstance(meta.get("x"), list) or len(meta["x"]) < 2:
         return None
     path = np.column_stack([np.asarray(meta["x"], float), np.asarray(meta["y"], float)])

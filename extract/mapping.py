@@ -69,6 +69,9 @@ class TopicMapping(_Strict):
     planner: PlannerRef | None = None
     ego: EgoBox = EgoBox()
     outcome_metadata: str | None = "deft_gym.outcome"
+    #: metadata record with the optimal path a run was judged against (``x``, ``y``, ``limit`` [m]):
+    #: the non-optimal decision's failure test (P_departure); None: no such test
+    optimal_path_metadata: str | None = "deft_gym.optimal_path"
     source: str = Field("<dict>", exclude=True)
 
     @model_validator(mode="after")

@@ -202,7 +202,7 @@ def _positive(v: Any) -> float | None:
 
 # -- non-optimal decisions: leaving the optimal path ---------------------------------------------
 # (a search run writes the optimal path it is judged against into its log: the metadata record
-# deft_gym.record.recorder.OPTIMAL_PATH_METADATA with ``x``, ``y`` [m] and ``limit`` [m], half a lane)
+# named by the mapping's optimal_path_metadata, with ``x``, ``y`` [m] and ``limit`` [m], half a lane)
 
 
 def path_distances(x: Sequence[float], y: Sequence[float], path: np.ndarray) -> np.ndarray:

@@ -193,10 +193,11 @@ def decision_entry(d: dict[str, Any]) -> dict[str, Any]:
 # not part of what a run computes: this package's own modules, tools and the log writer
 _NOT_SIMULATION_PACKAGES = ("envs", "search", "robustness", "cli", "viz", "execution", "experiments",
                             "metrics", "export", "models")  # metrics: driving quality from traces; models: data
-# planner/commonroad.py: a third-party planner's adapter that no run uses unless its ADS config
+# planner/commonroad.py (and its commonroad_kinematics.py): a third-party planner's adapter that no run uses unless its ADS config
 # names it; such a run's cache keys hash its source instead (content_key), so that adding or
 # changing it leaves every other run's fingerprint and caches alone
-_NOT_SIMULATION_FILES = ("__init__.py", "record/recorder.py", "scenarios/variants.py", "planner/commonroad.py")
+_NOT_SIMULATION_FILES = ("__init__.py", "record/recorder.py", "scenarios/variants.py", "planner/commonroad.py",
+                         "planner/commonroad_kinematics.py")
 _FINGERPRINT: list[str] = []
 
 
