@@ -61,7 +61,7 @@ from deft_gym.envs.sink import EpisodeSink
 from deft_gym.metrics.oracle import ORACLES, run_metrics, seed_finding, severity
 from deft_gym.scenarios.scenario import with_participants
 from deft_gym.search.context import SEED_SCENARIOS, SeedContext, ads_config, robust, seed_context
-from deft_gym.search.episode import replay_record, run_scenario
+from deft_gym.search.episode import replay_record, run_scenario, write_optimal_path
 from deft_gym.search.feasible import FeasibleConfig, Layout
 from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH, IN_LANE
 from deft_gym.search.placement import ALONG, LATERAL, MANOEUVRES, SPEEDS, Placer, first_window
@@ -245,6 +245,8 @@ class AdversaryEnv(gym.Env):
         self.log_dir = (self.sink.episode_dir(self._tag()) if self.sink is not None and self.cfg.record == "all"
                         else None)
         self.sim = Simulation(ctx.scenario, ctx.ads, jitter_seed=self.jitter_seed, out_dir=self.log_dir)
+        if self.sim.recorder is not None:  # what the run is judged against, for the extracted NoDS test
+            write_optimal_path(self.sim.recorder, ctx)
         self.added_ids: set[str] = set()
         self.added_at: dict[str, float] = {}
         self._until = 0.0

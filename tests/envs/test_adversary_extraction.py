@@ -21,7 +21,7 @@ def _cone(along: float | str, lateral: float) -> np.ndarray:
     return np.array([OPS.index("cone"), i, LATERAL.index(lateral), 0, 0])
 
 
-def test_failing_episode_is_extracted_into_a_passing_pytest_module(tmp_path):
+def test_failing_episode_is_extracted_into_a_reproducing_pytest_module_with_a_failure_test(tmp_path):
     # two cones forming a gate ahead of the ego: the planner leaves its lane -> NoDS
     plan = {3: _cone(80.0, -1.5), 4: _cone("last", 1.5)}
     env = AdversaryEnv(scenario="lane_follow_static", log_dir=str(tmp_path), keep_passing=0.0)
@@ -40,7 +40,10 @@ def test_failing_episode_is_extracted_into_a_passing_pytest_module(tmp_path):
     specs = eq["scenario"]["participants"][len(ctx.scenario.participants):]
     again = run_scenario(ctx, specs, eq["jitter_seed"], added_at=eq["added_at"])
     assert again.verdict.failure == "nods" and again.verdict.iou == pytest.approx(info["iou"], abs=1e-4)
-    # and the extracted planning-module tests pass
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
-                           ex["test"]], capture_output=True, text=True)
+    # and the extracted planning-module tests reproduce every output, while the non-optimal
+    # decision's failure test (P_departure: the log carries the optimal path) fails
+    base = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=", ex["test"]]
+    proc = subprocess.run([*base, "-k", "reproduces"], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    dep = subprocess.run([*base, "-k", "keeps_to_the_optimal_path"], capture_output=True, text=True)
+    assert dep.returncode == 1 and "still leaves the optimal path" in dep.stdout, dep.stdout[-2000:]
