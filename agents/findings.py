@@ -235,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any]]],
           counts: dict[str, dict[str, int]], ads: str | None) -> int:
+    from deft_gym.search.episode import read_replay, write_replay
+
     out.mkdir(parents=True, exist_ok=True)
     causes = sorted(by_cause, key=lambda c: (-len(by_cause[c]), c))
     sample = [(c, r) for c in causes
@@ -261,8 +263,6 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             v = run.verdict
             same = v.signature == rec.get("signature") and v.failure == rec.get("failure")
             name = f"{stem}.png"
-            from deft_gym.search.episode import read_replay, write_replay
-
             replay = write_replay(out / f"{stem}.replay.yaml", read_replay(rec.get("scenario_equivalent"),
                                                                            rec.get("jitter_seed")))
             replay_cmd = f"deft-gym run {replay} --reruns 1" + (f" --ads-config {ads}" if ads else "")

@@ -57,6 +57,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
     """Source of the pytest module for one episode. ``xfail_failures``: the failure oracle is a
     strict xfail (CI stays green while the failure reproduces; XPASS, a failure, once fixed)."""
     faulty = (header.get("oracle") or {}).get("faulty")
+    departure = (header.get("oracle") or {}).get("departure")
     coll = summary.get("collision")
     outcome = summary.get("outcome") or "unknown"
     if coll:
@@ -70,10 +71,10 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
         f"frames   : {summary['frames']} in {frames_name} (mode {summary['mode']}, measure "
         f"{summary['measure']}, theta {summary['theta']:g} m; {repro} reproduced at extraction)",
     ]
-    dep = (header.get("oracle") or {}).get("departure")
-    if dep:
-        lines.append(f"P_departure: frame {dep['index']} (t={dep['time']:.3f} s) plans the ego {dep['distance']:.2f} m "
-                     f"off the optimal path (limit {dep['limit']:.2f} m); the ego left it at t={dep['left_at']:.2f} s")
+    if departure:
+        d = departure
+        lines.append(f"P_departure: frame {d['index']} (t={d['time']:.3f} s) plans the ego {d['distance']:.2f} m "
+                     f"off the optimal path (limit {d['limit']:.2f} m); the ego left it at t={d['left_at']:.2f} s")
     if faulty:
         lines.append(f"P_faulty : frame {faulty['index']} (t={faulty['time']:.3f} s) plans the ego into "
                      f"{faulty['participant']} at t={faulty['point_time']:.2f} s")
@@ -121,7 +122,6 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
             problem = EPISODE.faulty_hit(index)
             assert problem is None, problem
         '''
-    departure = (header.get("oracle") or {}).get("departure")
     if departure:
         src += f'''
 

@@ -26,7 +26,14 @@ from extract.io_filter import PlanningIOFilter
 from extract.logs import EpisodeLog, LogError, log_id, read_log
 from extract.mapping import MappingError, TopicMapping, get_field, load_mapping
 from extract.minimize import Minimised, Seed, frame_getter, seeded_start, shortest_replay
-from extract.oracle import Faulty, ego_size, find_departure, find_faulty, participant_track
+from extract.oracle import (
+    Faulty,
+    ego_size,
+    find_departure,
+    find_faulty,
+    optimal_path,
+    participant_track,
+)
 from extract.runtime import FORMAT, finite_or_none
 from extract.search import FrameChoice, InputSearch, SearchConfig
 from extract.truth import truth_agreement
@@ -415,10 +422,10 @@ def _departure(elog: EpisodeLog, mp: TopicMapping, choices: list[FrameChoice]) -
     the log carries the optimal path it was judged against (a search run's log) and a plan took
     the ego off it; else None."""
     meta = elog.metadata.get(mp.optimal_path_metadata or "")
-    if not isinstance(meta, dict) or not isinstance(meta.get("x"), list) or len(meta["x"]) < 2:
+    found = optimal_path(meta)
+    if found is None:
         return None
-    path = np.column_stack([np.asarray(meta["x"], float), np.asarray(meta["y"], float)])
-    limit = float(meta.get("limit", 1.75))
+    path, limit = found
     outputs = [(c.output.index, c.time, c.output.payload) for c in choices]
     dep = find_departure(outputs, path, limit)
     if dep is None:

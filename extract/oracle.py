@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import shapely
 
 #: how far past the last observation a participant's position is extrapolated [s]
 MAX_EXTRAPOLATION = 0.3
@@ -205,22 +206,28 @@ def _positive(v: Any) -> float | None:
 # named by the mapping's optimal_path_metadata, with ``x``, ``y`` [m] and ``limit`` [m], half a lane)
 
 
+def optimal_path(record: Mapping[str, Any] | None) -> tuple[np.ndarray, float] | None:
+    """``(path (n x 2) [m], limit [m])`` of an optimal-path record (the log's metadata, or the
+    frames header's ``optimal_path``), or None when it holds no path."""
+    if not isinstance(record, Mapping) or not isinstance(record.get("x"), list) or len(record["x"]) < 2:
+        return None
+    return np.column_stack([np.asarray(record["x"], float), np.asarray(record["y"], float)]), \
+        float(record.get("limit", 1.75))
+
+
 def path_distances(x: Sequence[float], y: Sequence[float], path: np.ndarray) -> np.ndarray:
-    """Distance [m] of each point ``(x[i], y[i])`` to the polyline ``path`` (n x 2)."""
-    p = np.column_stack([np.asarray(x, float), np.asarray(y, float)])[:, None, :]
-    a, b = path[:-1][None], path[1:][None]
-    ab = b - a
-    t = np.clip(((p - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
-    gap = p - (a + t[..., None] * ab)
-    return np.min(np.hypot(gap[..., 0], gap[..., 1]), axis=1)
+    """Distance [m] of each point ``(x[i], y[i])`` to the polyline ``path`` (n x 2), as the search's
+    NoDS oracle measures it (shapely, ``NoDSOracle.distances``)."""
+    points = shapely.points(np.column_stack([np.asarray(x, float), np.asarray(y, float)]))
+    return np.asarray(shapely.distance(points, shapely.LineString(path)), float)
 
 
 def off_path(trajectory: Mapping[str, Any], path: np.ndarray, limit: float) -> tuple[int, float] | None:
     """``(point index, distance [m])`` of the first planned point farther than ``limit`` from the
     optimal path, else None."""
-    d = path_distances(trajectory.get("x") or [], trajectory.get("y") or [], path) if trajectory.get("x") else None
-    if d is None or not len(d):
+    if not trajectory.get("x"):
         return None
+    d = path_distances(trajectory["x"], trajectory["y"], path)
     far = np.flatnonzero(d > limit)
     return (int(far[0]), float(d[far[0]])) if len(far) else None
 

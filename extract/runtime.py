@@ -354,7 +354,6 @@ class EpisodeReplay:
                     f"<= theta {self.theta} m")
         return None
 
-
     # -- the non-optimal-decision test ---------------------------------------------------------
     def departure_cases(self) -> list[Any]:
         """The P_departure frame as one ``pytest.param`` named by frame and time."""
@@ -365,13 +364,10 @@ class EpisodeReplay:
 
     def departure_problem(self, index: int) -> str | None:
         """Why the replayed output of frame ``index`` still leaves the optimal path, or None."""
-        import numpy as np
-
-        from extract.oracle import off_path
+        from extract.oracle import off_path, optimal_path
 
         o = self.header["oracle"]
-        path = np.column_stack([np.asarray(o["optimal_path"]["x"], float), np.asarray(o["optimal_path"]["y"], float)])
-        limit = float(o["optimal_path"]["limit"])
+        path, limit = optimal_path(o["optimal_path"])
         out = self._oracle_output(index, o["departure"], o.get("departure_seed"))
         if out is None:
             return None
