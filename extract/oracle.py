@@ -19,7 +19,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import shapely
 
 #: how far past the last observation a participant's position is extrapolated [s]
 MAX_EXTRAPOLATION = 0.3
@@ -218,6 +217,8 @@ def optimal_path(record: Mapping[str, Any] | None) -> tuple[np.ndarray, float] |
 def path_distances(x: Sequence[float], y: Sequence[float], path: np.ndarray) -> np.ndarray:
     """Distance [m] of each point ``(x[i], y[i])`` to the polyline ``path`` (n x 2), as the search's
     NoDS oracle measures it (shapely, ``NoDSOracle.distances``)."""
+    import shapely  # here: the programs' --help imports this module and stays fast
+
     points = shapely.points(np.column_stack([np.asarray(x, float), np.asarray(y, float)]))
     return np.asarray(shapely.distance(points, shapely.LineString(path)), float)
 
