@@ -18,7 +18,10 @@ run's CPU (``getrusage`` of its process tree) less the CPU of its items is the d
 start-up's; its share of the run's CPU is the serial share ``s`` of Amdahl's law, and the
 efficiency at ``W`` workers it implies is ``1 / (s W + 1 - s)``. Scaled to a campaign of
 ``--eval-minutes`` of item CPU (default 10): the start-up once, the driver's part per item.
-Writes ``OUT/scale.json``.
+Where a run's process tree shows less CPU than its items took (Ray's workers outside it), no
+share is given. An item's CPU that grows with workers (cores that share caches, memory or an SMT
+sibling) bounds the efficiency apart from Amdahl: the ratio at the most workers is printed, and
+the prediction divided by it. Writes ``OUT/scale.json``.
 """
 
 from __future__ import annotations
@@ -116,6 +119,20 @@ def _child_pids(pid: int) -> list[int]:
         return []
 
 
+UNSEEN_CPU = 0.98  # a run's process tree below this share of its items' CPU did not see all of it
+
+
+def cpu_growth(rows: list[dict[str, Any]]) -> tuple[int, float] | None:
+    """``(W, ratio)``: an item's CPU at the most workers ``W`` over its CPU at the fewest (rows of
+    one backend with item CPU); None with fewer than two worker counts. Above 1 where the workers
+    share cores (caches, memory bandwidth, SMT siblings): efficiency is then at most 1 / ratio."""
+    if len({r["workers"] for r in rows}) < 2:
+        return None
+    lo, hi = min(rows, key=lambda r: r["workers"]), max(rows, key=lambda r: r["workers"])
+    per_item = [r["item_cpu_s"] / max(1, r["items"]) for r in (lo, hi)]
+    return hi["workers"], per_item[1] / per_item[0]
+
+
 def amdahl(serial_share: float, workers: int) -> float:
     """Efficiency at ``workers`` workers of a campaign whose serial share is ``serial_share``."""
     return 1.0 / (serial_share * workers + 1.0 - serial_share)
@@ -193,11 +210,14 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
             # the serial part: the run's CPU that no item took (driver, start-up of the program, the
             # workers and their recorder processes), as a share of the run's CPU
             serial_cpu = max(0.0, run_cpu - item_cpu)
+            # a tree that shows less CPU than its items took did not see all of its processes (Ray's
+            # raylet starts the workers, outside it on some machines): no serial share from it
+            seen = run_cpu >= UNSEEN_CPU * item_cpu
             row = {"backend": backend, "workers": w, "wall_s": round(wall, 2), "items": len(recs),
                    "items_per_s": round(len(recs) / wall, 3), "same_records": recs == reference,
                    "item_wall_s": round(item_wall, 2), "item_cpu_s": round(item_cpu, 2) if item_cpu else None,
-                   "run_cpu_s": round(run_cpu, 2), "serial_cpu_s": round(serial_cpu, 2),
-                   "serial_share": round(serial_cpu / run_cpu, 4) if run_cpu > 0 and item_cpu else None,
+                   "run_cpu_s": round(run_cpu, 2), "serial_cpu_s": round(serial_cpu, 2) if seen else None,
+                   "serial_share": round(serial_cpu / run_cpu, 4) if run_cpu > 0 and item_cpu and seen else None,
                    "load_average": os.getloadavg()[0]}
             if base is not None:
                 row["speedup"] = round(base["wall_s"] / wall, 3)
@@ -205,8 +225,9 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
             rows.append(row)
             print(f"{backend:8s} {w:7d} {wall:9.1f} {len(recs):6d} {row['items_per_s']:8.2f} "
                   f"{row.get('speedup', 1.0):8.2f} {row.get('efficiency', 1.0):10.0%} {item_wall:10.1f} "
-                  f"{item_cpu:9.1f} {run_cpu:8.1f} {(row['serial_share'] or 0.0):7.1%} {row['load_average']:5.1f}",
-                  flush=True)
+                  f"{item_cpu:9.1f} {run_cpu:8.1f} "
+                  f"{format(row['serial_share'], '7.1%') if row['serial_share'] is not None else '    n/a'} "
+                  f"{row['load_average']:5.1f}", flush=True)
     fits = {}
     for backend in backends:
         pts = [(r["workers"], r["wall_s"]) for r in rows if r["backend"] == backend]
@@ -230,9 +251,17 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
               f"after start-up)")
         # Amdahl from CPU times: the serial CPU of the one-worker run (or the fewest workers) is
         # start-up (once) + the driver's CPU per item; scaled to --eval-minutes of item CPU
-        one = min((r for r in rows if r["backend"] == backend and r["item_cpu_s"]), key=lambda r: r["workers"],
-                  default=None)
+        mine = [r for r in rows if r["backend"] == backend and r["item_cpu_s"]]
+        growth = cpu_growth(mine)
+        one = min((r for r in mine if r["serial_share"] is not None), key=lambda r: r["workers"], default=None)
         if one is None:
+            if mine:
+                first = min(mine, key=lambda r: r["workers"])
+                amdahl_fits[backend] = {"note": "serial share not measured: the run's process tree showed less "
+                                                "CPU than its items took"}
+                print(f"{backend}: serial share from CPU not measured: the run's process tree showed "
+                      f"{first['run_cpu_s']:.1f} CPU s, its items {first['item_cpu_s']:.1f} (the workers ran "
+                      f"outside it: Ray's raylet starts them); the wall-time fit above stands")
             continue
         per_item_cpu = one["item_cpu_s"] / max(1, one["items"])
         startup = max(0.0, one["serial_cpu_s"] - cpu_ms / 1000 * one["items"])
@@ -241,7 +270,7 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
         share_eval = serial_eval / (serial_eval + 60.0 * a.eval_minutes)
         # each worker's start-up (parallel, but CPU no item gets): the growth of the serial CPU
         # from the fewest workers to the next count
-        two = sorted((r for r in rows if r["backend"] == backend and r["item_cpu_s"]), key=lambda r: r["workers"])[:2]
+        two = sorted((r for r in mine if r["serial_share"] is not None), key=lambda r: r["workers"])[:2]
         per_worker = (max(0.0, (two[1]["serial_cpu_s"] - two[0]["serial_cpu_s"]) / (two[1]["workers"] - two[0]["workers"]))
                       if len(two) == 2 else 0.0)
         total_eval = serial_eval + 60.0 * a.eval_minutes
@@ -258,6 +287,10 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
             "serial_share_eval": round(share_eval, 5),
             "efficiency": {str(n): round(amdahl(share_eval, n), 4) for n in (2, 4, 8, 16, 32, 64)},
             "efficiency_measured_share": {str(n): round(amdahl(one["serial_share"], n), 4) for n in (16, 64)}}
+        if growth is not None:
+            top, ratio = growth
+            amdahl_fits[backend]["item_cpu_growth"] = {"workers": top, "ratio": round(ratio, 4),
+                                                      "efficiency_eval": round(amdahl(share_eval, top) / ratio, 4)}
         print(f"{backend}: serial share from CPU {one['serial_share']:.1%} of this run ({one['serial_cpu_s']:.1f} of "
               f"{one['run_cpu_s']:.1f} CPU s at {one['workers']} worker(s): start-up {startup:.1f} s, driver "
               f"{cpu_ms:.2f} ms per item); for {a.eval_minutes:g} min of item CPU ({items_eval:.0f} items of "
@@ -265,6 +298,13 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
               f"{amdahl(share_eval, 64):.0%} at 64 (this run's share: {amdahl(one['serial_share'], 16):.0%}, "
               f"{amdahl(one['serial_share'], 64):.0%}); with each worker's start-up ({per_worker:.1f} CPU s) "
               f"{with_workers(16):.0%} at 16, {with_workers(64):.0%} at 64")
+        if growth is not None:
+            top, ratio = growth
+            measured = next(r.get("efficiency") for r in mine if r["workers"] == top)
+            print(f"{backend}: an item's CPU at {top} workers is {ratio - 1:+.0%} of its CPU at {one['workers']} (cores "
+                  f"shared: caches, memory, SMT): at {top} workers this run measured {measured:.0%}, its share and "
+                  f"that growth predict {amdahl(one['serial_share'], top) / ratio:.0%}; {a.eval_minutes:g} min of item "
+                  f"CPU at {top} workers: {amdahl(share_eval, top) / ratio:.0%}")
     same = all(r["same_records"] for r in rows)
     print(f"records identical on every backend and worker count (timings aside): {'yes' if same else 'NO'}")
     write_json_atomic(a.out / "scale.json", {"campaign": a.campaign, "cpus": os.cpu_count(), "runs": rows,
