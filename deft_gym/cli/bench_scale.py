@@ -287,10 +287,6 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
             "serial_share_eval": round(share_eval, 5),
             "efficiency": {str(n): round(amdahl(share_eval, n), 4) for n in (2, 4, 8, 16, 32, 64)},
             "efficiency_measured_share": {str(n): round(amdahl(one["serial_share"], n), 4) for n in (16, 64)}}
-        if growth is not None:
-            top, ratio = growth
-            amdahl_fits[backend]["item_cpu_growth"] = {"workers": top, "ratio": round(ratio, 4),
-                                                      "efficiency_eval": round(amdahl(share_eval, top) / ratio, 4)}
         print(f"{backend}: serial share from CPU {one['serial_share']:.1%} of this run ({one['serial_cpu_s']:.1f} of "
               f"{one['run_cpu_s']:.1f} CPU s at {one['workers']} worker(s): start-up {startup:.1f} s, driver "
               f"{cpu_ms:.2f} ms per item); for {a.eval_minutes:g} min of item CPU ({items_eval:.0f} items of "
@@ -300,11 +296,15 @@ def _scale(a: Any, counts: list[int], backends: list[str]) -> int:
               f"{with_workers(16):.0%} at 16, {with_workers(64):.0%} at 64")
         if growth is not None:
             top, ratio = growth
-            measured = next(r.get("efficiency") for r in mine if r["workers"] == top)
-            print(f"{backend}: an item's CPU at {top} workers is {ratio - 1:+.0%} of its CPU at {one['workers']} (cores "
-                  f"shared: caches, memory, SMT): at {top} workers this run measured {measured:.0%}, its share and "
-                  f"that growth predict {amdahl(one['serial_share'], top) / ratio:.0%}; {a.eval_minutes:g} min of item "
-                  f"CPU at {top} workers: {amdahl(share_eval, top) / ratio:.0%}")
+            eval_top = amdahl(share_eval, top) / ratio
+            amdahl_fits[backend]["item_cpu_growth"] = {"workers": top, "ratio": round(ratio, 4),
+                                                      "efficiency_eval": round(eval_top, 4)}
+            measured = next(r.get("efficiency") for r in mine if r["workers"] == top)  # None without a 1-worker run
+            print(f"{backend}: an item's CPU at {top} workers is {ratio - 1:+.0%} of its CPU at "
+                  f"{min(r['workers'] for r in mine)} (cores shared: caches, memory, SMT): at {top} workers this run "
+                  f"measured {'-' if measured is None else format(measured, '.0%')}, its share and that growth predict "
+                  f"{amdahl(one['serial_share'], top) / ratio:.0%}; {a.eval_minutes:g} min of item CPU at {top} "
+                  f"workers: {eval_top:.0%}")
     same = all(r["same_records"] for r in rows)
     print(f"records identical on every backend and worker count (timings aside): {'yes' if same else 'NO'}")
     write_json_atomic(a.out / "scale.json", {"campaign": a.campaign, "cpus": os.cpu_count(), "runs": rows,
