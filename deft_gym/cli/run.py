@@ -2,12 +2,20 @@
 
     deft-gym run left_turn --reruns 10                # -> runs/run/left_turn
     python -m deft_gym.cli.run configs/scenarios/left_turn.yaml --reruns 10 --out runs/left_turn
+    deft-gym run handwritten gen:2000001 --reruns 2 --jitter-seed 11 --ads-config configs/ads/commonroad.yaml
+                                                      # a suite -> runs/run/suite/<scenario>/ + suite.json
 
 Each rerun gets its own jitter seed (from the OS, or ``--jitter-seed S`` + rerun index for an
 exactly reproducible batch) and writes ``OUT/<rerun>/episode.mcap`` and ``truth.jsonl``; the
 table compares every rerun's planning outputs with rerun 0's (lock-step Euclidean distance of
 the i-th output against the i-th). ``OUT/summary.json`` holds the rows, each with its driving-quality
 ``metrics`` (docs/metrics.md), their per-run aggregate ``metrics`` and the sim speed.
+
+Several scenarios (or a group name such as ``handwritten``) make a suite: each runs as above into
+``OUT/<scenario>/``, and one table says per scenario how the reruns ended and which metrics every
+rerun violated (the planner's own failures, confirmed across jitter seeds), ``OUT/suite.json`` the
+same. With ``--jitter-seed`` a scenario whose folder already holds the same reruns is not run again
+(an interrupted suite resumes).
 """
 
 from __future__ import annotations
@@ -25,10 +33,12 @@ from deft_gym.files import write_atomic
 
 def build_parser() -> common.Parser:
     p = common.parser("run", "deft_gym.cli.run", __doc__)
-    p.add_argument("scenario", help="scenario name (configs/scenarios), YAML path or gen:<seed> spec, or a "
-                                    "failure's replay_scenario.yaml (its jitter seed unless --jitter-seed)")
+    p.add_argument("scenario", nargs="+",
+                   help="scenario name (configs/scenarios), YAML path, gen:<seed> spec, <group>/<name>, or a "
+                        "failure's replay_scenario.yaml (its jitter seed unless --jitter-seed); several, or a group "
+                        "name (handwritten), run as a suite")
     p.add_argument("--reruns", type=common.int_range(1, 100_000), default=10, help="number of reruns")
-    common.add_out(p, None, help="output folder (default: runs/run/<scenario>)")
+    common.add_out(p, None, help="output folder (default: runs/run/<scenario>, runs/run/suite for several)")
     common.add_jitter_seed(p)
     common.add_render(p)
     p.add_argument("--ads-config", default=None, metavar="YAML",
@@ -84,32 +94,114 @@ def _main(args: argparse.Namespace) -> int:
     from deft_gym.config import ConfigError
     from deft_gym.modules.planning import frame_roles
     from deft_gym.planner.base import planner_class
-    from deft_gym.scenarios.scenario import load_scenario, scenario_from_dict
+    from deft_gym.scenarios.scenario import expand_groups, scenario_from_dict
+    from deft_gym.search.context import resolve_scenario
     from deft_gym.search.episode import load_replay
     from deft_gym.sim.simulation import build_planner
 
+    specs = expand_groups(list(args.scenario))
+    suite = len(specs) > 1
+    runs: list[tuple[Any, dict[str, Any] | None]] = []  # (scenario, a failure's replay record)
     try:
-        eq = load_replay(args.scenario) if str(args.scenario).endswith((".yaml", ".yml")) else None
-        if eq is not None:  # a failure's scenario: participants may join mid-run
-            scenario = scenario_from_dict(eq["scenario"], source=str(args.scenario))
-            if args.jitter_seed is None:
-                args.jitter_seed = eq["jitter_seed"]
-        else:
-            scenario = load_scenario(args.scenario)
         overrides = {"planning": {"publish_input_headers": True}} if args.headers else None
         ads = load_ads_config(args.ads_config, overrides)
-        build_planner(ads, scenario)  # unknown class or parameters: one line, before any run
+        for spec in specs:
+            eq = load_replay(spec) if str(spec).endswith((".yaml", ".yml")) else None
+            if eq is not None:  # a failure's scenario: participants may join mid-run
+                scenario = scenario_from_dict(eq["scenario"], source=str(spec))
+                if args.jitter_seed is None and not suite:
+                    args.jitter_seed = eq["jitter_seed"]
+            else:
+                scenario = resolve_scenario(spec)
+            build_planner(ads, scenario)  # unknown class or parameters: one line, before any run
+            runs.append((scenario, eq))
         frame_roles(planner_class(ads.planning.planner.cls), ads.planning, str(args.ads_config or DEFAULT_ADS_CONFIG))
     except (ConfigError, ValueError) as err:
         console.print(f"[red]error:[/red] {err}", highlight=False, soft_wrap=True)
         return 2
-    out = Path(args.out or common.RUNS / "run" / scenario.name)
+    if not suite:
+        scenario, eq = runs[0]
+        out = Path(args.out or common.RUNS / "run" / scenario.name)
+        with common.locked_out(out):
+            return _reruns(args, console, scenario, ads, out, eq)
+    out = Path(args.out or common.RUNS / "run" / "suite")
     with common.locked_out(out):
-        return _reruns(args, console, scenario, ads, out, eq)
+        return _suite(args, console, runs, ads, out)
+
+
+def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[str, Any] | None]], ads: Any,
+           out: Path) -> int:
+    """Every scenario of a suite into ``out/<name>/``, then one row per scenario: outcomes, the
+    metrics every rerun violated, the mean score (``out/suite.json``)."""
+    names: dict[str, int] = {}
+    rows = []
+    for k, (scenario, eq) in enumerate(runs):
+        n = names[scenario.name] = names.get(scenario.name, 0) + 1
+        folder = out / (scenario.name if n == 1 else f"{scenario.name}~{n}")
+        done = _done_before(folder / "summary.json", scenario, args)
+        console.print(f"[{k + 1}/{len(runs)}] {scenario.name}" + (" (done before: kept)" if done else ""),
+                      highlight=False)
+        if done is None:
+            _reruns(args, console, scenario, ads, folder, eq, verbose=False)
+            done = json.loads((folder / "summary.json").read_text())
+        rows.append(suite_row(done, folder))
+    doc = {"scenarios": rows, "reruns": args.reruns, "jitter_seed": args.jitter_seed,
+           "ads_config": str(args.ads_config or ""), "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    write_atomic(out / "suite.json", json.dumps(doc, indent=2))
+    common.print_table(console, _suite_table(rows, args.reruns))
+    failing = sum(1 for r in rows if r["confirmed"] or r["failed_every_rerun"])
+    console.print(f"{failing} of {len(rows)} scenarios failed in every rerun (an outcome other than completed, or a "
+                  f"violated metric but comfort); wrote {common.shown(out / 'suite.json')}", soft_wrap=True)
+    return 0
+
+
+def _done_before(path: Path, scenario: Any, args: argparse.Namespace) -> dict[str, Any] | None:
+    """The summary of an earlier run of the same scenario, reruns and jitter seeds (only with a
+    fixed ``--jitter-seed``: fresh seeds never match), else None."""
+    if args.jitter_seed is None or not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    seeds = [r.get("jitter_seed") for r in doc.get("reruns", [])]
+    same = doc.get("scenario") == scenario.name and seeds == [args.jitter_seed + i for i in range(args.reruns)]
+    return doc if same else None
+
+
+def suite_row(summary: dict[str, Any], folder: Path) -> dict[str, Any]:
+    """One scenario of a suite from its ``summary.json``: outcomes, the metrics every rerun
+    violated (``confirmed``; comfort apart, since it is reported, not a failure by itself) and
+    those only some did, the mean score."""
+    reruns = summary.get("reruns", [])
+    outcomes = [str(r.get("outcome")) for r in reruns]
+    viols = [set((r.get("metrics") or {}).get("violations") or []) for r in reruns]
+    every = set.intersection(*viols) if viols else set()
+    some = set.union(*viols) - every if viols else set()
+    return {"scenario": summary.get("scenario"), "folder": str(folder), "outcomes": outcomes,
+            "failed_every_rerun": bool(outcomes) and all(o != "completed" for o in outcomes),
+            "confirmed": sorted(every - {"comfort"}), "comfort_every_rerun": "comfort" in every,
+            "some_reruns": sorted(some), "mean_score": (summary.get("metrics") or {}).get("mean_score")}
+
+
+def _suite_table(rows: list[dict[str, Any]], reruns: int) -> Any:
+    t = common.table(title=f"{len(rows)} scenarios, {reruns} rerun{'s' if reruns != 1 else ''} each",
+                     caption="violated in every rerun: the planner's own failures, confirmed across jitter seeds "
+                             "(docs/metrics.md); comfort is shown apart")
+    for col, just in [("scenario", "left"), ("outcomes", "left"), ("violated in every rerun", "left"),
+                      ("in some", "left"), ("comfort", "left"), ("mean score", "right")]:
+        t.add_column(col, justify=just)
+    for r in rows:
+        counts = {o: r["outcomes"].count(o) for o in dict.fromkeys(r["outcomes"])}
+        score = r["mean_score"]
+        t.add_row(str(r["scenario"]), ", ".join(f"{o} {c}" for o, c in counts.items()), ", ".join(r["confirmed"]),
+                  ", ".join(r["some_reruns"]), "every" if r["comfort_every_rerun"] else "",
+                  "-" if score is None else f"{score:.3f}")
+    return t
 
 
 def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out: Path,
-            eq: dict[str, Any] | None = None) -> int:
+            eq: dict[str, Any] | None = None, verbose: bool = True) -> int:
     from deft_gym.metrics.episode import aggregate, simulation_metrics
     from deft_gym.search.episode import replay
     from deft_gym.search.trace import TraceRecorder
@@ -147,19 +239,11 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
             sim_total += result.sim_time
             wall_total += result.wall_time
             bar.update()
-    common.print_table(console, _table(scenario.name, rows))
     sim_speed = sim_total / wall_total if wall_total > 0 else None
     collided = sum(r["collision"] for r in rows)
     agg = aggregate([r["metrics"] for r in rows])
-    console.print(f"driving quality: mean score {agg['mean_score']:.3f} (min {agg['min_score']:.3f}); violations "
-                  + (", ".join(f"{k} {v}/{len(rows)}" for k, v in agg["violations"].items()) or "none")
-                  + " (docs/metrics.md)", highlight=False)
-    console.print(f"{collided}/{len(rows)} reruns collided; outcomes {', '.join(sorted({r['outcome'] for r in rows}))}; "
-                  f"sim speed {sim_speed:.0f}x real time")
-    for r in rows:
-        if r.get("plot"):
-            console.print(f"rerun {r['rerun']}: {r['plot']}" + (f", {r['video']}" if r.get("video") else ""),
-                          soft_wrap=True)
+    if verbose:
+        _report(console, scenario.name, rows, agg, collided, sim_speed)
     summary_doc = {
         "scenario": scenario.name,
         "scenario_file": scenario.source,
@@ -169,15 +253,32 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
                      if k in r}
                    for r in rows],
         "sim_speed": sim_speed,
-        "metrics": aggregate([r["metrics"] for r in rows]),
+        "metrics": agg,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     write_atomic(out / "summary.json", json.dumps(summary_doc, indent=2))
+    if not verbose:
+        return 0
     if args.quiet:
         print(f"{collided}/{len(rows)} reruns collided; {out / 'summary.json'}")
     console.print(f"wrote {common.shown(out / 'summary.json')}; next: {common.tool('deft-gym')} extract "
                   f"{common.shown(out)} --out {common.shown(out)}_tests", soft_wrap=True)
     return 0
+
+
+def _report(console: Any, name: str, rows: list[dict[str, Any]], agg: dict[str, Any], collided: int,
+            sim_speed: float | None) -> None:
+    """The reruns' table and the lines under it."""
+    common.print_table(console, _table(name, rows))
+    console.print(f"driving quality: mean score {agg['mean_score']:.3f} (min {agg['min_score']:.3f}); violations "
+                  + (", ".join(f"{k} {v}/{len(rows)}" for k, v in agg["violations"].items()) or "none")
+                  + " (docs/metrics.md)", highlight=False)
+    console.print(f"{collided}/{len(rows)} reruns collided; outcomes {', '.join(sorted({r['outcome'] for r in rows}))}; "
+                  f"sim speed {sim_speed:.0f}x real time")
+    for r in rows:
+        if r.get("plot"):
+            console.print(f"rerun {r['rerun']}: {r['plot']}" + (f", {r['video']}" if r.get("video") else ""),
+                          soft_wrap=True)
 
 
 def compared(rerun: dict[str, Any], ref: dict[str, Any]) -> str | None:

@@ -23,11 +23,14 @@ but the planner interface; everything comes from the frame (docs/planner.md has 
 - ``prediction``: static obstacles as boxes, moving ones as time-variant boxes along their
   predicted paths resampled at the planner's time steps (both grown by ``margin``);
 - ``traffic_light``: a red light (or a yellow one it can stop for) at a stop line on the
-  reference is a desired stop position before the line, or behind the vehicles queued there.
+  reference is a desired stop position before the line, or behind the vehicles queued there,
+  a red one approached as a standing leader is (the desired speed falls to reach 0 there); an ego
+  all but stopped at or past a red light's stop position holds (a braking plan, ``HOLD``).
 
 What the library leaves to its user, the adapter sets as a user would: the desired velocity (the
-cruise speed capped by the speed limits, the reference's curvature and a moving leader ahead in
-the ego's corridor, each reached ``lag`` seconds early because the planner follows it with a lag),
+cruise speed capped by the speed limits, the reference's curvature, a moving leader ahead in
+the ego's corridor and a light to stop for, each reached ``lag`` seconds early because the
+planner follows it with a lag),
 when to switch to stopping mode, and what to do when the planner finds no trajectory (the rest of
 the previous plan while the collision checker finds it free, else braking at ``fallback_decel``).
 Two mismatches inside the library are bridged: commonroad-clcs 2025 raises where the planner
@@ -157,6 +160,9 @@ class CommonRoadParams(BaseModel):
                        "speed) before the curve, speed limit or leader that sets it")
     yellow_decel: float = Field(3.0, gt=0.0, description="[m/s^2] a yellow light is stopped for when this "
                                 "suffices")
+    red_hold_speed: float = Field(1.0, ge=0.0, description="[m/s] an ego this slow at or past a red light's stop "
+                                  "position (past the line by less than its length) holds: a braking plan, not the "
+                                  "library's, whose stop samples reach 1 m on (it crept over the line)")
     fallback_decel: float = Field(6.0, gt=0.0, description="[m/s^2] braking of the fallback plan")
     stitch_distance: float = Field(1.0, ge=0.0, description="[m] the previous plan's acceleration and steering "
                                    "start the next one while the ego is this close to it")
@@ -395,20 +401,23 @@ class CommonRoadPlanner(Planner):
             rp._planning_times_list.clear()
             rp.reset(initial_state_cart=state0, collision_checker=cc, coordinate_system=co)
             mode, stop_for, s_stop, v_des, leader = self._longitudinal(frame, model, routing, chain, co, lane, v0)
-            rp.config.sampling.longitudinal_mode = mode
-            if mode == "stopping":
-                rp.set_desired_lon_position(s_stop)
-            else:
-                # current_speed 0.0 would make the library read a planning problem we have none of
-                rp.set_desired_velocity(desired_velocity=v_des, current_speed=max(v0, 1e-6))
             decision.update({"mode": mode, "stop": stop_for, "desired_speed": float(v_des), "leader": leader,
                              "stop_s": float(s_stop) if s_stop is not None else -1.0})
-            with _library_clock():
-                result = rp.plan()
-            decision.update({"result": "OPTIMAL" if result is not None else "NO_TRAJECTORY",
-                             "samples": int(rp.total_count_samples),
-                             "infeasible_kinematics": int(rp.infeasible_count_kinematics),
-                             "infeasible_collision": int(rp.infeasible_count_collision)})
+            if mode == "hold":
+                decision["result"] = "HOLD"
+            else:
+                rp.config.sampling.longitudinal_mode = mode
+                if mode == "stopping":
+                    rp.set_desired_lon_position(s_stop)
+                else:
+                    # current_speed 0.0 would make the library read a planning problem we have none of
+                    rp.set_desired_velocity(desired_velocity=v_des, current_speed=max(v0, 1e-6))
+                with _library_clock():
+                    result = rp.plan()
+                decision.update({"result": "OPTIMAL" if result is not None else "NO_TRAJECTORY",
+                                 "samples": int(rp.total_count_samples),
+                                 "infeasible_kinematics": int(rp.infeasible_count_kinematics),
+                                 "infeasible_collision": int(rp.infeasible_count_collision)})
         except Exception as exc:  # the library's failures (projection domain, its own bugs): fall back
             decision.update({"result": "ERROR", "error": f"{type(exc).__name__}: {exc}"[:200]})
         st["low_vel_mode"] = bool(rp._low_vel_mode)
@@ -420,7 +429,7 @@ class CommonRoadPlanner(Planner):
                 decision["result"] = "STANDSTILL"
             decision["d_end"] = float(result[2][-1][0]) if result[2] else 0.0
         else:  # none found (or the library failed): the previous plan while it stays collision-free, else braking
-            traj = self._previous(frame.time, cc) if cc is not None else None
+            traj = self._previous(frame.time, cc) if cc is not None and decision["result"] != "HOLD" else None
             if traj is not None:
                 decision["fallback"] = "PREVIOUS"
             else:
@@ -564,8 +573,10 @@ class CommonRoadPlanner(Planner):
         """``(mode, what it stops for, desired stop position [s of the rear axle], desired speed,
         leader id or -1)``: stopping mode for the nearest stop point on the reference (a red light,
         or the rear of the queue before it; a yellow one it can stop for; the destination) once it is
-        within ``stop_engage`` or half the horizon at the current speed, else velocity keeping at the
-        cruise speed capped by the speed limits, the curves and a moving leader."""
+        within ``stop_engage`` or half the horizon at the current speed ("hold" at or past a red light's
+        stop position below ``red_hold_speed``), else velocity keeping at the
+        cruise speed capped by the speed limits, the curves, a moving leader and the lights it stops
+        for (as for a standing leader at the stop position)."""
         p = self.p
         s_ego = self._s_of(co, *self._rear(frame))
         to_front = p.wb_rear_axle + 0.5 * p.ego_length
@@ -595,12 +606,16 @@ class CommonRoadPlanner(Planner):
                 s_stop = min(s_stop, s_ego + queue[0] - p.stop_gap)
             gap = s_stop - s_ego
             if gap < -0.5 * p.stop_gap - 1.0:
+                if colour == "RED" and v0 < p.red_hold_speed and s_ego + to_front < s_line + p.ego_length:
+                    stops.append((s_ego, "RED_LIGHT"))  # overshot the line, all but stopped: stay
                 continue  # past it
             if colour == "YELLOW" and gap > 0 and v0 * v0 > 2.0 * p.yellow_decel * gap:
                 continue  # too late to stop for a yellow
             if colour == "YELLOW" and gap <= 0:
                 continue
             stops.append((s_stop, "RED_LIGHT" if colour == "RED" else "YELLOW_LIGHT"))
+            if colour == "RED":  # approached as a standing leader: the desired speed falls to 0 at the stop
+                v_des = min(v_des, math.sqrt(max(2.0 * p.comfort_decel * (gap - v0 * p.lag), 0.0)))
         dest = routing["destination"]
         dkey = tuple(dest["lane"])
         if dkey in chain:
@@ -610,6 +625,8 @@ class CommonRoadPlanner(Planner):
         if stops:
             s_stop, what = min(stops)
             gap = s_stop - s_ego
+            if what == "RED_LIGHT" and gap <= 0.0 and v0 < p.red_hold_speed:
+                return "hold", what, s_ego, 0.0, leader  # the library's stop samples reach 1 m on: it would creep
             if gap <= max(p.stop_engage, 0.5 * v0 * p.dt * p.time_steps):
                 return "stopping", what, max(s_stop, s_ego), 0.0, leader
         return "velocity_keeping", "", None, v_des, leader

@@ -162,6 +162,39 @@ def test_plan_reads_no_clock_and_restores_the_librarys() -> None:
     assert rp.time is time  # the step clock stands in only while the library plans
 
 
+def light_frame(x: float, v: float, colour: str) -> Frame:
+    """An ego on lane 0 of the straight road at ``x`` [m] and ``v`` [m/s], nothing else on the
+    road, and a light of ``colour`` at a stop line on lane 0 at s = 150 m."""
+    frame = road_frames([v])[0]
+    head = frame.get("localization")["header"]
+    mp = dict(MAP, stop_lines=[{"lane": ["a", "b", 0], "s": 150.0, "light_id": "L"}])
+    loc = dict(frame.get("localization"), x=x, y=0.0, heading=0.0)
+    return Frame(frame.time, {"map": mp, "routing": ROUTING, "localization": loc,
+                              "traffic_light": {"header": head, "lights": [{"id": "L", "color": colour}]},
+                              "prediction": {"header": head, "perception_stamp": frame.time, "obstacles": []}})
+
+
+def test_a_red_light_is_approached_as_a_standing_leader() -> None:
+    """Found by the red-light metric on blocked_red_light (the ego braked at 4.7 m/s^2 from 11 m/s
+    once the stop was within half its horizon, overshot the line and drove on through the red):
+    the desired speed now falls towards the stop position from afar, and an ego all but stopped at
+    or past the stop position holds (the library's stop samples reach 1 m on: it crept over the
+    line, gen:2000002)."""
+    cruise = ROUTING["cruise_speed"]
+    green = CommonRoadPlanner({}).plan(light_frame(100.0, 10.0, "GREEN"))["decision"]
+    red = CommonRoadPlanner({}).plan(light_frame(100.0, 10.0, "RED"))["decision"]
+    assert (green["mode"], green["desired_speed"]) == ("velocity_keeping", cruise)
+    assert red["mode"] == "velocity_keeping" and red["desired_speed"] < 0.8 * cruise
+    far = CommonRoadPlanner({}).plan(light_frame(0.0, 10.0, "RED"))["decision"]
+    assert far["desired_speed"] == cruise  # 145 m away: room to slow later
+    over = CommonRoadPlanner({}).plan(light_frame(150.0 - 1.0, 0.5, "RED"))  # front ~1.4 m past the line
+    assert (over["decision"]["mode"], over["decision"]["stop"], over["decision"]["result"]) == ("hold", "RED_LIGHT",
+                                                                                                "HOLD")
+    assert over["trajectory"]["v"][-1] == 0.0 and over["trajectory"]["x"][-1] - over["trajectory"]["x"][0] < 0.05
+    gone = CommonRoadPlanner({}).plan(light_frame(150.0 - 1.0, 6.0, "RED"))["decision"]  # crossed at speed
+    assert gone["stop"] != "RED_LIGHT"
+
+
 def test_bad_params_fail_at_construction() -> None:
     with pytest.raises(ValueError, match="time_steps"):
         CommonRoadPlanner({}, time_steps=1)

@@ -1,0 +1,40 @@
+"""`deft-gym run` with several scenarios: a suite - each scenario into its own folder, one row per
+scenario (outcomes, the metrics every rerun violated), ``suite.json``, and a resumed suite that
+runs nothing twice. Real simulations of the default planner."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from deft_gym.cli.run import main, suite_row
+
+
+def test_a_suite_runs_each_scenario_once_and_tabulates_them(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "suite"
+    argv = ["lane_follow_static", "gen:1000001", "--reruns", "1", "--jitter-seed", "3", "--render", "none",
+            "--out", str(out), "--no-progress"]
+    assert main(argv) == 0
+    doc = json.loads((out / "suite.json").read_text())
+    assert [r["scenario"] for r in doc["scenarios"]] == ["lane_follow_static", "gen-1000001"]  # gen: specs resolve
+    for row in doc["scenarios"]:
+        summary = json.loads((Path(row["folder"]) / "summary.json").read_text())
+        assert row["outcomes"] == [r["outcome"] for r in summary["reruns"]] == ["completed"]
+        assert summary["reruns"][0]["jitter_seed"] == 3
+    printed = capsys.readouterr().out
+    assert "violated in every rerun" in printed and "gen-1000001" in printed
+    stamp = (out / "lane_follow_static" / "summary.json").stat().st_mtime_ns
+    assert main(argv) == 0  # the same reruns and jitter seeds: kept, not run again
+    assert "done before: kept" in capsys.readouterr().out
+    assert (out / "lane_follow_static" / "summary.json").stat().st_mtime_ns == stamp
+
+
+def test_a_row_confirms_only_what_every_rerun_violated(tmp_path: Path) -> None:
+    summary = {"scenario": "x", "metrics": {"mean_score": 0.4}, "reruns": [
+        {"outcome": "stuck", "metrics": {"violations": ["standstill", "comfort", "ttc"]}},
+        {"outcome": "stuck", "metrics": {"violations": ["standstill", "comfort"]}}]}
+    row = suite_row(summary, tmp_path)
+    assert row["confirmed"] == ["standstill"] and row["some_reruns"] == ["ttc"]
+    assert row["comfort_every_rerun"] and row["failed_every_rerun"] and row["mean_score"] == 0.4
+    summary["reruns"][1]["outcome"] = "completed"
+    assert not suite_row(summary, tmp_path)["failed_every_rerun"]
