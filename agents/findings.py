@@ -69,10 +69,12 @@ def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None
     return ctx, run_scenario(ctx, specs, jitter, out_dir, added_at=added_at)
 
 
-#: the failure tests an extraction emits: a collision's (P_faulty) and a non-optimal decision's
-#: (P_departure, when the log carries the optimal path)
+#: the failure tests an extraction emits: a collision's (P_faulty), a non-optimal decision's
+#: (P_departure, when the log carries the optimal path) and driving against the lane direction's
+#: (P_wrong_way)
 FAILURE_TESTS = {"does_not_plan_into_collision": "collision (P_faulty)",
-                 "keeps_to_the_optimal_path": "non-optimal decision (P_departure)"}
+                 "keeps_to_the_optimal_path": "non-optimal decision (P_departure)",
+                 "keeps_to_its_side_of_the_road": "driving direction (P_wrong_way)"}
 
 
 def run_tests(folder: Path, times: int) -> dict[str, Any]:

@@ -58,6 +58,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
     strict xfail (CI stays green while the failure reproduces; XPASS, a failure, once fixed)."""
     faulty = (header.get("oracle") or {}).get("faulty")
     departure = (header.get("oracle") or {}).get("departure")
+    wrong_way = (header.get("oracle") or {}).get("wrong_way")
     coll = summary.get("collision")
     outcome = summary.get("outcome") or "unknown"
     if coll:
@@ -75,6 +76,10 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
         d = departure
         lines.append(f"P_departure: frame {d['index']} (t={d['time']:.3f} s) plans the ego {d['distance']:.2f} m "
                      f"off the optimal path (limit {d['limit']:.2f} m); the ego left it at t={d['left_at']:.2f} s")
+    if wrong_way:
+        w = wrong_way
+        lines.append(f"P_wrong_way: frame {w['index']} (t={w['time']:.3f} s) plans {w['length']:.2f} m of path against "
+                     f"the lane direction (limit {w['limit']:.2f} m); the ego was there at t={w['entered_at']:.2f} s")
     if faulty:
         lines.append(f"P_faulty : frame {faulty['index']} (t={faulty['time']:.3f} s) plans the ego into "
                      f"{faulty['participant']} at t={faulty['point_time']:.2f} s")
@@ -131,6 +136,17 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
             path the run was judged against (P_departure, the plan that took it off); passes
             once it keeps within half a lane of it."""
             problem = EPISODE.departure_problem(index)
+            assert problem is None, problem
+        '''
+    if wrong_way:
+        src += f'''
+
+        @pytest.mark.parametrize("index", EPISODE.wrong_way_cases())
+        def test_{name}_keeps_to_its_side_of_the_road(index: int) -> None:
+            """Driving direction: fails while the planner still plans the ego into lanes that all
+            point against it for {wrong_way['limit']:g} m or more (P_wrong_way, the plan that took it
+            there); passes once it keeps to lanes of its own direction."""
+            problem = EPISODE.wrong_way_problem(index)
             assert problem is None, problem
         '''
     return textwrap.dedent(src)

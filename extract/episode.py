@@ -31,6 +31,8 @@ from extract.oracle import (
     ego_size,
     find_departure,
     find_faulty,
+    find_wrong_way,
+    map_lanes,
     optimal_path,
     participant_track,
 )
@@ -186,6 +188,14 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
             if dep_seed is not None:
                 departure["departure_seed"] = dep_seed
         oracle = {**oracle, **departure}
+    wrong_way = _wrong_way(elog, mp, choices)
+    if wrong_way is not None:  # its test starts as P_departure's does
+        ww = wrong_way["wrong_way"]
+        if minimize_failure and engine.hang is None and reproduced[ww["index"]] and choices[ww["index"]].exact:
+            ww["replay_from"], ww_seed = minimize(ww["index"])
+            if ww_seed is not None:
+                wrong_way["wrong_way_seed"] = ww_seed
+        oracle = {**oracle, **wrong_way}
 
     header = {
         "format": FORMAT, "planner": planner_spec, "roles": list(pif.roles), "scenario": scenario,
@@ -431,6 +441,20 @@ def _departure(elog: EpisodeLog, mp: TopicMapping, choices: list[FrameChoice]) -
     if dep is None:
         return None
     return {"optimal_path": {"x": meta["x"], "y": meta["y"], "limit": limit}, "departure": dep}
+
+
+def _wrong_way(elog: EpisodeLog, mp: TopicMapping, choices: list[FrameChoice]) -> dict[str, Any] | None:
+    """The oracle of driving against the lane direction (``wrong_way``, P_wrong_way, with the lanes
+    it is judged on, ``wrong_way_map``) when the log holds the road map (the mapping's ``map``
+    role, whether or not the planner reads it) and one of the plans took the ego into lanes that
+    all point against it for at least :data:`~extract.oracle.WRONG_WAY_LIMIT` m; else None."""
+    msgs = elog.topics.get(mp.topic("map") or "")
+    lanes = map_lanes(msgs.payload(0) if msgs is not None and len(msgs) else None)
+    ww = find_wrong_way([(c.output.index, c.time, c.output.payload) for c in choices], lanes)
+    if ww is None:
+        return None
+    return {"wrong_way": ww, "wrong_way_map": {"lanes": [{"x": xy[:, 0].tolist(), "y": xy[:, 1].tolist(),
+                                                          "width": 2.0 * half} for xy, half in lanes]}}
 
 
 def _summary(elog: EpisodeLog, log_path: Path, scenario: str, meta: dict[str, Any], outcome: dict[str, Any],

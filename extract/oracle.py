@@ -252,3 +252,92 @@ def find_departure(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], path
     point, dist = hit if hit is not None else (0, 0.0)
     return {"index": int(index), "time": float(t), "point": point, "distance": dist, "limit": float(limit),
             "left_at": float(outputs[left][1])}
+
+
+# -- driving against the lane direction: the driving-direction metric on a plan ------------------
+# (docs/metrics.md's ``direction``: a point is wrong-way when every lane whose surface holds it points
+# more than 90 degrees away from its heading; nuPlan's driving_direction_compliance allows 2 m)
+
+WRONG_WAY_LIMIT = 2.0  #: [m] of a plan's path in wrong-way lanes before the plan counts (P_wrong_way)
+
+
+def map_lanes(map_payload: Mapping[str, Any] | None) -> list[tuple[np.ndarray, float]]:
+    """``(centre line (n x 2) [m], half width [m])`` of every lane of a ``map`` message that has a
+    polyline of at least two points (none without a map)."""
+    lanes = []
+    for lane in (map_payload or {}).get("lanes") or []:
+        try:
+            xy = np.column_stack([np.asarray(lane["x"], float), np.asarray(lane["y"], float)])
+            half = 0.5 * float(lane["width"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        if len(xy) >= 2 and np.isfinite(xy).all() and half > 0:
+            lanes.append((xy, half))
+    return lanes
+
+
+def wrong_way_flags(trajectory: Mapping[str, Any], lanes: Sequence[tuple[np.ndarray, float]]) -> np.ndarray:
+    """Per planned point: True where at least one lane's surface holds it and every such lane
+    points more than 90 degrees away from the point's ``heading``."""
+    import shapely
+
+    x, y = np.asarray(trajectory.get("x") or [], float), np.asarray(trajectory.get("y") or [], float)
+    heading = np.asarray(trajectory.get("heading") or [0.0] * len(x), float)
+    agree, against = np.zeros(len(x), bool), np.zeros(len(x), bool)
+    if not len(x):
+        return against
+    points = shapely.points(np.column_stack([x, y]))
+    for xy, half in lanes:
+        line = shapely.LineString(xy)
+        inside = np.flatnonzero(shapely.distance(points, line) <= half)
+        if not len(inside):
+            continue
+        seg = np.diff(xy, axis=0)
+        cum = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
+        s = shapely.line_locate_point(line, points[inside])
+        j = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+        lane_heading = np.arctan2(seg[j, 1], seg[j, 0])
+        same = np.cos(heading[inside] - lane_heading) >= 0.0
+        agree[inside[same]] = True
+        against[inside[~same]] = True
+    return against & ~agree
+
+
+def wrong_way_length(trajectory: Mapping[str, Any], lanes: Sequence[tuple[np.ndarray, float]]) -> tuple[int, float]:
+    """``(first wrong-way point index or -1, length [m] of the planned path whose end points are
+    wrong-way)``."""
+    flags = wrong_way_flags(trajectory, lanes)
+    if not flags.any():
+        return -1, 0.0
+    x, y = np.asarray(trajectory["x"], float), np.asarray(trajectory["y"], float)
+    step = np.hypot(np.diff(x), np.diff(y))
+    return int(np.flatnonzero(flags)[0]), float(step[flags[1:]].sum())
+
+
+def find_wrong_way(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], lanes: Sequence[tuple[np.ndarray, float]],
+                   limit: float = WRONG_WAY_LIMIT) -> dict[str, Any] | None:
+    """P_wrong_way, the plan that took the ego against the lane direction: find the first plan that
+    starts at a wrong-way point (the ego is there), then walk back through the unbroken run of
+    plans before it that each plan at least ``limit`` m of path wrong-way; the first of that run.
+    None when the ego never drove wrong-way or no plan before it planned it (the vehicle left its
+    plan, as CommonRoad's ego cutting a left turn's corner does: DeFT's criterion for P_faulty)."""
+    if not lanes:
+        return None
+    entered = next((k for k, (_, _, out) in enumerate(outputs)
+                    if (tr := out.get("trajectory") or {}).get("x")
+                    and wrong_way_flags({k2: tr[k2][:1] for k2 in ("x", "y", "heading") if k2 in tr}, lanes)[0]), None)
+    if entered is None:
+        return None
+
+    def planned(k: int) -> tuple[int, float]:
+        return wrong_way_length(outputs[k][2].get("trajectory") or {}, lanes)
+
+    k = entered
+    while k > 0 and planned(k - 1)[1] >= limit:
+        k -= 1
+    if k == entered:  # no plan before took it there (plans from there on only bring it back)
+        return None
+    point, length = planned(k)
+    index, t, _ = outputs[k]
+    return {"index": int(index), "time": float(t), "point": point, "length": length, "limit": float(limit),
+            "entered_at": float(outputs[entered][1])}

@@ -381,6 +381,35 @@ class EpisodeReplay:
                 f"t={tr['t'][k]!r} s, {dist:.2f} m from the optimal path (limit {limit:.2f} m)")
 
 
+    # -- the driving-direction test ----------------------------------------------------------------
+    def wrong_way_cases(self) -> list[Any]:
+        """The P_wrong_way frame as one ``pytest.param`` named by frame and time."""
+        import pytest
+
+        w = self.header.get("oracle", {}).get("wrong_way")
+        return [pytest.param(w["index"], id=f"{frame_id(w['index'], w['time'])}-wrong-way")] if w else []
+
+    def wrong_way_problem(self, index: int) -> str | None:
+        """Why the replayed output of frame ``index`` still plans the ego against the lane direction
+        (at least the limit's metres of path in lanes that all point against it, on the log's map),
+        or None."""
+        from extract.oracle import map_lanes, wrong_way_length
+
+        o = self.header["oracle"]
+        w = o["wrong_way"]
+        out = self._oracle_output(index, w, o.get("wrong_way_seed"))
+        if out is None:
+            return None
+        tr = out.get("trajectory") or {}
+        k, length = wrong_way_length(tr, map_lanes(o.get("wrong_way_map")))
+        if length < float(w["limit"]):
+            return None
+        return (self._notes() + f"the planner still plans the ego against the lane direction: frame {index} "
+                f"(t={self.frame(index)['time']:.3f} s) plans {length:.2f} m of path in lanes that all point "
+                f"against it (limit {float(w['limit']):.2f} m), from ({tr['x'][k]!r}, {tr['y'][k]!r}) at "
+                f"t={tr['t'][k]!r} s")
+
+
 def import_planner(header: dict[str, Any]) -> type:
     """The planner class of a frames header (``DEFT_PLANNER`` overrides it). When it cannot be
     imported from here, the folder it was imported from at extraction (``provenance.root``) is

@@ -147,3 +147,28 @@ def test_a_second_regression_later_in_the_episode_fails_too(collision) -> None:
         ["passed"] * (n - 24)
     assert got == want, log[-2000:]
     assert "a divergence of its own" in log and "a consequence of frame 5" in log and "a consequence of frame 20" in log
+
+
+def test_a_plan_into_the_oncoming_lane_gets_a_driving_direction_test(tmp_path: Path) -> None:
+    """P_wrong_way: a planner that bends its plans one lane to the left (tests.support's
+    OncomingPlanner) drives the ego into the oncoming lane of left_turn's approach; the extraction
+    finds the first plan of that run, and its generated test fails every time on that planner
+    (the reproduction tests pass) and passes on the reference planner, which keeps to its side."""
+    from tests.support.extract_support import record, short_scenario
+
+    log = record(tmp_path / "log", short_scenario("left_turn", 8.0), seed=7,
+                 planner_class="tests.support.extract_support:OncomingPlanner")
+    res = extract_episode(log, tmp_path / "tests")
+    header = json.loads(res.frames_path.read_text().splitlines()[0])
+    ww = header["oracle"]["wrong_way"]
+    assert ww["length"] >= ww["limit"] == 2.0 and ww["time"] >= 3.0  # it bends from 3 s on
+    assert "P_wrong_way: frame" in res.test_path.read_text()
+    for _ in range(3):
+        _, outcomes, log_text = run_pytest(res.test_path.parent)
+        side = {k: v for k, v in outcomes.items() if "keeps_to_its_side_of_the_road" in k}
+        assert list(side.values()) == ["failed"], log_text[-1500:]
+        assert all(v == "passed" for v in _reproduction(outcomes).values())
+        assert "still plans the ego against the lane direction" in log_text
+    _, outcomes, _ = run_pytest(res.test_path.parent, "-k", "keeps_to_its_side_of_the_road",
+                                env={"DEFT_PLANNER": "deft_gym.planner.lattice:LatticePlanner"})
+    assert list(outcomes.values()) == ["passed"]

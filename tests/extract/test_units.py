@@ -256,3 +256,37 @@ def test_p_departure_is_the_first_plan_of_the_run_that_took_the_ego_off_the_path
     assert dep is not None and (dep["index"], dep["left_at"], dep["point"]) == (3, 0.5, 6)
     assert dep["distance"] > 1.75 and off_path(plan(0.0, 1.0)["trajectory"], path, 1.75) is None
     assert find_departure(outs[:5], path, 1.75) is None
+
+
+def test_p_wrong_way_is_the_first_plan_of_the_run_that_took_the_ego_against_the_lanes() -> None:
+    """A two-lane road, eastbound at y = 0 and westbound at y = -3.5 (3.5 m wide): a point is wrong-way
+    where the lanes holding it all point against its heading (a point on the shared edge is in both:
+    not wrong-way). P_wrong_way is the first plan of the unbroken run of plans with >= 2 m of path
+    wrong-way that ends where a plan starts wrong-way; a plan that strays and comes back is not it,
+    and an ego that never drove wrong-way, or got there with no plan planning it, gives none."""
+    import numpy as np
+
+    from extract.oracle import find_wrong_way, map_lanes, wrong_way_flags, wrong_way_length
+
+    lanes = map_lanes({"lanes": [{"x": [0.0, 100.0], "y": [0.0, 0.0], "width": 3.5},
+                                 {"x": [100.0, 0.0], "y": [-3.5, -3.5], "width": 3.5},
+                                 {"x": [0.0], "y": [0.0], "width": 3.5}]})  # one point: no lane
+    assert len(lanes) == 2
+
+    def plan(y0: float, y1: float, heading: float = 0.0) -> dict:
+        x = list(np.linspace(10.0, 40.0, 11))
+        return {"trajectory": {"x": x, "y": list(np.linspace(y0, y1, 11)), "heading": [heading] * 11,
+                               "t": list(range(11))}}
+
+    assert wrong_way_flags(plan(-1.75, -3.5)["trajectory"], lanes).tolist() == [False] + [True] * 10
+    assert not wrong_way_flags(plan(-3.5, -3.5, heading=np.pi)["trajectory"], lanes).any()  # westbound: its own
+    assert wrong_way_length(plan(0.0, 0.0)["trajectory"], lanes) == (-1, 0.0)
+    k, length = wrong_way_length(plan(0.0, -3.5)["trajectory"], lanes)
+    assert k == 6 and length == pytest.approx(5 * np.hypot(3.0, 0.35))
+    outs = [(0, 0.0, plan(0.0, 0.0)), (1, 0.1, plan(0.0, -3.5)), (2, 0.2, plan(0.0, 0.0)),
+            (3, 0.3, plan(0.0, -3.5)), (4, 0.4, plan(-1.0, -3.5)), (5, 0.5, plan(-2.5, -3.5))]
+    ww = find_wrong_way(outs, lanes)
+    assert ww is not None and (ww["index"], ww["entered_at"], ww["point"]) == (3, 0.5, 6) and ww["length"] >= 2.0
+    assert find_wrong_way(outs[:5], lanes) is None  # the ego never started a plan wrong-way
+    drifted = [*outs[:3], (3, 0.3, plan(-2.5, 0.0))]  # there, but no plan before took it there
+    assert find_wrong_way(drifted, lanes) is None and find_wrong_way(outs, []) is None

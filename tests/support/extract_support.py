@@ -127,3 +127,25 @@ class WindowedPlanner(LatticePlanner):
             out = copy.deepcopy(out)
             out["trajectory"]["y"] = [y + 0.5 for y in out["trajectory"]["y"]]
         return out
+
+
+class OncomingPlanner(LatticePlanner):
+    """A deliberately broken planner: from ``ONCOMING_FROM`` s on, every plan bends one lane width
+    (3.5 m) to the left of its own heading (the driver's left) over its first second - into the
+    oncoming lane where the road has one next to the ego's - and holds that offset."""
+
+    ONCOMING_FROM = 3.0  # [s]
+
+    def plan(self, frame: Any) -> dict[str, Any] | None:
+        import math
+
+        out = super().plan(frame)
+        if out is None or frame.time < self.ONCOMING_FROM:
+            return out
+        tr = out["trajectory"]
+        t0 = tr["t"][0]
+        for k, (t, h) in enumerate(zip(tr["t"], tr["heading"])):
+            d = 3.5 * min((t - t0) / 1.0, 1.0)
+            tr["x"][k] += math.sin(h) * d  # highway-env's y points to the right of heading 0
+            tr["y"][k] -= math.cos(h) * d
+        return out
