@@ -70,11 +70,12 @@ def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None
 
 
 #: the failure tests an extraction emits: a collision's (P_faulty), a non-optimal decision's
-#: (P_departure, when the log carries the optimal path) and driving against the lane direction's
-#: (P_wrong_way)
+#: (P_departure, when the log carries the optimal path), driving against the lane direction's
+#: (P_wrong_way) and a stuck run's (P_stall)
 FAILURE_TESTS = {"does_not_plan_into_collision": "collision (P_faulty)",
                  "keeps_to_the_optimal_path": "non-optimal decision (P_departure)",
-                 "keeps_to_its_side_of_the_road": "driving direction (P_wrong_way)"}
+                 "keeps_to_its_side_of_the_road": "driving direction (P_wrong_way)",
+                 "plans_progress": "stuck (P_stall)"}
 
 
 def run_tests(folder: Path, times: int) -> dict[str, Any]:

@@ -59,6 +59,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
     faulty = (header.get("oracle") or {}).get("faulty")
     departure = (header.get("oracle") or {}).get("departure")
     wrong_way = (header.get("oracle") or {}).get("wrong_way")
+    stall = (header.get("oracle") or {}).get("stall")
     coll = summary.get("collision")
     outcome = summary.get("outcome") or "unknown"
     if coll:
@@ -80,6 +81,10 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
         w = wrong_way
         lines.append(f"P_wrong_way: frame {w['index']} (t={w['time']:.3f} s) plans {w['length']:.2f} m of path against "
                      f"the lane direction (limit {w['limit']:.2f} m); the ego was there at t={w['entered_at']:.2f} s")
+    if stall:
+        lines.append(f"P_stall : frame {stall['index']} (t={stall['time']:.3f} s) plans {stall['travel']:.3f} m of path "
+                     f"(limit {stall['limit']:.2f} m), the first of the {stall['standing_plans']} standing plans that "
+                     "end the run (stuck)")
     if faulty:
         lines.append(f"P_faulty : frame {faulty['index']} (t={faulty['time']:.3f} s) plans the ego into "
                      f"{faulty['participant']} at t={faulty['point_time']:.2f} s")
@@ -136,6 +141,18 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
             path the run was judged against (P_departure, the plan that took it off); passes
             once it keeps within half a lane of it."""
             problem = EPISODE.departure_problem(index)
+            assert problem is None, problem
+        '''
+    if stall:
+        src += f'''
+
+        @pytest.mark.parametrize("index", EPISODE.stall_cases())
+        def test_{name}_plans_progress(index: int) -> None:
+            """Stuck: fails while the planner still leaves the ego standing where the
+            system-level run stood stuck to its end, no light holding it (P_stall, the first of
+            those plans: a path shorter than {stall['limit']:g} m); passes once it plans on.
+            Whether standing there was wrong is the reader's call."""
+            problem = EPISODE.stall_problem(index)
             assert problem is None, problem
         '''
     if wrong_way:

@@ -31,6 +31,7 @@ from extract.oracle import (
     ego_size,
     find_departure,
     find_faulty,
+    find_stall,
     find_wrong_way,
     map_lanes,
     optimal_path,
@@ -188,6 +189,14 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
             if dep_seed is not None:
                 departure["departure_seed"] = dep_seed
         oracle = {**oracle, **departure}
+    stall = find_stall([(c.output.index, c.time, c.output.payload) for c in choices]) \
+        if isinstance(outcome, dict) and outcome.get("outcome") == "stuck" else None
+    if stall is not None:  # its test starts as P_departure's does
+        if minimize_failure and engine.hang is None and reproduced[stall["index"]] and choices[stall["index"]].exact:
+            stall["replay_from"], stall_seed = minimize(stall["index"])
+            if stall_seed is not None:
+                oracle = {**oracle, "stall_seed": stall_seed}
+        oracle = {**oracle, "stall": stall}
     wrong_way = _wrong_way(elog, mp, choices)
     if wrong_way is not None:  # its test starts as P_departure's does
         ww = wrong_way["wrong_way"]

@@ -341,3 +341,28 @@ def find_wrong_way(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], lane
     index, t, _ = outputs[k]
     return {"index": int(index), "time": float(t), "point": point, "length": length, "limit": float(limit),
             "entered_at": float(outputs[entered][1])}
+
+
+# -- a stuck ego: the plans that stand ------------------------------------------------------------
+STALL_LIMIT = 0.5  #: [m] a plan whose path is shorter stands (the episode oracle's stuck distance)
+
+
+def planned_travel(trajectory: Mapping[str, Any]) -> float:
+    """Length [m] of a plan's path."""
+    x, y = np.asarray(trajectory.get("x") or [], float), np.asarray(trajectory.get("y") or [], float)
+    return float(np.hypot(np.diff(x), np.diff(y)).sum()) if len(x) > 1 else 0.0
+
+
+def find_stall(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], limit: float = STALL_LIMIT) -> dict[str, Any] | None:
+    """P_stall, the plan that left a stuck ego standing: the first of the unbroken run of plans at
+    the end of the episode whose paths are each shorter than ``limit`` (for an episode the
+    simulation ended as ``stuck``: the ego stood, no light holding it). None when the last plan
+    moves (the vehicle did not follow it)."""
+    k = len(outputs)
+    while k > 0 and planned_travel(outputs[k - 1][2].get("trajectory") or {}) < limit:
+        k -= 1
+    if k == len(outputs):
+        return None
+    index, t, out = outputs[k]
+    return {"index": int(index), "time": float(t), "travel": planned_travel(out.get("trajectory") or {}),
+            "limit": float(limit), "standing_plans": len(outputs) - k, "last_time": float(outputs[-1][1])}

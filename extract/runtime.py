@@ -410,6 +410,33 @@ class EpisodeReplay:
                 f"t={tr['t'][k]!r} s")
 
 
+    # -- the stuck test ----------------------------------------------------------------------------
+    def stall_cases(self) -> list[Any]:
+        """The P_stall frame as one ``pytest.param`` named by frame and time."""
+        import pytest
+
+        w = self.header.get("oracle", {}).get("stall")
+        return [pytest.param(w["index"], id=f"{frame_id(w['index'], w['time'])}-stands")] if w else []
+
+    def stall_problem(self, index: int) -> str | None:
+        """Why the replayed output of frame ``index`` still leaves the ego standing (a planned path
+        shorter than the limit), or None."""
+        from extract.oracle import planned_travel
+
+        o = self.header["oracle"]
+        w = o["stall"]
+        out = self._oracle_output(index, w, o.get("stall_seed"))
+        if out is None:
+            return (self._notes() + f"the planner still gives no plan at frame {index} "
+                    f"(t={self.frame(index)['time']:.3f} s), where the run stood stuck")
+        travel = planned_travel(out.get("trajectory") or {})
+        if travel >= float(w["limit"]):
+            return None
+        return (self._notes() + f"the planner still leaves the ego standing: frame {index} "
+                f"(t={self.frame(index)['time']:.3f} s) plans {travel:.3f} m of path (limit {float(w['limit']):.2f} m); "
+                f"the run stood from here to its end, stuck, no light holding it")
+
+
 def import_planner(header: dict[str, Any]) -> type:
     """The planner class of a frames header (``DEFT_PLANNER`` overrides it). When it cannot be
     imported from here, the folder it was imported from at extraction (``provenance.root``) is

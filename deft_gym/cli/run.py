@@ -2,7 +2,7 @@
 
     deft-gym run left_turn --reruns 10                # -> runs/run/left_turn
     python -m deft_gym.cli.run configs/scenarios/left_turn.yaml --reruns 10 --out runs/left_turn
-    deft-gym run handwritten gen:2000001 --reruns 2 --jitter-seed 11 --ads-config configs/ads/commonroad.yaml
+    deft-gym run handwritten gen:2000001-2000024 --reruns 2 --jitter-seed 11 --ads-config configs/ads/commonroad.yaml
                                                       # a suite -> runs/run/suite/<scenario>/ + suite.json
 
 Each rerun gets its own jitter seed (from the OS, or ``--jitter-seed S`` + rerun index for an
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -35,8 +36,8 @@ def build_parser() -> common.Parser:
     p = common.parser("run", "deft_gym.cli.run", __doc__)
     p.add_argument("scenario", nargs="+",
                    help="scenario name (configs/scenarios), YAML path, gen:<seed> spec, <group>/<name>, or a "
-                        "failure's replay_scenario.yaml (its jitter seed unless --jitter-seed); several, or a group "
-                        "name (handwritten), run as a suite")
+                        "failure's replay_scenario.yaml (its jitter seed unless --jitter-seed); several, a group "
+                        "name (handwritten) or a range gen:A-B run as a suite")
     p.add_argument("--reruns", type=common.int_range(1, 100_000), default=10, help="number of reruns")
     common.add_out(p, None, help="output folder (default: runs/run/<scenario>, runs/run/suite for several)")
     common.add_jitter_seed(p)
@@ -99,7 +100,7 @@ def _main(args: argparse.Namespace) -> int:
     from deft_gym.search.episode import load_replay
     from deft_gym.sim.simulation import build_planner
 
-    specs = expand_groups(list(args.scenario))
+    specs = expand_groups([g for spec in args.scenario for g in _generated_range(spec)])
     suite = len(specs) > 1
     runs: list[tuple[Any, dict[str, Any] | None]] = []  # (scenario, a failure's replay record)
     try:
@@ -127,6 +128,14 @@ def _main(args: argparse.Namespace) -> int:
     out = Path(args.out or common.RUNS / "run" / "suite")
     with common.locked_out(out):
         return _suite(args, console, runs, ads, out)
+
+
+def _generated_range(spec: str) -> list[str]:
+    """``gen:A-B`` as ``gen:A`` ... ``gen:B``; any other spec as itself."""
+    m = re.fullmatch(r"gen:(\d+)-(\d+)", spec)
+    if m is None or int(m[2]) < int(m[1]):
+        return [spec]
+    return [f"gen:{seed}" for seed in range(int(m[1]), int(m[2]) + 1)]
 
 
 def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[str, Any] | None]], ads: Any,

@@ -172,3 +172,30 @@ def test_a_plan_into_the_oncoming_lane_gets_a_driving_direction_test(tmp_path: P
     _, outcomes, _ = run_pytest(res.test_path.parent, "-k", "keeps_to_its_side_of_the_road",
                                 env={"DEFT_PLANNER": "deft_gym.planner.lattice:LatticePlanner"})
     assert list(outcomes.values()) == ["passed"]
+
+
+def test_a_stuck_run_gets_a_test_that_the_planner_plans_progress(tmp_path: Path) -> None:
+    """P_stall: a planner that plans standstills from 2 s on (tests.support's StallingPlanner)
+    leaves the ego stuck on lane_follow_static's free road (the episode oracle: stuck after 4 s);
+    the extraction finds the first plan of the standing run that ends the log, and its generated
+    test fails every time on that planner and passes on the reference planner, which drives on."""
+    from deft_gym.scenarios.scenario import load_scenario, scenario_from_dict, scenario_to_dict
+    from tests.support.extract_support import record
+
+    data = scenario_to_dict(load_scenario("lane_follow_static"))
+    data.update(duration=12.0, stuck_time=4.0, name="lane_follow_static_stall")
+    log = record(tmp_path / "log", scenario_from_dict(data, source="test"), seed=7,
+                 planner_class="tests.support.extract_support:StallingPlanner")
+    res = extract_episode(log, tmp_path / "tests")
+    header = json.loads(res.frames_path.read_text().splitlines()[0])
+    assert header["outcome"] == "stuck"
+    stall = header["oracle"]["stall"]
+    assert 2.0 <= stall["time"] < 2.3 and stall["travel"] < stall["limit"] == 0.5 and stall["standing_plans"] >= 30
+    for _ in range(3):
+        _, outcomes, log_text = run_pytest(res.test_path.parent)
+        assert [v for k, v in outcomes.items() if "plans_progress" in k] == ["failed"], log_text[-1500:]
+        assert all(v == "passed" for v in _reproduction(outcomes).values())
+        assert "still leaves the ego standing" in log_text
+    _, outcomes, _ = run_pytest(res.test_path.parent, "-k", "plans_progress",
+                                env={"DEFT_PLANNER": "deft_gym.planner.lattice:LatticePlanner"})
+    assert list(outcomes.values()) == ["passed"]

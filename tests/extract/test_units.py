@@ -290,3 +290,19 @@ def test_p_wrong_way_is_the_first_plan_of_the_run_that_took_the_ego_against_the_
     assert find_wrong_way(outs[:5], lanes) is None  # the ego never started a plan wrong-way
     drifted = [*outs[:3], (3, 0.3, plan(-2.5, 0.0))]  # there, but no plan before took it there
     assert find_wrong_way(drifted, lanes) is None and find_wrong_way(outs, []) is None
+
+
+def test_p_stall_is_the_first_of_the_standing_plans_that_end_a_stuck_run() -> None:
+    """A plan stands when its path is shorter than 0.5 m; P_stall is the first of the unbroken run
+    of standing plans at the end of the outputs (an earlier standstill that moved on is not it);
+    none when the last plan moves."""
+    from extract.oracle import find_stall, planned_travel
+
+    def plan(length: float) -> dict:
+        return {"trajectory": {"x": [0.0, length / 2, length], "y": [0.0, 0.0, 0.0], "t": [0, 1, 2]}}
+
+    assert planned_travel(plan(3.0)["trajectory"]) == 3.0 and planned_travel({}) == 0.0
+    outs = [(k, k / 10, plan(length)) for k, length in enumerate([5.0, 0.1, 0.0, 4.0, 0.4, 0.0, 0.2])]
+    stall = find_stall(outs)
+    assert stall is not None and (stall["index"], stall["standing_plans"], stall["last_time"]) == (4, 3, 0.6)
+    assert stall["travel"] == 0.4 and find_stall(outs[:4]) is None

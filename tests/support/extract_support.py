@@ -149,3 +149,21 @@ class OncomingPlanner(LatticePlanner):
             tr["x"][k] += math.sin(h) * d  # highway-env's y points to the right of heading 0
             tr["y"][k] -= math.cos(h) * d
         return out
+
+
+class StallingPlanner(LatticePlanner):
+    """A deliberately broken planner: from ``STALL_FROM`` s on, every plan brakes the ego to a
+    stop where it is (all points at the first, speed 0) on whatever road lies ahead."""
+
+    STALL_FROM = 2.0  # [s]
+
+    def plan(self, frame: Any) -> dict[str, Any] | None:
+        out = super().plan(frame)
+        if out is None or frame.time < self.STALL_FROM:
+            return out
+        tr = out["trajectory"]
+        for key in ("x", "y", "heading"):
+            tr[key] = [tr[key][0]] * len(tr[key])
+        tr["v"] = [0.0] * len(tr["v"])
+        tr["a"] = [0.0] * len(tr["a"])
+        return out
