@@ -132,39 +132,37 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
             problem = EPISODE.faulty_hit(index)
             assert problem is None, problem
         '''
-    if departure:
+    for oracle, test, doc in _more_failure_tests(departure, stall, wrong_way):
         src += f'''
 
-        @pytest.mark.parametrize("index", EPISODE.departure_cases())
-        def test_{name}_keeps_to_the_optimal_path(index: int) -> None:
-            """Non-optimal decision: fails while the planner still plans the ego off the optimal
-            path the run was judged against (P_departure, the plan that took it off); passes
-            once it keeps within half a lane of it."""
-            problem = EPISODE.departure_problem(index)
-            assert problem is None, problem
-        '''
-    if stall:
-        src += f'''
-
-        @pytest.mark.parametrize("index", EPISODE.stall_cases())
-        def test_{name}_plans_progress(index: int) -> None:
-            """Stuck: fails while the planner still leaves the ego standing where the
-            system-level run stood stuck to its end, no light holding it (P_stall, the first of
-            those plans: a path shorter than {stall['limit']:g} m); passes once it plans on.
-            Whether standing there was wrong is the reader's call."""
-            problem = EPISODE.stall_problem(index)
-            assert problem is None, problem
-        '''
-    if wrong_way:
-        src += f'''
-
-        @pytest.mark.parametrize("index", EPISODE.wrong_way_cases())
-        def test_{name}_keeps_to_its_side_of_the_road(index: int) -> None:
-            """Driving direction: fails while the planner still plans the ego into lanes that all
-            point against it for {wrong_way['limit']:g} m or more (P_wrong_way, the plan that took it
-            there); passes once it keeps to lanes of its own direction."""
-            problem = EPISODE.wrong_way_problem(index)
+        @pytest.mark.parametrize("index", EPISODE.{oracle}_cases())
+        def test_{name}_{test}(index: int) -> None:
+            """{doc}"""
+            problem = EPISODE.{oracle}_problem(index)
             assert problem is None, problem
         '''
     return textwrap.dedent(src)
 
+
+def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] | None,
+                        wrong_way: dict[str, Any] | None) -> list[tuple[str, str, str]]:
+    """``(oracle, test name, docstring)`` of each failure test but P_faulty's that the episode has
+    (its ``EpisodeReplay`` methods are ``<oracle>_cases`` and ``<oracle>_problem``)."""
+    tests = []
+    if departure:
+        tests.append(("departure", "keeps_to_the_optimal_path",
+                      "Non-optimal decision: fails while the planner still plans the ego off the optimal\n"
+                      "            path the run was judged against (P_departure, the plan that took it off); passes\n"
+                      "            once it keeps within half a lane of it."))
+    if stall:
+        tests.append(("stall", "plans_progress",
+                      "Stuck: fails while the planner still leaves the ego standing where the\n"
+                      "            system-level run stood stuck to its end, no light holding it (P_stall, the first of\n"
+                      f"            those plans: a path shorter than {stall['limit']:g} m); passes once it plans on.\n"
+                      "            Whether standing there was wrong is the reader's call."))
+    if wrong_way:
+        tests.append(("wrong_way", "keeps_to_its_side_of_the_road",
+                      "Driving direction: fails while the planner still plans the ego into lanes that all\n"
+                      f"            point against it for {wrong_way['limit']:g} m or more (P_wrong_way, the plan that\n"
+                      "            took it there); passes once it keeps to lanes of its own direction."))
+    return tests

@@ -181,30 +181,21 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     findings["after_lost_outputs"] = len(after_lost)
     faulty, oracle, oracle_note = _oracle(elog, mp, outcome, choices, distances, reproduced, ego, theta,
                                           minimize if minimize_failure and engine.hang is None else None)
-    departure = _departure(elog, mp, choices)
-    if departure is not None:  # its test starts where P_faulty's would: seeded, else the shortest suffix
-        dep = departure["departure"]
-        if minimize_failure and engine.hang is None and reproduced[dep["index"]] and choices[dep["index"]].exact:
-            dep["replay_from"], dep_seed = minimize(dep["index"])
-            if dep_seed is not None:
-                departure["departure_seed"] = dep_seed
-        oracle = {**oracle, **departure}
-    stall = find_stall([(c.output.index, c.time, c.output.payload) for c in choices]) \
-        if isinstance(outcome, dict) and outcome.get("outcome") == "stuck" else None
-    if stall is not None:  # its test starts as P_departure's does
-        if minimize_failure and engine.hang is None and reproduced[stall["index"]] and choices[stall["index"]].exact:
-            stall["replay_from"], stall_seed = minimize(stall["index"])
-            if stall_seed is not None:
-                oracle = {**oracle, "stall_seed": stall_seed}
-        oracle = {**oracle, "stall": stall}
-    wrong_way = _wrong_way(elog, mp, choices)
-    if wrong_way is not None:  # its test starts as P_departure's does
-        ww = wrong_way["wrong_way"]
-        if minimize_failure and engine.hang is None and reproduced[ww["index"]] and choices[ww["index"]].exact:
-            ww["replay_from"], ww_seed = minimize(ww["index"])
-            if ww_seed is not None:
-                wrong_way["wrong_way_seed"] = ww_seed
-        oracle = {**oracle, **wrong_way}
+    outputs = [(c.output.index, c.time, c.output.payload) for c in choices]
+    stuck = isinstance(outcome, dict) and outcome.get("outcome") == "stuck"
+    # the other failure tests start where P_faulty's would: a seeded planner, else the shortest suffix
+    for key, found in (("departure", _departure(elog, mp, choices)),
+                       ("stall", {"stall": find_stall(outputs)} if stuck else None),
+                       ("wrong_way", _wrong_way(elog, mp, outputs))):
+        if found is None or found[key] is None:
+            continue
+        target = found[key]
+        i = target["index"]
+        if minimize_failure and engine.hang is None and reproduced[i] and choices[i].exact:
+            target["replay_from"], seed = minimize(i)
+            if seed is not None:
+                found[f"{key}_seed"] = seed
+        oracle = {**oracle, **found}
 
     header = {
         "format": FORMAT, "planner": planner_spec, "roles": list(pif.roles), "scenario": scenario,
@@ -452,14 +443,15 @@ def _departure(elog: EpisodeLog, mp: TopicMapping, choices: list[FrameChoice]) -
     return {"optimal_path": {"x": meta["x"], "y": meta["y"], "limit": limit}, "departure": dep}
 
 
-def _wrong_way(elog: EpisodeLog, mp: TopicMapping, choices: list[FrameChoice]) -> dict[str, Any] | None:
+def _wrong_way(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]]) -> dict[str, Any] | None:
     """The oracle of driving against the lane direction (``wrong_way``, P_wrong_way, with the lanes
     it is judged on, ``wrong_way_map``) when the log holds the road map (the mapping's ``map``
-    role, whether or not the planner reads it) and one of the plans took the ego into lanes that
-    all point against it for at least :data:`~extract.oracle.WRONG_WAY_LIMIT` m; else None."""
+    role, whether or not the planner reads it) and one of the plans ``(index, time, payload)`` took
+    the ego into lanes that all point against it for at least :data:`~extract.oracle.WRONG_WAY_LIMIT`
+    m; else None."""
     msgs = elog.topics.get(mp.topic("map") or "")
     lanes = map_lanes(msgs.payload(0) if msgs is not None and len(msgs) else None)
-    ww = find_wrong_way([(c.output.index, c.time, c.output.payload) for c in choices], lanes)
+    ww = find_wrong_way(outputs, lanes)
     if ww is None:
         return None
     return {"wrong_way": ww, "wrong_way_map": {"lanes": [{"x": xy[:, 0].tolist(), "y": xy[:, 1].tolist(),
