@@ -272,6 +272,21 @@ def section_run(page: Page, folder: Path, s: dict[str, Any]) -> str:
             f"may too.</p>{body}" + (cards(items, len(coll)) if items else ""))
 
 
+def section_suite(doc: dict[str, Any]) -> str:
+    """A suite's table (``deft-gym run`` with several scenarios): one row per scenario."""
+    rows = doc.get("scenarios") or []
+    failing = sum(1 for r in rows if r.get("confirmed") or r.get("failed_every_rerun"))
+    head = kpis([("scenarios", len(rows)), ("reruns each", doc.get("reruns", "?")),
+                 ("failed in every rerun", f"{failing} of {len(rows)}")])
+    body = table(["scenario", "outcomes", "violated in every rerun", "in some reruns", "comfort", "mean score"],
+                 [[r.get("scenario"), ", ".join(r.get("outcomes") or []), ", ".join(r.get("confirmed") or []),
+                   ", ".join(r.get("some_reruns") or []), "every rerun" if r.get("comfort_every_rerun") else "",
+                   "-" if r.get("mean_score") is None else f"{r['mean_score']:.3f}"] for r in rows])
+    return (f"<h2>Suite: {len(rows)} scenarios</h2>{head}"
+            '<p class="note">Each scenario unmutated; a metric violated in every rerun is the planner\'s own '
+            "failure, confirmed across jitter seeds (docs/metrics.md). Each scenario's reruns follow.</p>" + body)
+
+
 def _scenario_arg(path: str | None, name: str) -> str:
     """How a replay command names a scenario file: ``configs/...`` for a shipped one (found from
     any folder), else its path as shown to users; the scenario's name without a file."""
@@ -505,6 +520,8 @@ def build(root: Path, out: Path, draw: bool = True) -> Page:
     seen: list[tuple[str, Path]] = []
 
     def walk(folder: Path, depth: int) -> None:
+        if (folder / "suite.json").is_file():  # a suite of runs: its table, then each run
+            seen.append(("suite", folder))
         kind = kind_of(folder)
         if kind is not None:
             seen.append((kind, folder))
@@ -520,6 +537,8 @@ def build(root: Path, out: Path, draw: bool = True) -> Page:
         s = read_json(folder / "summary.json") or {}
         if kind == "demo":
             html_part = section_demo(page, folder, read_json(folder / "demo.json") or {})
+        elif kind == "suite":
+            html_part = section_suite(read_json(folder / "suite.json") or {})
         elif kind == "run":
             html_part = section_run(page, folder, s)
         elif kind == "extraction":

@@ -23,6 +23,11 @@ def test_a_suite_runs_each_scenario_once_and_tabulates_them(tmp_path: Path, caps
         assert summary["reruns"][0]["jitter_seed"] == 3
     printed = capsys.readouterr().out
     assert "violated in every rerun" in printed and "gen-1000001" in printed
+    from deft_gym.cli.report import write_report
+
+    html = write_report(out, draw=False).read_text()  # the suite's table first, then each scenario's reruns
+    assert html.index("Suite: 2 scenarios") < html.index("System-level reruns: lane_follow_static")
+    assert "failed in every rerun" in html and "gen-1000001" in html
     stamp = (out / "lane_follow_static" / "summary.json").stat().st_mtime_ns
     assert main(argv) == 0  # the same reruns and jitter seeds: kept, not run again
     assert "done before: kept" in capsys.readouterr().out
