@@ -141,7 +141,8 @@ def _generated_range(spec: str) -> list[str]:
 def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[str, Any] | None]], ads: Any,
            out: Path) -> int:
     """Every scenario of a suite into ``out/<name>/``, then one row per scenario: outcomes, the
-    metrics every rerun violated, the mean score (``out/suite.json``)."""
+    metrics every rerun violated, the mean score and, for a failing one, the plot of its first
+    rerun (unless ``--render none``) (``out/suite.json``)."""
     names: dict[str, int] = {}
     rows = []
     for k, (scenario, eq) in enumerate(runs):
@@ -153,7 +154,10 @@ def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[st
         if done is None:
             _reruns(args, console, scenario, ads, folder, eq, verbose=False)
             done = json.loads((folder / "summary.json").read_text())
-        rows.append(suite_row(done, folder))
+        row = suite_row(done, folder)
+        if (row["confirmed"] or row["failed_every_rerun"]) and args.render != "none":
+            row["plot"] = _draw_failure(folder / "0" / "episode.mcap")
+        rows.append(row)
     doc = {"scenarios": rows, "reruns": args.reruns, "jitter_seed": args.jitter_seed,
            "ads_config": str(args.ads_config or ""), "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
     write_atomic(out / "suite.json", json.dumps(doc, indent=2))
@@ -162,6 +166,20 @@ def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[st
     console.print(f"{failing} of {len(rows)} scenarios failed in every rerun (an outcome other than completed, or a "
                   f"violated metric but comfort); wrote {common.shown(out / 'suite.json')}", soft_wrap=True)
     return 0
+
+
+def _draw_failure(log: Path) -> str | None:
+    """The plot of a failing suite scenario's first rerun (``plot.png`` beside its log; kept when
+    it is there), else None when the log cannot be drawn."""
+    from deft_gym.viz.episode import render_log
+
+    plot = log.parent / "plot.png"
+    if not plot.is_file() and log.is_file():
+        try:
+            render_log(log, video=False)
+        except (OSError, ValueError):
+            return None
+    return str(plot) if plot.is_file() else None
 
 
 def _done_before(path: Path, scenario: Any, args: argparse.Namespace) -> dict[str, Any] | None:

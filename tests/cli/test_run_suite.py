@@ -34,6 +34,25 @@ def test_a_suite_runs_each_scenario_once_and_tabulates_them(tmp_path: Path, caps
     assert (out / "lane_follow_static" / "summary.json").stat().st_mtime_ns == stamp
 
 
+def test_a_failing_scenario_of_a_suite_is_drawn(tmp_path: Path) -> None:
+    """A scenario that fails in every rerun (lane_follow_static cut to 3 s: it times out) gets the
+    plot of its first rerun in its row; a passing one none."""
+    import yaml
+
+    from deft_gym.scenarios.scenario import load_scenario, scenario_to_dict
+
+    data = scenario_to_dict(load_scenario("lane_follow_static"))
+    data.update(duration=3.0, name="too_short")
+    path = tmp_path / "too_short.yaml"
+    path.write_text(yaml.safe_dump(data))
+    out = tmp_path / "suite"
+    assert main([str(path), "lane_follow_static", "--reruns", "1", "--jitter-seed", "5", "--render", "failures",
+                 "--out", str(out), "--no-progress"]) == 0
+    rows = {r["scenario"]: r for r in json.loads((out / "suite.json").read_text())["scenarios"]}
+    assert rows["too_short"]["outcomes"] == ["timeout"] and rows["too_short"]["failed_every_rerun"]
+    assert Path(rows["too_short"]["plot"]).is_file() and "plot" not in rows["lane_follow_static"]
+
+
 def test_a_row_confirms_only_what_every_rerun_violated(tmp_path: Path) -> None:
     summary = {"scenario": "x", "metrics": {"mean_score": 0.4}, "reruns": [
         {"outcome": "stuck", "metrics": {"violations": ["standstill", "comfort", "ttc"]}},
