@@ -184,7 +184,7 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     outputs = [(c.output.index, c.time, c.output.payload) for c in choices]
     stuck = isinstance(outcome, dict) and outcome.get("outcome") == "stuck"
     # the other failure tests start where P_faulty's would: a seeded planner, else the shortest suffix
-    for key, found in (("departure", _departure(elog, mp, choices)),
+    for key, found in (("departure", _departure(elog, mp, outputs)),
                        ("stall", {"stall": find_stall(outputs)} if stuck else None),
                        ("wrong_way", _wrong_way(elog, mp, outputs))):
         if found is None or found[key] is None:
@@ -427,16 +427,15 @@ def _oracle(elog: EpisodeLog, mp: TopicMapping, outcome: dict[str, Any], choices
     return faulty, oracle, note
 
 
-def _departure(elog: EpisodeLog, mp: TopicMapping, choices: list[FrameChoice]) -> dict[str, Any] | None:
+def _departure(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]]) -> dict[str, Any] | None:
     """The oracle of a non-optimal decision (``optimal_path`` and ``departure``, P_departure) when
-    the log carries the optimal path it was judged against (a search run's log) and a plan took
-    the ego off it; else None."""
+    the log carries the optimal path it was judged against (a search run's log) and one of the
+    plans ``(index, time, payload)`` took the ego off it; else None."""
     meta = elog.metadata.get(mp.optimal_path_metadata or "")
     found = optimal_path(meta)
     if found is None:
         return None
     path, limit = found
-    outputs = [(c.output.index, c.time, c.output.payload) for c in choices]
     dep = find_departure(outputs, path, limit)
     if dep is None:
         return None

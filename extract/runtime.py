@@ -355,12 +355,17 @@ class EpisodeReplay:
         return None
 
     # -- the non-optimal-decision test ---------------------------------------------------------
-    def departure_cases(self) -> list[Any]:
-        """The P_departure frame as one ``pytest.param`` named by frame and time."""
+    def _oracle_case(self, key: str, what: str) -> list[Any]:
+        """The frame of the header's oracle ``key`` (P_departure, P_wrong_way, P_stall) as one
+        ``pytest.param`` named by frame, time and ``what``; none when the episode has no such oracle."""
         import pytest
 
-        d = self.header.get("oracle", {}).get("departure")
-        return [pytest.param(d["index"], id=f"{frame_id(d['index'], d['time'])}-off-path")] if d else []
+        o = self.header.get("oracle", {}).get(key)
+        return [pytest.param(o["index"], id=f"{frame_id(o['index'], o['time'])}-{what}")] if o else []
+
+    def departure_cases(self) -> list[Any]:
+        """The P_departure frame as one ``pytest.param`` named by frame and time."""
+        return self._oracle_case("departure", "off-path")
 
     def departure_problem(self, index: int) -> str | None:
         """Why the replayed output of frame ``index`` still leaves the optimal path, or None."""
@@ -380,14 +385,10 @@ class EpisodeReplay:
                 f"(t={self.frame(index)['time']:.3f} s) plans the ego at ({tr['x'][k]!r}, {tr['y'][k]!r}) at "
                 f"t={tr['t'][k]!r} s, {dist:.2f} m from the optimal path (limit {limit:.2f} m)")
 
-
     # -- the driving-direction test ----------------------------------------------------------------
     def wrong_way_cases(self) -> list[Any]:
         """The P_wrong_way frame as one ``pytest.param`` named by frame and time."""
-        import pytest
-
-        w = self.header.get("oracle", {}).get("wrong_way")
-        return [pytest.param(w["index"], id=f"{frame_id(w['index'], w['time'])}-wrong-way")] if w else []
+        return self._oracle_case("wrong_way", "wrong-way")
 
     def wrong_way_problem(self, index: int) -> str | None:
         """Why the replayed output of frame ``index`` still plans the ego against the lane direction
@@ -409,14 +410,10 @@ class EpisodeReplay:
                 f"against it (limit {float(w['limit']):.2f} m), from ({tr['x'][k]!r}, {tr['y'][k]!r}) at "
                 f"t={tr['t'][k]!r} s")
 
-
     # -- the stuck test ----------------------------------------------------------------------------
     def stall_cases(self) -> list[Any]:
         """The P_stall frame as one ``pytest.param`` named by frame and time."""
-        import pytest
-
-        w = self.header.get("oracle", {}).get("stall")
-        return [pytest.param(w["index"], id=f"{frame_id(w['index'], w['time'])}-stands")] if w else []
+        return self._oracle_case("stall", "stands")
 
     def stall_problem(self, index: int) -> str | None:
         """Why the replayed output of frame ``index`` still leaves the ego standing (a planned path

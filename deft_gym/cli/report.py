@@ -275,7 +275,7 @@ def section_run(page: Page, folder: Path, s: dict[str, Any]) -> str:
 def section_suite(doc: dict[str, Any]) -> str:
     """A suite's table (``deft-gym run`` with several scenarios): one row per scenario."""
     rows = doc.get("scenarios") or []
-    failing = sum(1 for r in rows if r.get("confirmed") or r.get("failed_every_rerun"))
+    failing = sum(bool(r.get("failing")) for r in rows)
     head = kpis([("scenarios", len(rows)), ("reruns each", doc.get("reruns", "?")),
                  ("failed in every rerun", f"{failing} of {len(rows)}")])
     body = table(["scenario", "outcomes", "violated in every rerun", "in some reruns", "comfort", "mean score"],

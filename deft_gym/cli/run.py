@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 import time
 from pathlib import Path
@@ -100,10 +99,10 @@ def _main(args: argparse.Namespace) -> int:
     from deft_gym.search.episode import load_replay
     from deft_gym.sim.simulation import build_planner
 
-    specs = expand_groups([g for spec in args.scenario for g in _generated_range(spec)])
-    suite = len(specs) > 1
     runs: list[tuple[Any, dict[str, Any] | None]] = []  # (scenario, a failure's replay record)
     try:
+        specs = expand_groups([g for spec in args.scenario for g in _generated_range(spec)])
+        suite = len(specs) > 1
         overrides = {"planning": {"publish_input_headers": True}} if args.headers else None
         ads = load_ads_config(args.ads_config, overrides)
         for spec in specs:
@@ -131,11 +130,17 @@ def _main(args: argparse.Namespace) -> int:
 
 
 def _generated_range(spec: str) -> list[str]:
-    """``gen:A-B`` as ``gen:A`` ... ``gen:B``; any other spec as itself."""
-    m = re.fullmatch(r"gen:(\d+)-(\d+)", spec)
-    if m is None or int(m[2]) < int(m[1]):
+    """``gen:A-B`` (or any seed list ``deft-gym generate --seeds`` takes) as ``gen:A`` ... ``gen:B``;
+    any other spec as itself. ValueError for a malformed list."""
+    from deft_gym.cli.generate import parse_seeds
+
+    head, sep, seeds = spec.partition(":")
+    if head != "gen" or not sep or seeds.isdigit():
         return [spec]
-    return [f"gen:{seed}" for seed in range(int(m[1]), int(m[2]) + 1)]
+    try:
+        return [f"gen:{seed}" for seed in parse_seeds(seeds)]
+    except ValueError as err:
+        raise ValueError(f"scenario {spec!r}: {err}") from None
 
 
 def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[str, Any] | None]], ads: Any,
@@ -155,14 +160,14 @@ def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[st
             _reruns(args, console, scenario, ads, folder, eq, verbose=False)
             done = json.loads((folder / "summary.json").read_text())
         row = suite_row(done, folder)
-        if (row["confirmed"] or row["failed_every_rerun"]) and args.render != "none":
+        if row["failing"] and args.render != "none":
             row["plot"] = _draw_failure(folder / "0" / "episode.mcap")
         rows.append(row)
     doc = {"scenarios": rows, "reruns": args.reruns, "jitter_seed": args.jitter_seed,
            "ads_config": str(args.ads_config or ""), "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
     write_atomic(out / "suite.json", json.dumps(doc, indent=2))
     common.print_table(console, _suite_table(rows, args.reruns))
-    failing = sum(1 for r in rows if r["confirmed"] or r["failed_every_rerun"])
+    failing = sum(r["failing"] for r in rows)
     console.print(f"{failing} of {len(rows)} scenarios failed in every rerun (an outcome other than completed, or a "
                   f"violated metric but comfort); wrote {common.shown(out / 'suite.json')}", soft_wrap=True)
     return 0
@@ -199,15 +204,18 @@ def _done_before(path: Path, scenario: Any, args: argparse.Namespace) -> dict[st
 def suite_row(summary: dict[str, Any], folder: Path) -> dict[str, Any]:
     """One scenario of a suite from its ``summary.json``: outcomes, the metrics every rerun
     violated (``confirmed``; comfort apart, since it is reported, not a failure by itself) and
-    those only some did, the mean score."""
+    those only some did, the mean score; ``failing``: an outcome other than completed in every
+    rerun, or a confirmed metric."""
     reruns = summary.get("reruns", [])
     outcomes = [str(r.get("outcome")) for r in reruns]
     viols = [set((r.get("metrics") or {}).get("violations") or []) for r in reruns]
     every = set.intersection(*viols) if viols else set()
     some = set.union(*viols) - every if viols else set()
+    failed_every_rerun = bool(outcomes) and all(o != "completed" for o in outcomes)
+    confirmed = sorted(every - {"comfort"})
     return {"scenario": summary.get("scenario"), "folder": str(folder), "outcomes": outcomes,
-            "failed_every_rerun": bool(outcomes) and all(o != "completed" for o in outcomes),
-            "confirmed": sorted(every - {"comfort"}), "comfort_every_rerun": "comfort" in every,
+            "failed_every_rerun": failed_every_rerun, "confirmed": confirmed,
+            "failing": failed_every_rerun or bool(confirmed), "comfort_every_rerun": "comfort" in every,
             "some_reruns": sorted(some), "mean_score": (summary.get("metrics") or {}).get("mean_score")}
 
 
