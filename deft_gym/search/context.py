@@ -18,7 +18,14 @@ from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.config import ConfigError, resolve_config_path
 from deft_gym.planner.base import import_object
 from deft_gym.scenarios.generate import resolve as resolve_generated
-from deft_gym.scenarios.scenario import Scenario, group_path, list_scenarios, load_scenario
+from deft_gym.scenarios.scenario import (
+    SCENARIO_GROUPS,
+    Scenario,
+    group_path,
+    group_scenarios,
+    list_scenarios,
+    load_scenario,
+)
 from deft_gym.search.feasible import FeasibleConfig, MotionAreas, motion_areas
 from deft_gym.search.nods import DecisionOracle
 from deft_gym.search.refpath import RefPath
@@ -68,7 +75,9 @@ def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRE
         return load_scenario(path)
     names = [p.stem for p in list_scenarios()]
     if text not in names:
-        raise ConfigError(f"scenario {text!r}: not a file and not one of {names}")
+        grouped_as = [f"{g}/{text}" for g in SCENARIO_GROUPS if f"{g}/{text}" in group_scenarios(g)]
+        hint = f"; did you mean {grouped_as[0]!r}?" if grouped_as else ""
+        raise ConfigError(f"scenario {text!r}: not a file and not one of {names}{hint}")
     return load_scenario(text)
 
 

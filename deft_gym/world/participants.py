@@ -301,6 +301,8 @@ class ReactiveVehicle(IDMVehicle):
     def step(self, dt: float) -> None:
         self.timer += dt
         bicycle_step(self, dt)
+        if self.speed < 0.0:  # IDM brakes to a standstill, never into reverse (highway-env's lets speed go
+            self.speed = 0.0  # negative when a leader is nearer than the standstill gap)
 
     def clip_actions(self) -> None:
         a = self.action

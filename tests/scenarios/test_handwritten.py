@@ -39,6 +39,14 @@ def test_every_handwritten_scenario_loads_and_resolves() -> None:
     assert not names & {p.stem for p in list_scenarios()}  # no clash with a seed name
 
 
+def test_a_bare_handwritten_name_is_answered_with_its_group_spelling() -> None:
+    with pytest.raises(ConfigError, match="did you mean 'handwritten/stalled_car'"):
+        resolve_scenario("stalled_car")
+    with pytest.raises(ConfigError, match=r"not one of \[") as err:
+        resolve_scenario("no_such_scenario")
+    assert "did you mean" not in str(err.value)
+
+
 def test_group_is_not_a_seed_and_expands_in_the_evaluation() -> None:
     assert all(p.parent == SCENARIO_DIR for p in list_scenarios())  # the seeds stay the top-level files
     assert expand_groups(["left_turn", "handwritten", "left_turn"]) == ["left_turn", *HANDWRITTEN]

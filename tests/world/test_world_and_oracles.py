@@ -304,3 +304,23 @@ def test_standing_counts_what_a_shorter_stuck_time_would_end() -> None:
     assert (c["ended"], c["failures"], c["completed"]) == (2, 0, 0)
     assert c["saved"] == pytest.approx((15.0 + 30.0) / 120.0)
     assert shorter_rule(rows, 1.0)["failures"] == 1 and shorter_rule(rows, 30.0)["ended"] == 0
+
+
+def test_a_reactive_vehicle_too_close_to_a_standing_leader_does_not_reverse() -> None:
+    """IDM's acceleration is negative at a standstill when the gap is below its standstill gap;
+    highway-env then lets the speed go negative (a car rolled back at -1.7 m/s into the ego on
+    gen:2000003). Ours stands."""
+    data = scenario_to_dict(load_scenario(SCENARIOS / "handwritten" / "stalled_car.yaml"))
+    data["participants"] = [
+        {"id": "parked", "type": "static", "obstacle": "STATIC_VEHICLE", "lane": ["a", "b", 2], "s": 100.0},
+        {"id": "close", "type": "reactive", "lane": ["a", "b", 2], "s": 94.0, "speed": 0.0,
+         "target_speed": 10.0, "lane_change": False}]
+    world = build_world(scenario_from_dict(data, source="close"))
+    car = next(p.obj for p in world.participants if p.id == "close")
+    start = car.position.copy()
+    speeds = []
+    for _ in range(60):  # 3 s
+        world.step(0.05, 0.0, 0.0)
+        speeds.append(car.speed)
+    assert min(speeds) == 0.0  # IDM braked it (into reverse, before the fix)
+    assert car.position[0] >= start[0] - 1e-9
