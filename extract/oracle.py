@@ -14,6 +14,7 @@ reproduced output in the generated failure tests (:mod:`extract.runtime`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -354,15 +355,31 @@ def planned_travel(trajectory: Mapping[str, Any]) -> float:
 
 
 def find_stall(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], limit: float = STALL_LIMIT) -> dict[str, Any] | None:
-    """P_stall, the plan that left a stuck ego standing: the first of the unbroken run of plans at
-    the end of the episode whose paths are each shorter than ``limit`` (for an episode the
-    simulation ended as ``stuck``: the ego stood, no light holding it). None when the last plan
-    moves (the vehicle did not follow it)."""
-    k = len(outputs)
-    while k > 0 and planned_travel(outputs[k - 1][2].get("trajectory") or {}) < limit:
-        k -= 1
-    if k == len(outputs):
+    """P_stall, the plan that left a stuck ego standing: the first plan shorter than ``limit``
+    (its path) of the stretch at the end of the episode in which every plan stands, or moves but
+    was never followed - the ego stood where that plan starts until the end (a planner that
+    flickers between a standstill and a plan it drops at the next cycle). For an episode the
+    simulation ended as ``stuck``: the ego stood, no light holding it. None when no plan of that
+    stretch stands."""
+    def start(k: int) -> tuple[float, float] | None:
+        tr = outputs[k][2].get("trajectory") or {}
+        return (float(tr["x"][0]), float(tr["y"][0])) if tr.get("x") and tr.get("y") else None
+
+    if not outputs:
         return None
-    index, t, out = outputs[k]
+    end = start(len(outputs) - 1)
+    k = len(outputs)
+    while k > 0:
+        tr = outputs[k - 1][2].get("trajectory") or {}
+        s = start(k - 1)
+        followed = s is None or end is None or math.hypot(s[0] - end[0], s[1] - end[1]) >= limit
+        if planned_travel(tr) >= limit and followed:
+            break
+        k -= 1
+    standing = [i for i in range(k, len(outputs)) if planned_travel(outputs[i][2].get("trajectory") or {}) < limit]
+    if not standing:
+        return None
+    index, t, out = outputs[standing[0]]
     return {"index": int(index), "time": float(t), "travel": planned_travel(out.get("trajectory") or {}),
-            "limit": float(limit), "standing_plans": len(outputs) - k, "last_time": float(outputs[-1][1])}
+            "limit": float(limit), "standing_plans": len(standing),
+            "dropped_plans": len(outputs) - standing[0] - len(standing), "last_time": float(outputs[-1][1])}

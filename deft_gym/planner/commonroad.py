@@ -572,9 +572,10 @@ class CommonRoadPlanner(Planner):
                       co: Any, lane: LaneKey, v0: float) -> tuple[str, str, float | None, float, int]:
         """``(mode, what it stops for, desired stop position [s of the rear axle], desired speed,
         leader id or -1)``: stopping mode for the nearest stop point on the reference (a red light,
-        or the rear of the queue before it; a yellow one it can stop for; the destination) once it is
-        within ``stop_engage`` or half the horizon at the current speed ("hold" at or past a red light's
-        stop position below ``red_hold_speed``), else velocity keeping at the
+        or the rear of the queue before it; a yellow one it can still stop before at ``yellow_decel``;
+        the destination) once it is within ``stop_engage`` or half the horizon at the current speed
+        (past a light's stop position: where ``yellow_decel`` stops it; "hold" there below
+        ``red_hold_speed``), else velocity keeping at the
         cruise speed capped by the speed limits, the curves, a moving leader and the lights it stops
         for (as for a standing leader at the stop position)."""
         p = self.p
@@ -605,14 +606,13 @@ class CommonRoadPlanner(Planner):
             if queue:
                 s_stop = min(s_stop, s_ego + queue[0] - p.stop_gap)
             gap = s_stop - s_ego
-            if gap < -0.5 * p.stop_gap - 1.0:
-                if colour == "RED" and v0 < p.red_hold_speed and s_ego + to_front < s_line + p.ego_length:
+            to_line = s_line - to_front - s_ego  # the front's distance to the line
+            if colour == "YELLOW" and (to_line <= 0.0 or v0 * v0 > 2.0 * p.yellow_decel * to_line):
+                continue  # on or over the line, or too late to stop before it: go
+            if gap < -0.5 * p.stop_gap - 1.0 and colour == "RED":
+                if v0 < p.red_hold_speed and s_ego + to_front < s_line + p.ego_length:
                     stops.append((s_ego, "RED_LIGHT"))  # overshot the line, all but stopped: stay
                 continue  # past it
-            if colour == "YELLOW" and gap > 0 and v0 * v0 > 2.0 * p.yellow_decel * gap:
-                continue  # too late to stop for a yellow
-            if colour == "YELLOW" and gap <= 0:
-                continue
             stops.append((s_stop, "RED_LIGHT" if colour == "RED" else "YELLOW_LIGHT"))
             if colour == "RED":  # approached as a standing leader: the desired speed falls to 0 at the stop
                 v_des = min(v_des, math.sqrt(max(2.0 * p.comfort_decel * (gap - v0 * p.lag), 0.0)))
@@ -625,10 +625,14 @@ class CommonRoadPlanner(Planner):
         if stops:
             s_stop, what = min(stops)
             gap = s_stop - s_ego
-            if what == "RED_LIGHT" and gap <= 0.0 and v0 < p.red_hold_speed:
+            light = what in ("RED_LIGHT", "YELLOW_LIGHT")
+            if light and gap <= 0.0 and v0 < p.red_hold_speed:
                 return "hold", what, s_ego, 0.0, leader  # the library's stop samples reach 1 m on: it would creep
             if gap <= max(p.stop_engage, 0.5 * v0 * p.dt * p.time_steps):
-                return "stopping", what, max(s_stop, s_ego), 0.0, leader
+                # past the stop position, still rolling: stop where yellow_decel brings it (the library
+                # finds no stop at its own position and the previous, moving plan would run the light)
+                reach = s_ego + v0 * v0 / (2.0 * p.yellow_decel) if light else s_ego
+                return "stopping", what, max(s_stop, reach), 0.0, leader
         return "velocity_keeping", "", None, v_des, leader
 
     def _corridor(self, frame: Frame, co: Any, s_front: float) -> list[tuple[float, int, float, bool, str]]:

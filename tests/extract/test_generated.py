@@ -199,3 +199,10 @@ def test_a_stuck_run_gets_a_test_that_the_planner_plans_progress(tmp_path: Path)
     _, outcomes, _ = run_pytest(res.test_path.parent, "-k", "plans_progress",
                                 env={"DEFT_PLANNER": "deft_gym.planner.lattice:LatticePlanner"})
     assert list(outcomes.values()) == ["passed"]
+    # taken apart at its first frame (deft_gym.experiments.stalls): on the road, replayed as recorded
+    from deft_gym.experiments.stalls import take_apart
+
+    row = take_apart(res.frames_path.parent, [])
+    assert row is not None and row["frame"] == stall["index"] and row["speed"] > 0.0
+    assert row["outside_lanes_m2"] == 0.0
+    assert row["variants"][0]["decision"] == row["recorded"] != "no output"

@@ -293,16 +293,25 @@ def test_p_wrong_way_is_the_first_plan_of_the_run_that_took_the_ego_against_the_
 
 
 def test_p_stall_is_the_first_of_the_standing_plans_that_end_a_stuck_run() -> None:
-    """A plan stands when its path is shorter than 0.5 m; P_stall is the first of the unbroken run
-    of standing plans at the end of the outputs (an earlier standstill that moved on is not it);
-    none when the last plan moves."""
+    """A plan stands when its path is shorter than 0.5 m; P_stall is the first standing plan of the
+    stretch that ends the outputs in which every plan stands or was dropped unfollowed (the ego
+    stood where it starts until the end): an earlier standstill that moved on is not it, a moving
+    plan flickered in between does not end the stretch; none when no plan of the stretch stands."""
     from extract.oracle import find_stall, planned_travel
 
-    def plan(length: float) -> dict:
-        return {"trajectory": {"x": [0.0, length / 2, length], "y": [0.0, 0.0, 0.0], "t": [0, 1, 2]}}
+    def plan(x0: float, length: float) -> dict:
+        return {"trajectory": {"x": [x0, x0 + length / 2, x0 + length], "y": [0.0, 0.0, 0.0], "t": [0, 1, 2]}}
 
-    assert planned_travel(plan(3.0)["trajectory"]) == 3.0 and planned_travel({}) == 0.0
-    outs = [(k, k / 10, plan(length)) for k, length in enumerate([5.0, 0.1, 0.0, 4.0, 0.4, 0.0, 0.2])]
+    assert planned_travel(plan(0.0, 3.0)["trajectory"]) == 3.0 and planned_travel({}) == 0.0
+    # the ego drives 0 -> 5, stands at 5 (0.1 m), moves on to 9, then stands for good at 9.2
+    starts_lengths = [(0.0, 5.0), (5.0, 0.1), (5.0, 0.0), (5.0, 4.0), (9.0, 0.4), (9.2, 0.0), (9.2, 0.2)]
+    outs = [(k, k / 10, plan(x0, length)) for k, (x0, length) in enumerate(starts_lengths)]
     stall = find_stall(outs)
     assert stall is not None and (stall["index"], stall["standing_plans"], stall["last_time"]) == (4, 3, 0.6)
-    assert stall["travel"] == 0.4 and find_stall(outs[:4]) is None
+    assert stall["travel"] == pytest.approx(0.4) and stall["dropped_plans"] == 0
+    # cut after the plan that moves on from 5: it is the last, so the ego stood at 5 to the end
+    assert (find_stall(outs[:4]) or {}).get("index") == 1 and find_stall(outs[:1]) is None
+    # the same with the planner flickering: a 9.6 m plan at 9.2 that the next cycle drops
+    flicker = [*outs[:6], (6, 0.6, plan(9.2, 9.6)), (7, 0.7, plan(9.2, 0.0))]
+    stall = find_stall(flicker)
+    assert stall is not None and (stall["index"], stall["standing_plans"], stall["dropped_plans"]) == (4, 3, 1)

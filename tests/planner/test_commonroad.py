@@ -195,6 +195,22 @@ def test_a_red_light_is_approached_as_a_standing_leader() -> None:
     assert gone["stop"] != "RED_LIGHT"
 
 
+def test_a_light_reached_all_but_stopped_is_not_run() -> None:
+    """Found on the unseen gen:2000032 (one rerun of two): stopping for a yellow light, the ego
+    reached its stop position (1 m before the line) at 1.1 m/s; the yellow was then dropped as
+    "too late to stop", it drove on, the light turned red with its front on the line, the library
+    found no stop at its own position and the previous, moving plan took it through the red. A
+    light the ego can still stop before (at yellow_decel) is stopped for, at a point it can reach."""
+    front = 150.0 - 0.5  # the ego's front 0.5 m before the line, past its stop position
+    for colour, v in (("YELLOW", 1.1), ("RED", 1.5)):
+        out = CommonRoadPlanner({}).plan(light_frame(front - 2.4, v, colour))
+        d, tr = out["decision"], out["trajectory"]
+        assert d["stop"] == f"{colour}_LIGHT" and d["result"] in ("OPTIMAL", "HOLD"), (colour, d)
+        assert tr["v"][-1] < 0.05 and max(tr["x"]) + 2.4 < 150.0 + 0.5, (colour, max(tr["x"]))
+    late = CommonRoadPlanner({}).plan(light_frame(150.0 - 5.0 - 2.4, 11.0, "YELLOW"))["decision"]
+    assert late["stop"] == ""  # 5 m before the line at 11 m/s: too late to stop, it goes
+
+
 def test_bad_params_fail_at_construction() -> None:
     with pytest.raises(ValueError, match="time_steps"):
         CommonRoadPlanner({}, time_steps=1)
