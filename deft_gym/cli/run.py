@@ -14,8 +14,9 @@ the i-th output against the i-th). ``OUT/summary.json`` holds the rows, each wit
 Several scenarios (or a group name such as ``handwritten``) make a suite: each runs as above into
 ``OUT/<scenario>/``, and one table says per scenario how the reruns ended and which metrics every
 rerun violated (the planner's own failures, confirmed across jitter seeds), ``OUT/suite.json`` the
-same. With ``--jitter-seed`` a scenario whose folder already holds the same reruns is not run again
-(an interrupted suite resumes).
+same. With ``--jitter-seed`` a scenario whose folder already holds the same reruns - same scenario
+content, ADS config, code and planner source (``run_key``) - is not run again (an interrupted suite
+resumes; a changed planner runs everything again).
 """
 
 from __future__ import annotations
@@ -153,8 +154,8 @@ def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[st
     for k, (scenario, eq) in enumerate(runs):
         n = names[scenario.name] = names.get(scenario.name, 0) + 1
         folder = out / (scenario.name if n == 1 else f"{scenario.name}~{n}")
-        done = _done_before(folder / "summary.json", scenario, args)
-        console.print(f"[{k + 1}/{len(runs)}] {scenario.name}" + (" (done before: kept)" if done else ""),
+        done = _done_before(folder / "summary.json", scenario, ads, args)
+        console.print(f"[{k + 1}/{len(runs)}] {scenario.name}" + (" (done before with the same code and config: kept)" if done else ""),
                       highlight=False)
         if done is None:
             _reruns(args, console, scenario, ads, folder, eq, verbose=False)
@@ -187,9 +188,21 @@ def _draw_failure(log: Path) -> str | None:
     return str(plot) if plot.is_file() else None
 
 
-def _done_before(path: Path, scenario: Any, args: argparse.Namespace) -> dict[str, Any] | None:
-    """The summary of an earlier run of the same scenario, reruns and jitter seeds (only with a
-    fixed ``--jitter-seed``: fresh seeds never match), else None."""
+def run_key(scenario: Any, ads: Any, args: argparse.Namespace) -> str | None:
+    """What a scenario's reruns depend on, hashed: the scenario's content, the ADS config (the
+    planner and its params), the simulation's code, the planner's source when it is not the default
+    (:func:`deft_gym.search.trace.content_key`) and the reruns; None without a fixed jitter seed."""
+    if args.jitter_seed is None:
+        return None
+    from deft_gym.search.trace import content_key
+
+    return f"{content_key(scenario, ads, args.jitter_seed)}-{args.reruns}"
+
+
+def _done_before(path: Path, scenario: Any, ads: Any, args: argparse.Namespace) -> dict[str, Any] | None:
+    """The summary of an earlier run of the same scenario content, ADS config, code, reruns and
+    jitter seeds (only with a fixed ``--jitter-seed``: fresh seeds never match), else None: a
+    changed planner or scenario runs again."""
     if args.jitter_seed is None or not path.is_file():
         return None
     try:
@@ -197,7 +210,8 @@ def _done_before(path: Path, scenario: Any, args: argparse.Namespace) -> dict[st
     except (OSError, ValueError):
         return None
     seeds = [r.get("jitter_seed") for r in doc.get("reruns", [])]
-    same = doc.get("scenario") == scenario.name and seeds == [args.jitter_seed + i for i in range(args.reruns)]
+    same = (doc.get("scenario") == scenario.name and seeds == [args.jitter_seed + i for i in range(args.reruns)]
+            and doc.get("run_key") == run_key(scenario, ads, args))
     return doc if same else None
 
 
@@ -289,6 +303,7 @@ def _reruns(args: argparse.Namespace, console: Any, scenario: Any, ads: Any, out
                    for r in rows],
         "sim_speed": sim_speed,
         "metrics": agg,
+        "run_key": run_key(scenario, ads, args),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     write_atomic(out / "summary.json", json.dumps(summary_doc, indent=2))

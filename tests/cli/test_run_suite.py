@@ -29,9 +29,13 @@ def test_a_suite_runs_each_scenario_once_and_tabulates_them(tmp_path: Path, caps
     assert html.index("Suite: 2 scenarios") < html.index("System-level reruns: lane_follow_static")
     assert "failed in every rerun" in html and "gen-1000001" in html
     stamp = (out / "lane_follow_static" / "summary.json").stat().st_mtime_ns
-    assert main(argv) == 0  # the same reruns and jitter seeds: kept, not run again
-    assert "done before: kept" in capsys.readouterr().out
+    assert main(argv) == 0  # the same reruns, jitter seeds, config and code: kept, not run again
+    assert "same code and config: kept" in capsys.readouterr().out
     assert (out / "lane_follow_static" / "summary.json").stat().st_mtime_ns == stamp
+    key = json.loads((out / "lane_follow_static" / "summary.json").read_text())["run_key"]
+    assert main([*argv, "--headers"]) == 0  # another ADS config (the planner's inputs): run again
+    assert "kept" not in capsys.readouterr().out
+    assert json.loads((out / "lane_follow_static" / "summary.json").read_text())["run_key"] != key
 
 
 def test_a_failing_scenario_of_a_suite_is_drawn(tmp_path: Path) -> None:
