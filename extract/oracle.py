@@ -367,19 +367,19 @@ def find_stall(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], limit: f
 
     if not outputs:
         return None
+    travel = [planned_travel(out.get("trajectory") or {}) for _, _, out in outputs]
     end = start(len(outputs) - 1)
     k = len(outputs)
     while k > 0:
-        tr = outputs[k - 1][2].get("trajectory") or {}
         s = start(k - 1)
         followed = s is None or end is None or math.hypot(s[0] - end[0], s[1] - end[1]) >= limit
-        if planned_travel(tr) >= limit and followed:
+        if travel[k - 1] >= limit and followed:
             break
         k -= 1
-    standing = [i for i in range(k, len(outputs)) if planned_travel(outputs[i][2].get("trajectory") or {}) < limit]
+    standing = [i for i in range(k, len(outputs)) if travel[i] < limit]
     if not standing:
         return None
-    index, t, out = outputs[standing[0]]
-    return {"index": int(index), "time": float(t), "travel": planned_travel(out.get("trajectory") or {}),
+    index, t, _ = outputs[standing[0]]
+    return {"index": int(index), "time": float(t), "travel": travel[standing[0]],
             "limit": float(limit), "standing_plans": len(standing),
             "dropped_plans": len(outputs) - standing[0] - len(standing), "last_time": float(outputs[-1][1])}

@@ -23,9 +23,9 @@ but the planner interface; everything comes from the frame (docs/planner.md has 
 - ``prediction``: static obstacles as boxes, moving ones as time-variant boxes along their
   predicted paths resampled at the planner's time steps (both grown by ``margin``);
 - ``traffic_light``: a red light (or a yellow one it can stop for) at a stop line on the
-  reference is a desired stop position before the line, or behind the vehicles queued there,
-  a red one approached as a standing leader is (the desired speed falls to reach 0 there); an ego
-  all but stopped at or past a red light's stop position holds (a braking plan, ``HOLD``).
+  reference is a desired stop position before the line, or behind the vehicles queued there;
+  a red one is approached as a standing leader (the desired speed falls to reach 0 there); an ego
+  all but stopped at or past a light's stop position holds (a braking plan, ``HOLD``).
 
 What the library leaves to its user, the adapter sets as a user would: the desired velocity (the
 cruise speed capped by the speed limits, the reference's curvature, a moving leader ahead in

@@ -129,41 +129,46 @@ class WindowedPlanner(LatticePlanner):
         return out
 
 
-class OncomingPlanner(LatticePlanner):
-    """A deliberately broken planner: from ``ONCOMING_FROM`` s on, every plan bends one lane width
+class _BrokenFrom(LatticePlanner):
+    """The reference planner whose plans ``break_plan`` changes in place from ``BROKEN_FROM`` s on."""
+
+    BROKEN_FROM = 0.0  # [s]
+
+    def plan(self, frame: Any) -> dict[str, Any] | None:
+        out = super().plan(frame)
+        if out is not None and frame.time >= self.BROKEN_FROM:
+            self.break_plan(out["trajectory"])
+        return out
+
+    def break_plan(self, tr: dict[str, Any]) -> None:
+        raise NotImplementedError
+
+
+class OncomingPlanner(_BrokenFrom):
+    """A deliberately broken planner: from ``BROKEN_FROM`` s on, every plan bends one lane width
     (3.5 m) to the left of its own heading (the driver's left) over its first second - into the
     oncoming lane where the road has one next to the ego's - and holds that offset."""
 
-    ONCOMING_FROM = 3.0  # [s]
+    BROKEN_FROM = 3.0  # [s]
 
-    def plan(self, frame: Any) -> dict[str, Any] | None:
+    def break_plan(self, tr: dict[str, Any]) -> None:
         import math
 
-        out = super().plan(frame)
-        if out is None or frame.time < self.ONCOMING_FROM:
-            return out
-        tr = out["trajectory"]
         t0 = tr["t"][0]
         for k, (t, h) in enumerate(zip(tr["t"], tr["heading"])):
             d = 3.5 * min((t - t0) / 1.0, 1.0)
             tr["x"][k] += math.sin(h) * d  # highway-env's y points to the right of heading 0
             tr["y"][k] -= math.cos(h) * d
-        return out
 
 
-class StallingPlanner(LatticePlanner):
-    """A deliberately broken planner: from ``STALL_FROM`` s on, every plan brakes the ego to a
+class StallingPlanner(_BrokenFrom):
+    """A deliberately broken planner: from ``BROKEN_FROM`` s on, every plan brakes the ego to a
     stop where it is (all points at the first, speed 0) on whatever road lies ahead."""
 
-    STALL_FROM = 2.0  # [s]
+    BROKEN_FROM = 2.0  # [s]
 
-    def plan(self, frame: Any) -> dict[str, Any] | None:
-        out = super().plan(frame)
-        if out is None or frame.time < self.STALL_FROM:
-            return out
-        tr = out["trajectory"]
+    def break_plan(self, tr: dict[str, Any]) -> None:
         for key in ("x", "y", "heading"):
             tr[key] = [tr[key][0]] * len(tr[key])
         tr["v"] = [0.0] * len(tr["v"])
         tr["a"] = [0.0] * len(tr["a"])
-        return out
