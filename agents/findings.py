@@ -75,7 +75,8 @@ def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None
 FAILURE_TESTS = {"does_not_plan_into_collision": "collision (P_faulty)",
                  "keeps_to_the_optimal_path": "non-optimal decision (P_departure)",
                  "keeps_to_its_side_of_the_road": "driving direction (P_wrong_way)",
-                 "plans_progress": "stuck (P_stall)"}
+                 "plans_progress": "stuck (P_stall)",
+                 "keeps_on_the_road": "drivable area (P_off_road)"}
 
 
 def run_tests(folder: Path, times: int) -> dict[str, Any]:

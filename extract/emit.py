@@ -60,6 +60,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
     departure = (header.get("oracle") or {}).get("departure")
     wrong_way = (header.get("oracle") or {}).get("wrong_way")
     stall = (header.get("oracle") or {}).get("stall")
+    off_road = (header.get("oracle") or {}).get("off_road")
     coll = summary.get("collision")
     outcome = summary.get("outcome") or "unknown"
     if coll:
@@ -81,6 +82,10 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
         w = wrong_way
         lines.append(f"P_wrong_way: frame {w['index']} (t={w['time']:.3f} s) plans {w['length']:.2f} m of path against "
                      f"the lane direction (limit {w['limit']:.2f} m); the ego was there at t={w['entered_at']:.2f} s")
+    if off_road:
+        o = off_road
+        lines.append(f"P_off_road: frame {o['index']} (t={o['time']:.3f} s) plans the ego's box {o['depth']:.2f} m outside "
+                     f"the drivable area (limit {o['limit']:.2f} m) where the ego left it at t={o['left_at']:.2f} s")
     if stall:
         lines.append(f"P_stall : frame {stall['index']} (t={stall['time']:.3f} s) plans {stall['travel']:.3f} m of path "
                      f"(limit {stall['limit']:.2f} m), the first of the {stall['standing_plans']} standing plans that "
@@ -132,7 +137,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
             problem = EPISODE.faulty_hit(index)
             assert problem is None, problem
         '''
-    for oracle, test, doc in _more_failure_tests(departure, stall, wrong_way):
+    for oracle, test, doc in _more_failure_tests(departure, stall, wrong_way, off_road):
         src += f'''
 
         @pytest.mark.parametrize("index", EPISODE.{oracle}_cases())
@@ -145,7 +150,8 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
 
 
 def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] | None,
-                        wrong_way: dict[str, Any] | None) -> list[tuple[str, str, str]]:
+                        wrong_way: dict[str, Any] | None,
+                        off_road: dict[str, Any] | None = None) -> list[tuple[str, str, str]]:
     """``(oracle, test name, docstring)`` of each failure test but P_faulty's that the episode has
     (its ``EpisodeReplay`` methods are ``<oracle>_cases`` and ``<oracle>_problem``)."""
     tests = []
@@ -165,4 +171,10 @@ def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] 
                       "Driving direction: fails while the planner still plans the ego into lanes that all\n"
                       f"            point against it for {wrong_way['limit']:g} m or more (P_wrong_way, the plan that\n"
                       "            took it there); passes once it keeps to lanes of its own direction."))
+    if off_road:
+        tests.append(("off_road", "keeps_on_the_road",
+                      "Drivable area: fails while the planner still plans the ego's box more than\n"
+                      f"            {off_road['limit']:g} m outside the road where the system-level run left it (P_off_road, the\n"
+                      f"            plan that took it there; points within {off_road['radius']:g} m of that place); passes once\n"
+                      "            the plan keeps on the road there."))
     return tests

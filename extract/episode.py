@@ -31,8 +31,10 @@ from extract.oracle import (
     ego_size,
     find_departure,
     find_faulty,
+    find_off_road,
     find_stall,
     find_wrong_way,
+    map_area,
     map_lanes,
     optimal_path,
     participant_track,
@@ -186,7 +188,8 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     # the other failure tests start where P_faulty's would: a seeded planner, else the shortest suffix
     for key, found in (("departure", _departure(elog, mp, outputs)),
                        ("stall", {"stall": find_stall(outputs)} if stuck else None),
-                       ("wrong_way", _wrong_way(elog, mp, outputs))):
+                       ("wrong_way", _wrong_way(elog, mp, outputs)),
+                       ("off_road", _off_road(elog, mp, outputs, ego))):
         if found is None or found[key] is None:
             continue
         target = found[key]
@@ -455,6 +458,43 @@ def _wrong_way(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, floa
         return None
     return {"wrong_way": ww, "wrong_way_map": {"lanes": [{"x": xy[:, 0].tolist(), "y": xy[:, 1].tolist(),
                                                           "width": 2.0 * half} for xy, half in lanes]}}
+
+
+def ego_poses(elog: EpisodeLog, mp: TopicMapping) -> dict[str, list[float]] | None:
+    """The ego's poses from the log's ``localization`` role: ``t`` (the pose's ``header.stamp``,
+    sim time [s] as the frame times, not the log's time), ``x``, ``y`` [m], ``heading`` [rad];
+    poses without them are skipped. None when the log has no such topic."""
+    locs = elog.topics.get(mp.topic("localization") or "")
+    if locs is None:
+        return None
+    poses: dict[str, list[float]] = {"t": [], "x": [], "y": [], "heading": []}
+    for i in range(len(locs)):
+        pose = locs.payload(i)
+        try:
+            txyh = [float(pose["header"]["stamp"]), float(pose["x"]), float(pose["y"]), float(pose["heading"])]
+        except (KeyError, TypeError, ValueError):
+            continue
+        for key, v in zip(("t", "x", "y", "heading"), txyh):
+            poses[key].append(v)
+    return poses
+
+
+def _off_road(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]],
+              ego: tuple[float, float]) -> dict[str, Any] | None:
+    """The oracle of leaving the road (``off_road``, P_off_road, with the map it is judged on,
+    ``off_road_map``) when the log holds the road map and the ego's poses (the mapping's ``map``
+    and ``localization`` roles) and the ego's box left the drivable area by more than
+    :data:`~extract.oracle.OFF_ROAD_LIMIT` m where the plans before had put it; else None."""
+    maps = elog.topics.get(mp.topic("map") or "")
+    payload = maps.payload(0) if maps is not None and len(maps) else None
+    poses = ego_poses(elog, mp)
+    if payload is None or poses is None:
+        return None
+    found = find_off_road(outputs, poses, map_area(payload), ego)
+    if found is None:
+        return None
+    return {"off_road": found, "off_road_map": {"lanes": [
+        {k: lane[k] for k in ("x", "y", "width", "junction") if k in lane} for lane in payload["lanes"]]}}
 
 
 def _summary(elog: EpisodeLog, log_path: Path, scenario: str, meta: dict[str, Any], outcome: dict[str, Any],

@@ -262,10 +262,9 @@ def find_departure(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], path
 WRONG_WAY_LIMIT = 2.0  #: [m] of a plan's path in wrong-way lanes before the plan counts (P_wrong_way)
 
 
-def map_lanes(map_payload: Mapping[str, Any] | None) -> list[tuple[np.ndarray, float]]:
-    """``(centre line (n x 2) [m], half width [m])`` of every lane of a ``map`` message that has a
-    polyline of at least two points (none without a map)."""
-    lanes = []
+def _map_polylines(map_payload: Mapping[str, Any] | None) -> Iterable[tuple[np.ndarray, float, Mapping[str, Any]]]:
+    """``(centre line (n x 2) [m], half width [m], the lane's record)`` of every lane of a ``map``
+    message that has a finite polyline of at least two points and a positive width."""
     for lane in (map_payload or {}).get("lanes") or []:
         try:
             xy = np.column_stack([np.asarray(lane["x"], float), np.asarray(lane["y"], float)])
@@ -273,8 +272,13 @@ def map_lanes(map_payload: Mapping[str, Any] | None) -> list[tuple[np.ndarray, f
         except (KeyError, TypeError, ValueError):
             continue
         if len(xy) >= 2 and np.isfinite(xy).all() and half > 0:
-            lanes.append((xy, half))
-    return lanes
+            yield xy, half, lane
+
+
+def map_lanes(map_payload: Mapping[str, Any] | None) -> list[tuple[np.ndarray, float]]:
+    """``(centre line (n x 2) [m], half width [m])`` of every lane of a ``map`` message that has a
+    polyline of at least two points (none without a map)."""
+    return [(xy, half) for xy, half, _ in _map_polylines(map_payload)]
 
 
 def wrong_way_flags(trajectory: Mapping[str, Any], lanes: Sequence[tuple[np.ndarray, float]]) -> np.ndarray:
@@ -342,6 +346,103 @@ def find_wrong_way(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], lane
     index, t, _ = outputs[k]
     return {"index": int(index), "time": float(t), "point": point, "length": length, "limit": float(limit),
             "entered_at": float(outputs[entered][1])}
+
+
+# -- leaving the road: the drivable-area metric on a plan ----------------------------------------
+# (docs/metrics.md's ``drivable_area``: a corner of the ego's box more than 0.3 m outside every lane's
+# surface and, in junctions, each junction lane's convex hull; nuPlan's drivable_area_compliance)
+
+OFF_ROAD_LIMIT = 0.3  #: [m] a box corner farther outside the drivable area counts (the metric's tolerance)
+OFF_ROAD_RADIUS = 5.0  #: [m] a plan counts where it leaves the road this close to where the ego left it
+
+
+def map_area(map_payload: Mapping[str, Any] | None) -> Any:
+    """The drivable area (shapely, prepared) of a ``map`` message as the metric builds it from the
+    roadmap: every lane's surface (its centre line offset by half its width along the normals)
+    and the convex hull of each junction lane's surface; None without lanes."""
+    import shapely
+
+    parts = []
+    for xy, half, lane in _map_polylines(map_payload):
+        tangent = np.gradient(xy, axis=0)
+        normal = np.column_stack([-tangent[:, 1], tangent[:, 0]]) / np.hypot(tangent[:, 0], tangent[:, 1])[:, None]
+        surface = shapely.make_valid(shapely.Polygon(np.concatenate([xy - half * normal, (xy + half * normal)[::-1]])))
+        parts.append(shapely.convex_hull(surface) if lane.get("junction") else surface)
+    if not parts:
+        return None
+    area = shapely.union_all(parts)
+    shapely.prepare(area)
+    return area
+
+
+def off_road_depths(trajectory: Mapping[str, Any], area: Any, ego: tuple[float, float]) -> np.ndarray:
+    """Per planned point: how far [m] the ego's box there reaches outside ``area`` (its farthest
+    corner; 0 inside)."""
+    import shapely
+
+    x, y = np.asarray(trajectory.get("x") or [], float), np.asarray(trajectory.get("y") or [], float)
+    h = np.asarray(trajectory.get("heading") or [0.0] * len(x), float)
+    if not len(x):
+        return np.zeros(0)
+    c, s = np.cos(h), np.sin(h)
+    ux, uy, vx, vy = c * ego[0] / 2, s * ego[0] / 2, -s * ego[1] / 2, c * ego[1] / 2
+    cx = np.stack([x + ux + vx, x + ux - vx, x - ux - vx, x - ux + vx], axis=-1).ravel()
+    cy = np.stack([y + uy + vy, y + uy - vy, y - uy - vy, y - uy + vy], axis=-1).ravel()
+    depth = np.zeros(len(cx))
+    outside = ~shapely.contains_xy(area, cx, cy)
+    if outside.any():
+        depth[outside] = shapely.distance(area, shapely.points(cx[outside], cy[outside]))
+    return depth.reshape(-1, 4).max(axis=1)
+
+
+def off_road_near(trajectory: Mapping[str, Any], area: Any, ego: tuple[float, float], place: Sequence[float],
+                  radius: float = OFF_ROAD_RADIUS) -> tuple[int, float]:
+    """``(index, depth [m])`` of the planned point within ``radius`` of ``place`` (x, y [m]) whose
+    box reaches farthest outside ``area``; ``(-1, 0.0)`` when no planned point is that close."""
+    x, y = np.asarray(trajectory.get("x") or [], float), np.asarray(trajectory.get("y") or [], float)
+    near = np.flatnonzero(np.hypot(x - place[0], y - place[1]) <= radius)
+    if not len(near):
+        return -1, 0.0
+    depth = off_road_depths({k: np.asarray(trajectory[k])[near].tolist() for k in ("x", "y", "heading")
+                             if trajectory.get(k) is not None}, area, ego)
+    j = int(np.argmax(depth))
+    return int(near[j]), float(depth[j])
+
+
+def find_off_road(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], poses: Mapping[str, Sequence[float]],
+                  area: Any, ego: tuple[float, float], limit: float = OFF_ROAD_LIMIT,
+                  radius: float = OFF_ROAD_RADIUS) -> dict[str, Any] | None:
+    """P_off_road, the plan that took the ego off the road: find the first ego pose (``poses``:
+    ``t`` [s], ``x``, ``y`` [m], ``heading`` [rad], the localization messages) whose box reaches
+    more than ``limit`` outside the drivable area - where and when the ego left the road - then,
+    from the last plan published before that, walk back through the unbroken run of plans that
+    each put the box more than ``limit`` outside within ``radius`` of that place; the first of that
+    run. Tied to where the ego left the road, so a long plan run off the end of a road that the
+    next plans correct does not count. None when the ego never left the road or the last plan
+    before did not take it there (the vehicle left its plan: DeFT's criterion for P_faulty)."""
+    if area is None or not len(poses.get("x") or ()):
+        return None
+    depth = off_road_depths(poses, area, ego)
+    out_at = np.flatnonzero(depth > limit)
+    if not len(out_at):
+        return None
+    p = int(out_at[0])
+    t_left, place = float(poses["t"][p]), (float(poses["x"][p]), float(poses["y"][p]))
+
+    def planned(k: int) -> tuple[int, float]:
+        return off_road_near(outputs[k][2].get("trajectory") or {}, area, ego, place, radius)
+
+    last = sum(1 for _, t, _ in outputs if t < t_left) - 1
+    k = last
+    while k >= 0 and planned(k)[1] > limit:
+        k -= 1
+    if k == last:
+        return None
+    point, reach = planned(k + 1)
+    index, t, _ = outputs[k + 1]
+    return {"index": int(index), "time": float(t), "point": point, "depth": reach, "limit": float(limit),
+            "radius": float(radius), "place": list(place), "ego": {"length": ego[0], "width": ego[1]},
+            "left_at": t_left, "left_depth": float(depth[p])}
 
 
 # -- a stuck ego: the plans that stand ------------------------------------------------------------

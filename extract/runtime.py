@@ -356,7 +356,7 @@ class EpisodeReplay:
 
     # -- the non-optimal-decision test ---------------------------------------------------------
     def _oracle_case(self, key: str, what: str) -> list[Any]:
-        """The frame of the header's oracle ``key`` (P_departure, P_wrong_way, P_stall) as one
+        """The frame of the header's oracle ``key`` (P_departure, P_wrong_way, P_stall, P_off_road) as one
         ``pytest.param`` named by frame, time and ``what``; none when the episode has no such oracle."""
         import pytest
 
@@ -409,6 +409,31 @@ class EpisodeReplay:
                 f"(t={self.frame(index)['time']:.3f} s) plans {length:.2f} m of path in lanes that all point "
                 f"against it (limit {float(w['limit']):.2f} m), from ({tr['x'][k]!r}, {tr['y'][k]!r}) at "
                 f"t={tr['t'][k]!r} s")
+
+    # -- the drivable-area test ------------------------------------------------------------------
+    def off_road_cases(self) -> list[Any]:
+        """The P_off_road frame as one ``pytest.param`` named by frame and time."""
+        return self._oracle_case("off_road", "off-road")
+
+    def off_road_problem(self, index: int) -> str | None:
+        """Why the replayed output of frame ``index`` still plans the ego's box more than the limit
+        outside the drivable area of the log's map near where the run left the road, or None."""
+        from extract.oracle import map_area, off_road_near
+
+        o = self.header["oracle"]
+        w = o["off_road"]
+        out = self._oracle_output(index, w, o.get("off_road_seed"))
+        if out is None:
+            return None
+        tr = out.get("trajectory") or {}
+        ego = (float(w["ego"]["length"]), float(w["ego"]["width"]))
+        k, depth = off_road_near(tr, map_area(o.get("off_road_map")), ego, w["place"], float(w["radius"]))
+        if depth <= float(w["limit"]):
+            return None
+        return (self._notes() + f"the planner still plans the ego off the road: frame {index} "
+                f"(t={self.frame(index)['time']:.3f} s) plans the ego's box {depth:.2f} m outside the drivable area "
+                f"(limit {float(w['limit']):.2f} m) at ({tr['x'][k]!r}, {tr['y'][k]!r}) at t={tr['t'][k]!r} s, "
+                f"{float(w['radius']):g} m or less from where the run left the road")
 
     # -- the stuck test ----------------------------------------------------------------------------
     def stall_cases(self) -> list[Any]:

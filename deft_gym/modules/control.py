@@ -8,6 +8,7 @@ answered with braking.
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import math
 import os
@@ -36,7 +37,10 @@ WHEELBASE_HALF = 2.4  # [m] highway-env's bicycle: half the vehicle length
 
 class ControlNode(Node):
     """Trajectory tracking (``params``: ``kp_speed``, ``kp_station``, ``lookahead_min`` [m],
-    ``lookahead_gain`` [s], ``max_accel``, ``max_decel`` [m/s^2], ``max_steering`` [rad])."""
+    ``lookahead_gain`` [s], ``max_accel``, ``max_decel`` [m/s^2], ``max_steering`` [rad],
+    ``lateral``: ``pure_pursuit``, the default, or ``curvature`` - the plan's curvature at the
+    matched point plus feedback on the lateral and heading error over the look-ahead length,
+    which does not cut the corners of tight turns as pure pursuit does)."""
 
     def __init__(self, cfg: ModuleConfig, topics: dict[str, str]) -> None:
         self.t_plan, self.t_loc = topics["planning"], topics["localization"]
@@ -51,6 +55,9 @@ class ControlNode(Node):
         self.max_acc = float(p.get("max_accel", 3.0))
         self.max_dec = float(p.get("max_decel", 8.0))
         self.max_steer = float(p.get("max_steering", math.pi / 3))
+        self.lateral = str(p.get("lateral", "pure_pursuit"))
+        if self.lateral not in LATERAL_LAWS:
+            raise ValueError(f"control.params.lateral: {self.lateral!r}; expected one of {', '.join(LATERAL_LAWS)}")
         self._cache_seq = -1
         self._tr: dict[str, Any] = {}
         self._fast = False
@@ -104,25 +111,79 @@ class ControlNode(Node):
                 if v_ref < 0.05 and v < 0.3:
                     acc = min(acc, -1.0)
                 acc = max(-self.max_dec, min(self.max_acc, acc))
-                # lateral: pure pursuit
                 la = self.la_min + self.la_gain * v
-                s_t = s_match + la
-                if s_t <= ss[-1]:
-                    tx = interp(s_t, ss, xs)
-                    ty = interp(s_t, ss, ys)
+                if self.lateral == "curvature":
+                    kappa = _curvature_law(tr, s_match, x, y, h, la, interp)
                 else:
-                    extra = s_t - ss[-1]
-                    tx = xs[-1] + extra * math.cos(tr["heading"][-1])
-                    ty = ys[-1] + extra * math.sin(tr["heading"][-1])
-                alpha = math.atan2(ty - y, tx - x) - h
-                alpha = (alpha + math.pi) % (2 * math.pi) - math.pi
-                kappa = 2.0 * math.sin(alpha) / max(math.hypot(tx - x, ty - y), 1e-3)
+                    kappa = _pure_pursuit(tr, s_match, x, y, h, la, interp)
                 beta = math.asin(max(-1.0, min(1.0, kappa * WHEELBASE_HALF)))
                 steer = math.atan(2.0 * math.tan(beta))
                 steer = max(-self.max_steer, min(self.max_steer, steer))
         payload = {"header": header(t, self.name), "steering": steer, "acceleration": acc,
                    "trajectory_seq": seq}
         return [(self.out_topic, payload)]
+
+
+LATERAL_LAWS = ("pure_pursuit", "curvature")
+
+
+def _pure_pursuit(tr: dict[str, Any], s_match: float, x: float, y: float, h: float, la: float,
+                  interp: Any) -> float:
+    """Curvature [1/m] of the arc from the pose ``(x, y, h)`` to the plan's point ``la`` m past
+    arc length ``s_match`` (straight on past its end): pure pursuit."""
+    xs, ys, ss = tr["x"], tr["y"], tr["s"]
+    s_t = s_match + la
+    if s_t <= ss[-1]:
+        tx = interp(s_t, ss, xs)
+        ty = interp(s_t, ss, ys)
+    else:
+        extra = s_t - ss[-1]
+        tx = xs[-1] + extra * math.cos(tr["heading"][-1])
+        ty = ys[-1] + extra * math.sin(tr["heading"][-1])
+    alpha = math.atan2(ty - y, tx - x) - h
+    alpha = (alpha + math.pi) % (2 * math.pi) - math.pi
+    return 2.0 * math.sin(alpha) / max(math.hypot(tx - x, ty - y), 1e-3)
+
+
+def _curvature_law(tr: dict[str, Any], s_match: float, x: float, y: float, h: float, length: float,
+                   interp: Any) -> float:
+    """Curvature [1/m] of the ``curvature`` law: the plan path's at arc length ``s_match`` minus
+    ``e / length**2`` plus ``2 sin(dh) / length``, with ``e`` [m] the pose ``(x, y)``'s offset to
+    the left of the path and ``dh`` the heading the ego has on the path minus its own ``h``. The
+    path's course and curvature come from its points (the chords' directions and their change per
+    metre), not from the plan's ``heading``, which a planner may give as the body's heading or as
+    the course. The heading on the path is its course less the slip angle of highway-env's bicycle
+    at that curvature, ``asin(kappa L / 2)`` - 0.35 rad on a 7 m radius, which a law taking the
+    course for the heading turns into steering the turn too tight. The offset then decays
+    critically damped over ``length`` m of travel, at any speed; past the plan's end, straight on."""
+    ss, xs, ys = tr["s"], tr["x"], tr["y"]
+    n = len(ss)
+
+    def course(k: int) -> float | None:
+        dx, dy = xs[k + 1] - xs[k], ys[k + 1] - ys[k]
+        return math.atan2(dy, dx) if ss[k + 1] - ss[k] > 1e-6 else None
+
+    s_c = max(s_match, ss[0])
+    k = max(0, min(n - 2, bisect.bisect_right(ss, s_c) - 1)) if n > 1 else 0
+    c_k = course(k) if n > 1 else None
+    if c_k is None or s_match >= ss[-1]:
+        c_k = c_k if c_k is not None else float(tr["heading"][-1 if s_match >= ss[-1] else k])
+        x_ref = xs[-1] + (s_match - ss[-1]) * math.cos(c_k) if s_match >= ss[-1] else interp(s_c, ss, xs)
+        y_ref = ys[-1] + (s_match - ss[-1]) * math.sin(c_k) if s_match >= ss[-1] else interp(s_c, ss, ys)
+        h_ref, k_ref = c_k, 0.0
+    else:
+        m = k + 1 if k + 2 < n else k - 1  # the neighbouring chord
+        c_m = course(m) if m >= 0 else None
+        k_ref = 0.0
+        if c_m is not None:
+            turn = (c_m - c_k + math.pi) % (2 * math.pi) - math.pi
+            k_ref = turn / (0.5 * (ss[m + 1] - ss[m] + ss[k + 1] - ss[k])) * (1 if m > k else -1)
+        h_ref = c_k + k_ref * (s_c - 0.5 * (ss[k] + ss[k + 1]))
+        x_ref, y_ref = interp(s_c, ss, xs), interp(s_c, ss, ys)
+    e = -(x - x_ref) * math.sin(h_ref) + (y - y_ref) * math.cos(h_ref)
+    slip = math.asin(max(-1.0, min(1.0, k_ref * WHEELBASE_HALF)))
+    dh = (h_ref - slip - h + math.pi) % (2 * math.pi) - math.pi
+    return k_ref - e / (length * length) + 2.0 * math.sin(dh) / length
 
 
 def _unwrap(h: np.ndarray) -> np.ndarray:

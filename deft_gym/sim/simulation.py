@@ -19,6 +19,7 @@ result's summary, and the episode ends there.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -215,6 +216,7 @@ class Simulation:
         sc, ads = self.scenario, self.ads
         self.roadmap = shared_roadmap(sc.map.model_dump())
         self.world: World = build_world(sc, self.roadmap)
+        self.world.ego.MAX_STEERING = math.radians(ads.max_steering_deg)
         self.jitter = JitterModel(ads.jitter, jitter_seed)
         self.bus = Bus(self.jitter)
         self.watch = WatchedSupervisor(self.bus, watchdog_seconds(watchdog_s),

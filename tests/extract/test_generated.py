@@ -149,6 +149,18 @@ def test_a_second_regression_later_in_the_episode_fails_too(collision) -> None:
     assert "a divergence of its own" in log and "a consequence of frame 5" in log and "a consequence of frame 20" in log
 
 
+def _fails_every_time_and_passes_on_the_reference(folder: Path, test: str, message: str) -> None:
+    """The failure test ``test`` of an extraction folder fails in each of 3 runs, with ``message``
+    in its report, while every reproduction test passes; on the reference planner it passes."""
+    for _ in range(3):
+        _, outcomes, log_text = run_pytest(folder)
+        assert [v for k, v in outcomes.items() if test in k] == ["failed"], log_text[-1500:]
+        assert all(v == "passed" for v in _reproduction(outcomes).values())
+        assert message in log_text
+    _, outcomes, _ = run_pytest(folder, "-k", test, env={"DEFT_PLANNER": "deft_gym.planner.lattice:LatticePlanner"})
+    assert list(outcomes.values()) == ["passed"]
+
+
 def test_a_plan_into_the_oncoming_lane_gets_a_driving_direction_test(tmp_path: Path) -> None:
     """P_wrong_way: a planner that bends its plans one lane to the left (tests.support's
     OncomingPlanner) drives the ego into the oncoming lane of left_turn's approach; the extraction
@@ -163,15 +175,33 @@ def test_a_plan_into_the_oncoming_lane_gets_a_driving_direction_test(tmp_path: P
     ww = header["oracle"]["wrong_way"]
     assert ww["length"] >= ww["limit"] == 2.0 and ww["time"] >= 3.0  # it bends from 3 s on
     assert "P_wrong_way: frame" in res.test_path.read_text()
-    for _ in range(3):
-        _, outcomes, log_text = run_pytest(res.test_path.parent)
-        side = {k: v for k, v in outcomes.items() if "keeps_to_its_side_of_the_road" in k}
-        assert list(side.values()) == ["failed"], log_text[-1500:]
-        assert all(v == "passed" for v in _reproduction(outcomes).values())
-        assert "still plans the ego against the lane direction" in log_text
-    _, outcomes, _ = run_pytest(res.test_path.parent, "-k", "keeps_to_its_side_of_the_road",
-                                env={"DEFT_PLANNER": "deft_gym.planner.lattice:LatticePlanner"})
-    assert list(outcomes.values()) == ["passed"]
+    _fails_every_time_and_passes_on_the_reference(res.test_path.parent, "keeps_to_its_side_of_the_road",
+                                                  "still plans the ego against the lane direction")
+
+
+def test_a_plan_off_the_road_gets_a_drivable_area_test(tmp_path: Path) -> None:
+    """P_off_road: the same bent planner on lane_follow_static, whose ego drives in the left lane
+    of a road with nothing to its left, plans the ego off the road from 3 s on; the extraction
+    finds the first plan of the run that put its box off the road where the ego left it, and the
+    generated test fails every time on that planner and passes on the reference planner. The
+    experiment that takes such runs apart (deft_gym.experiments.off_road) calls it planned."""
+    from tests.support.extract_support import record, short_scenario
+
+    log = record(tmp_path / "log", short_scenario("lane_follow_static", 6.0), seed=7,
+                 planner_class="tests.support.extract_support:OncomingPlanner")
+    res = extract_episode(log, tmp_path / "tests")
+    header = json.loads(res.frames_path.read_text().splitlines()[0])
+    off = header["oracle"]["off_road"]
+    assert 3.0 <= off["time"] < off["left_at"] and off["depth"] > off["limit"] == 0.3
+    assert "wrong_way" not in header["oracle"]  # no lane there at all
+    assert "P_off_road: frame" in res.test_path.read_text()
+    _fails_every_time_and_passes_on_the_reference(res.test_path.parent, "keeps_on_the_road",
+                                                  "still plans the ego off the road")
+    from deft_gym.experiments.off_road import take_apart
+
+    row = take_apart(log)
+    assert row is not None and row["verdict"] == "planned" and row["p_off_road"]["index"] == off["index"]
+    assert row["last_plan"]["depth_near"] > 0.3 and row["depth_max"] > 1.0
 
 
 def test_a_stuck_run_gets_a_test_that_the_planner_plans_progress(tmp_path: Path) -> None:
@@ -191,14 +221,8 @@ def test_a_stuck_run_gets_a_test_that_the_planner_plans_progress(tmp_path: Path)
     assert header["outcome"] == "stuck"
     stall = header["oracle"]["stall"]
     assert 2.0 <= stall["time"] < 2.3 and stall["travel"] < stall["limit"] == 0.5 and stall["standing_plans"] >= 30
-    for _ in range(3):
-        _, outcomes, log_text = run_pytest(res.test_path.parent)
-        assert [v for k, v in outcomes.items() if "plans_progress" in k] == ["failed"], log_text[-1500:]
-        assert all(v == "passed" for v in _reproduction(outcomes).values())
-        assert "still leaves the ego standing" in log_text
-    _, outcomes, _ = run_pytest(res.test_path.parent, "-k", "plans_progress",
-                                env={"DEFT_PLANNER": "deft_gym.planner.lattice:LatticePlanner"})
-    assert list(outcomes.values()) == ["passed"]
+    _fails_every_time_and_passes_on_the_reference(res.test_path.parent, "plans_progress",
+                                                  "still leaves the ego standing")
     # taken apart at its first frame (deft_gym.experiments.stalls): on the road, replayed as recorded
     from deft_gym.experiments.stalls import take_apart
 

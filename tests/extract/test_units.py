@@ -292,6 +292,51 @@ def test_p_wrong_way_is_the_first_plan_of_the_run_that_took_the_ego_against_the_
     assert find_wrong_way(drifted, lanes) is None and find_wrong_way(outs, []) is None
 
 
+def test_p_off_road_is_the_first_plan_of_the_run_that_took_the_ego_off_the_road_where_it_left() -> None:
+    """A straight 3.5 m lane along y = 0 and a quarter-circle junction lane (paved inside its curve,
+    as the drivable-area metric holds). The ego's poses leave the road at x = 30 (its box more than
+    0.3 m over the edge at y = 1.75); P_off_road is the first plan of the unbroken run of plans, up
+    to the last one before that, that put the box more than 0.3 m off the road within 5 m of there.
+    A plan that ran off the road elsewhere does not count, and an ego whose plans stayed on the
+    road (the vehicle left them) or that never left gives none."""
+    import numpy as np
+
+    from extract.oracle import find_off_road, map_area, off_road_depths
+
+    arc = np.linspace(0.0, np.pi / 2, 20)
+    area = map_area({"lanes": [{"x": [0.0, 100.0], "y": [0.0, 0.0], "width": 3.5},
+                               {"x": (200 + 10 * np.sin(arc)).tolist(), "y": (10 - 10 * np.cos(arc)).tolist(),
+                                "width": 3.5, "junction": True},
+                               {"x": [0.0], "y": [0.0], "width": 3.5}]})  # one point: no lane
+    ego = (4.8, 2.0)
+    inside_turn = {"x": [205.0], "y": [4.0], "heading": [0.0]}  # within the arc's chord, off its lane's surface
+    assert off_road_depths(inside_turn, area, (0.1, 0.1))[0] == 0.0
+    lane_only = map_area({"lanes": [{"x": (200 + 10 * np.sin(arc)).tolist(), "y": (10 - 10 * np.cos(arc)).tolist(),
+                                     "width": 3.5}]})
+    assert off_road_depths(inside_turn, lane_only, (0.1, 0.1))[0] > 0.1
+    assert off_road_depths({"x": [50.0], "y": [0.0], "heading": [0.0]}, area, ego)[0] == 0.0
+    assert off_road_depths({"x": [50.0], "y": [2.0], "heading": [0.0]}, area, ego)[0] == pytest.approx(1.25)
+
+    def plan(y_end: float, x0: float = 10.0) -> dict:
+        x = np.linspace(x0, x0 + 30.0, 11)
+        return {"trajectory": {"x": x.tolist(), "y": np.linspace(0.0, y_end, 11).tolist(), "heading": [0.0] * 11,
+                               "t": list(range(11))}}
+
+    poses = {"t": [0.0, 0.2, 0.4, 0.55, 0.6], "x": [10.0, 15.0, 20.0, 30.0, 32.0],
+             "y": [0.0, 0.0, 0.5, 2.0, 2.5], "heading": [0.0] * 5}
+    far_off = plan(0.0, x0=10.0)
+    far_off["trajectory"]["y"][-1] = 9.0  # its end, at x = 40, off the road: 10 m from where the ego left
+    outs = [(0, 0.0, plan(0.0)), (1, 0.1, far_off), (2, 0.2, plan(0.0)), (3, 0.3, plan(4.0)), (4, 0.4, plan(4.0)),
+            (5, 0.5, plan(4.0)), (6, 0.6, plan(4.0))]
+    off = find_off_road(outs, poses, area, ego)
+    assert off is not None and (off["index"], off["left_at"], off["place"]) == (3, 0.55, [30.0, 2.0])
+    assert off["depth"] > 0.3 and off["left_depth"] == pytest.approx(1.25)
+    assert find_off_road([*outs[:2], *outs[3:]], poses, area, ego)["index"] == 3  # the far plan is not it
+    assert find_off_road(outs[:3], poses, area, ego) is None  # no plan put it there: it left its plans
+    on_road = {**poses, "y": [0.0] * 5}
+    assert find_off_road(outs, on_road, area, ego) is None and find_off_road(outs, poses, None, ego) is None
+
+
 def test_p_stall_is_the_first_of_the_standing_plans_that_end_a_stuck_run() -> None:
     """A plan stands when its path is shorter than 0.5 m; P_stall is the first standing plan of the
     stretch that ends the outputs in which every plan stands or was dropped unfollowed (the ego
