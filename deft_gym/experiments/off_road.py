@@ -147,16 +147,18 @@ def main(argv: list[str] | None = None) -> int:
     logs = logs_under([Path(p) for p in args.paths])
     if not logs:
         return common.cli_error(f"{' '.join(args.paths)}: no episode.mcap found")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    rows = []
+    found = []
     for log in logs:
         try:
             row = take_apart(log)
         except LogError as exc:
             return common.cli_error(str(exc))
-        if row is None:
-            continue
+        if row is not None:
+            found.append(row)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for row in found:
         draw(row, out / f"{row['suite']}_{row['scenario']}_{row['rerun']}.png")
         rows.append({k: v for k, v in row.items() if not k.startswith("_")})
     t = Table(title=f"Left the road: {len(rows)} of {len(logs)} logs", box=box.SIMPLE_HEAD)
