@@ -91,6 +91,29 @@ def test_participant_form_checks() -> None:
         scenario_from_dict(data, source="inline")
 
 
+def test_an_ads_config_can_build_on_another(tmp_path: Path) -> None:
+    """``base:`` names a config (relative to the file) that the file's keys are deep-merged onto:
+    the shipped faithful testbeds are the default and CommonRoad configs with the control law and
+    the steering limit changed, nothing else; a missing base, a loop or a base that is no path is
+    one clear error naming the file."""
+    from deft_gym.config import CONFIG_DIR
+
+    for name, base in (("faithful", "default"), ("commonroad_faithful", "commonroad")):
+        ours, theirs = load_ads_config(CONFIG_DIR / "ads" / f"{name}.yaml"), load_ads_config(CONFIG_DIR / "ads" / f"{base}.yaml")
+        want = theirs.model_copy(update={"max_steering_deg": 50.0, "control": theirs.control.model_copy(
+            update={"params": {**theirs.control.params, "lateral": "curvature"}})})
+        assert ours.model_dump() == want.model_dump()
+    (tmp_path / "a.yaml").write_text("base: b.yaml\n")
+    (tmp_path / "b.yaml").write_text("base: a.yaml\n")
+    (tmp_path / "c.yaml").write_text("base: nope.yaml\n")
+    (tmp_path / "d.yaml").write_text("base: [1]\n")
+    for name, named, needle in (("a", "b", "leads back to itself"), ("c", "c", "no such file"),
+                                ("d", "d", "expected the path of an ADS config")):
+        with pytest.raises(ConfigError, match=needle) as err:
+            load_ads_config(tmp_path / f"{name}.yaml")
+        assert f"{named}.yaml: base:" in str(err.value) and "\n" not in str(err.value)
+
+
 def test_ads_config_errors_name_the_field(tmp_path: Path) -> None:
     path = tmp_path / "ads.yaml"
     path.write_text("planning:\n  subscribe: [routing, gps]\n")
