@@ -38,9 +38,9 @@ WHEELBASE_HALF = 2.4  # [m] highway-env's bicycle: half the vehicle length
 class ControlNode(Node):
     """Trajectory tracking (``params``: ``kp_speed``, ``kp_station``, ``lookahead_min`` [m],
     ``lookahead_gain`` [s], ``max_accel``, ``max_decel`` [m/s^2], ``max_steering`` [rad],
-    ``lateral``: ``pure_pursuit``, the default, or ``curvature`` - the plan's curvature at the
-    matched point plus feedback on the lateral and heading error over the look-ahead length,
-    which does not cut the corners of tight turns as pure pursuit does)."""
+    ``lateral``: ``pure_pursuit``, the default, or ``curvature`` - the path's curvature at the
+    matched point plus feedback on the offset and on the heading less the bicycle's slip, over the
+    look-ahead length, which does not cut tight turns as pure pursuit does: :func:`_curvature_law`)."""
 
     def __init__(self, cfg: ModuleConfig, topics: dict[str, str]) -> None:
         self.t_plan, self.t_loc = topics["planning"], topics["localization"]
@@ -166,11 +166,14 @@ def _curvature_law(tr: dict[str, Any], s_match: float, x: float, y: float, h: fl
     s_c = max(s_match, ss[0])
     k = max(0, min(n - 2, bisect.bisect_right(ss, s_c) - 1)) if n > 1 else 0
     c_k = course(k) if n > 1 else None
-    if c_k is None or s_match >= ss[-1]:
-        c_k = c_k if c_k is not None else float(tr["heading"][-1 if s_match >= ss[-1] else k])
-        x_ref = xs[-1] + (s_match - ss[-1]) * math.cos(c_k) if s_match >= ss[-1] else interp(s_c, ss, xs)
-        y_ref = ys[-1] + (s_match - ss[-1]) * math.sin(c_k) if s_match >= ss[-1] else interp(s_c, ss, ys)
-        h_ref, k_ref = c_k, 0.0
+    past_end = s_match >= ss[-1]
+    if past_end or c_k is None:  # straight on past the end; a chord of standing points: its heading
+        h_ref, k_ref = c_k if c_k is not None else float(tr["heading"][-1 if past_end else k]), 0.0
+        if past_end:
+            x_ref = xs[-1] + (s_match - ss[-1]) * math.cos(h_ref)
+            y_ref = ys[-1] + (s_match - ss[-1]) * math.sin(h_ref)
+        else:
+            x_ref, y_ref = interp(s_c, ss, xs), interp(s_c, ss, ys)
     else:
         m = k + 1 if k + 2 < n else k - 1  # the neighbouring chord
         c_m = course(m) if m >= 0 else None
