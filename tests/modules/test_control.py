@@ -91,3 +91,23 @@ def test_an_unknown_lateral_law_is_one_clear_error() -> None:
     cfg = ads.control.model_copy(update={"params": {**ads.control.params, "lateral": "stanley"}})
     with pytest.raises(ValueError, match=r"control.params.lateral: 'stanley'; expected one of pure_pursuit, curvature"):
         ControlNode(cfg, ads.topics)
+
+
+def test_the_faithful_testbed_makes_the_generators_u_turn(tmp_path) -> None:
+    """In the simulation: the reference planner's U-turn of gen:2000021 (jitter seed 11) keeps the
+    ego within 0.35 m of the road on configs/ads/faithful.yaml; the same law at 35 deg steering
+    cannot make the turn and runs more than 1.5 m wide."""
+    import json
+
+    from deft_gym.cli.run import main
+    from deft_gym.config import CONFIG_DIR
+
+    narrow = tmp_path / "narrow.yaml"
+    narrow.write_text(f"base: {CONFIG_DIR / 'ads' / 'faithful.yaml'}\nmax_steering_deg: 35.0\n")
+    off = {}
+    for name, ads in (("faithful", CONFIG_DIR / "ads" / "faithful.yaml"), ("narrow", narrow)):
+        assert main(["gen:2000021", "--reruns", "1", "--jitter-seed", "11", "--ads-config", str(ads),
+                     "--out", str(tmp_path / name), "--quiet", "--render", "none"]) in (0, 1)
+        summary = json.loads(next((tmp_path / name).rglob("summary.json")).read_text())
+        off[name] = summary["reruns"][0]["metrics"]["off_road_max"]
+    assert off["faithful"] < 0.35 and off["narrow"] > 1.5
