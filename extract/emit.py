@@ -151,7 +151,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
 
 def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] | None,
                         wrong_way: dict[str, Any] | None,
-                        off_road: dict[str, Any] | None = None) -> list[tuple[str, str, str]]:
+                        off_road: dict[str, Any] | None) -> list[tuple[str, str, str]]:
     """``(oracle, test name, docstring)`` of each failure test but P_faulty's that the episode has
     (its ``EpisodeReplay`` methods are ``<oracle>_cases`` and ``<oracle>_problem``)."""
     tests = []

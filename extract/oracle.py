@@ -432,14 +432,13 @@ def find_off_road(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], poses
     def planned(k: int) -> tuple[int, float]:
         return off_road_near(outputs[k][2].get("trajectory") or {}, area, ego, place, radius)
 
-    last = sum(1 for _, t, _ in outputs if t < t_left) - 1
-    k = last
-    while k >= 0 and planned(k)[1] > limit:
-        k -= 1
-    if k == last:
+    first = None  # (plan, (point, depth)) of the earliest plan of the run so far
+    k = sum(1 for _, t, _ in outputs if t < t_left) - 1  # the last plan before the ego left
+    while k >= 0 and (hit := planned(k))[1] > limit:
+        first, k = (k, hit), k - 1
+    if first is None:
         return None
-    point, reach = planned(k + 1)
-    index, t, _ = outputs[k + 1]
+    (index, t, _), (point, reach) = outputs[first[0]], first[1]
     return {"index": int(index), "time": float(t), "point": point, "depth": reach, "limit": float(limit),
             "radius": float(radius), "place": list(place), "ego": {"length": ego[0], "width": ego[1]},
             "left_at": t_left, "left_depth": float(depth[p])}

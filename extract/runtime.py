@@ -363,6 +363,12 @@ class EpisodeReplay:
         o = self.header.get("oracle", {}).get(key)
         return [pytest.param(o["index"], id=f"{frame_id(o['index'], o['time'])}-{what}")] if o else []
 
+    def _oracle_replay(self, key: str, index: int) -> tuple[dict[str, Any], dict[str, Any] | None]:
+        """The header's oracle ``key`` (P_departure, P_wrong_way, P_off_road, P_stall) and the
+        replayed output of frame ``index`` (from its seed state, else as :meth:`_oracle_output`)."""
+        o = self.header["oracle"]
+        return o[key], self._oracle_output(index, o[key], o.get(f"{key}_seed"))
+
     def departure_cases(self) -> list[Any]:
         """The P_departure frame as one ``pytest.param`` named by frame and time."""
         return self._oracle_case("departure", "off-path")
@@ -371,9 +377,8 @@ class EpisodeReplay:
         """Why the replayed output of frame ``index`` still leaves the optimal path, or None."""
         from extract.oracle import off_path, optimal_path
 
-        o = self.header["oracle"]
-        path, limit = optimal_path(o["optimal_path"])
-        out = self._oracle_output(index, o["departure"], o.get("departure_seed"))
+        path, limit = optimal_path(self.header["oracle"]["optimal_path"])
+        _, out = self._oracle_replay("departure", index)
         if out is None:
             return None
         hit = off_path(out.get("trajectory") or {}, path, limit)
@@ -396,13 +401,11 @@ class EpisodeReplay:
         or None."""
         from extract.oracle import map_lanes, wrong_way_length
 
-        o = self.header["oracle"]
-        w = o["wrong_way"]
-        out = self._oracle_output(index, w, o.get("wrong_way_seed"))
+        w, out = self._oracle_replay("wrong_way", index)
         if out is None:
             return None
         tr = out.get("trajectory") or {}
-        k, length = wrong_way_length(tr, map_lanes(o.get("wrong_way_map")))
+        k, length = wrong_way_length(tr, map_lanes(self.header["oracle"].get("wrong_way_map")))
         if length < float(w["limit"]):
             return None
         return (self._notes() + f"the planner still plans the ego against the lane direction: frame {index} "
@@ -420,14 +423,12 @@ class EpisodeReplay:
         outside the drivable area of the log's map near where the run left the road, or None."""
         from extract.oracle import map_area, off_road_near
 
-        o = self.header["oracle"]
-        w = o["off_road"]
-        out = self._oracle_output(index, w, o.get("off_road_seed"))
+        w, out = self._oracle_replay("off_road", index)
         if out is None:
             return None
         tr = out.get("trajectory") or {}
         ego = (float(w["ego"]["length"]), float(w["ego"]["width"]))
-        k, depth = off_road_near(tr, map_area(o.get("off_road_map")), ego, w["place"], float(w["radius"]))
+        k, depth = off_road_near(tr, map_area(self.header["oracle"].get("off_road_map")), ego, w["place"], float(w["radius"]))
         if depth <= float(w["limit"]):
             return None
         return (self._notes() + f"the planner still plans the ego off the road: frame {index} "
@@ -445,9 +446,7 @@ class EpisodeReplay:
         shorter than the limit), or None."""
         from extract.oracle import planned_travel
 
-        o = self.header["oracle"]
-        w = o["stall"]
-        out = self._oracle_output(index, w, o.get("stall_seed"))
+        w, out = self._oracle_replay("stall", index)
         if out is None:
             return (self._notes() + f"the planner still gives no plan at frame {index} "
                     f"(t={self.frame(index)['time']:.3f} s), where the run stood stuck")

@@ -30,6 +30,7 @@ from rich.table import Table
 
 from deft_gym.cli import common
 from deft_gym.files import write_atomic
+from deft_gym.world.geometry import box_polygon
 from extract.episode import ego_poses
 from extract.logs import LogError, read_log
 from extract.mapping import load_mapping
@@ -104,7 +105,6 @@ def draw(row: dict[str, Any], path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import shapely
 
     area, poses, index, plans, ego = row["_draw"]
     fig, ax = plt.subplots(figsize=(6, 6))
@@ -118,10 +118,7 @@ def draw(row: dict[str, Any], path: Path) -> None:
         near = np.hypot(np.asarray(tr["x"]) - row["place"][0], np.asarray(tr["y"]) - row["place"][1]) <= 2 * OFF_ROAD_RADIUS
         depths = off_road_depths(tr, area, ego)
         for k in np.flatnonzero(near):
-            c, s = math.cos(tr["heading"][k]), math.sin(tr["heading"][k])
-            box_ = shapely.Polygon([(tr["x"][k] + a * c * ego[0] / 2 - b * s * ego[1] / 2,
-                                     tr["y"][k] + a * s * ego[0] / 2 + b * c * ego[1] / 2)
-                                    for a, b in ((1, 1), (1, -1), (-1, -1), (-1, 1))])
+            box_ = box_polygon(tr["x"][k], tr["y"][k], tr["heading"][k], ego[0], ego[1])
             ax.plot(*box_.exterior.xy, color="tab:red" if depths[k] > OFF_ROAD_LIMIT else "tab:orange", lw=0.8)
         ax.plot(tr["x"], tr["y"], color="tab:orange", lw=1, ls="--",
                 label=f"plan {index} ({'P_off_road' if row['p_off_road'] else 'last before leaving'})")
