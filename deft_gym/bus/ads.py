@@ -127,9 +127,9 @@ class AdsConfig(Strict):
     world_hz: float = Field(default=20.0, ge=MIN_WORLD_HZ, le=MAX_HZ)
     chassis_hz: float = Field(default=20.0, ge=MIN_HZ, le=MAX_HZ)
     #: [deg] the ego chassis' steering limit. highway-env's bicycle puts both axles half the car's
-    #: 4.8 m length from its centre, so 35 deg turns its centre on no less than 7.26 m - less than
-    #: the generator's tightest turns need; 50 deg gives 4.69 m, a car's turning circle
-    max_steering_deg: float = Field(default=35.0, gt=0.0, lt=90.0)
+    #: 4.8 m length from its centre, so 50 deg turns its centre on 4.69 m, a car's turning circle;
+    #: highway-env's own 35 deg gives 7.26 m, less than the generator's tightest turns need
+    max_steering_deg: float = Field(default=50.0, gt=0.0, lt=90.0)
     topics: dict[str, str] = Field(default_factory=lambda: dict(DEFAULT_TOPICS))
     jitter: JitterConfig = JitterConfig()
     routing: ModuleConfig = ModuleConfig(processing=Duration(mean_ms=5.0))

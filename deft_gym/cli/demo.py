@@ -31,7 +31,7 @@ from typing import Any
 
 from deft_gym.cli import common
 
-FLAKY = "flaky_left_turn.yaml"  # configs/demo/: a left turn with a vehicle cutting in
+FLAKY = ("scenarios", "handwritten", "stopped_bus.yaml")  # in configs/: overtaking a stopped bus
 JITTER_SEED = 1000  # the reruns' jitter seeds: 1000..1009 (a reproducible demo)
 
 MARKER = ".agents-demo"  # in --out: train/ and eval/ there are the demo's and may be replaced
@@ -89,10 +89,10 @@ def flaky_story(out: Path, reruns: int, con: Any) -> dict[str, Any]:
     from deft_gym.cli import run as run_cli
     from deft_gym.config import CONFIG_DIR
 
-    scenario = CONFIG_DIR / "demo" / FLAKY
+    scenario = CONFIG_DIR.joinpath(*FLAKY)
     runs = out / "reruns"
-    con.print(f"[bold][1/5][/bold] a system-level test, rerun {reruns} times: {scenario.stem} (left turn, a "
-              f"vehicle cutting in), jitter seeds {JITTER_SEED}-{JITTER_SEED + reruns - 1}", soft_wrap=True)
+    con.print(f"[bold][1/5][/bold] a system-level test, rerun {reruns} times: {scenario.stem} (overtaking a "
+              f"stopped bus), jitter seeds {JITTER_SEED}-{JITTER_SEED + reruns - 1}", soft_wrap=True)
     _quietly(run_cli.main, [str(scenario), "--reruns", str(reruns), "--jitter-seed", str(JITTER_SEED),
                             "--out", str(runs), "--render", "failures", "--quiet"])
     s = json.loads((runs / "summary.json").read_text())

@@ -30,6 +30,7 @@ def build_parser() -> common.Parser:
                         "description) instead of replaying their trajectories")
     p.add_argument("--jitter-seed", type=int, default=None, metavar="S",
                    help="the rerun's jitter seed (default: the episode's, from the file)")
+    common.add_ads_config(p)
     common.add_output_flags(p)
     return p
 
@@ -67,14 +68,20 @@ def main(argv: list[str] | None = None) -> int:
         return common.cli_error(f"FILE {file}: the scenario it gives does not load: {str(err).splitlines()[0]}")
     seed = args.jitter_seed if args.jitter_seed is not None else meta.get("jitter_seed")
     head = (f"# imported by deft-gym import from {file}\n# {data['description']}\n"
-            f"# rerun: deft-gym run {out} --reruns 1" + (f" --jitter-seed {seed}" if seed is not None else "") + "\n")
+            f"# rerun: deft-gym run {out} --reruns 1" + (f" --jitter-seed {seed}" if seed is not None else "")
+            + (f" --ads-config {args.ads_config}" if args.ads_config else "") + "\n")
     write_atomic(out, head + yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=120))
     con.print(f"{file} -> {out} ({len(data['participants'])} participants)", soft_wrap=True)
     status = 0
     if args.rerun:
+        from deft_gym.bus.ads import load_ads_config
         from deft_gym.export.failures import reproduces, rerun
 
-        outcome, ego = rerun(data, seed)
+        try:
+            ads = load_ads_config(args.ads_config)
+        except ConfigError as err:
+            return common.cli_error(str(err).splitlines()[0])
+        outcome, ego = rerun(data, seed, ads)
         r = reproduces(meta, outcome, None, ego)
         logged = meta.get("outcome"), (meta.get("collision") or {}).get("participant"), (meta.get("collision") or {}).get("time")
         got = r["outcome"], r["collision"], r["collision_time"]

@@ -343,11 +343,17 @@ def same_outcome(a: dict[str, Any], b: dict[str, Any]) -> bool:
     return True
 
 
+def log_ads(ep: dict[str, Any]) -> Any:
+    """The ADS config a log was recorded with (its episode metadata's ``ads_config``), or None
+    (the default ADS) for a log without one."""
+    from deft_gym.bus.ads import AdsConfig
+
+    return AdsConfig.model_validate(_no_nulls(ep["ads_config"])) if isinstance(ep.get("ads_config"), dict) else None
+
+
 def from_log(log: Path | str, resimulate: bool = True) -> ExportEpisode:
     """The episode of ``log`` (an ``episode.mcap``; its folder's ``episode.json`` when there is
     one). See the module docstring."""
-    from deft_gym.bus.ads import AdsConfig
-
     log = Path(log)
     ep, oc, scene = read_log(log)
     verdict = None
@@ -365,9 +371,7 @@ def from_log(log: Path | str, resimulate: bool = True) -> ExportEpisode:
     result = None
     if resimulate:
         try:
-            ads = AdsConfig.model_validate(_no_nulls(ep["ads_config"])) if isinstance(ep.get("ads_config"), dict) \
-                else None
-            o, ego, parts, dt = simulate(data, ads, jitter_seed, added, source=f"{log} (scenario)")
+            o, ego, parts, dt = simulate(data, log_ads(ep), jitter_seed, added, source=f"{log} (scenario)")
             check = _compare(ego, parts, {k: v for k, v in scene.items()})
             agree = same_outcome(o.as_dict(), oc)
             check["outcome_agrees"] = agree

@@ -173,9 +173,10 @@ def reproduces(meta: dict[str, Any], outcome: dict[str, Any], ego_recorded: np.n
 def check_export(log: Path, written: dict[str, Path], roundtrip: bool = True) -> dict[str, Any]:
     """The independent checks of one export (see the module docstring); plain data."""
     from deft_gym.export.checks import errors, qc_issues
-    from deft_gym.export.episode import read_log
+    from deft_gym.export.episode import log_ads, read_log
 
-    _, oc, scene = read_log(log)
+    ep, oc, scene = read_log(log)
+    ads = log_ads(ep)  # the round trips rerun on the ADS the log was recorded with
     out: dict[str, Any] = {}
     ego_xosc = None
     if "xosc" in written:
@@ -193,7 +194,7 @@ def check_export(log: Path, written: dict[str, Path], roundtrip: bool = True) ->
             for key, reactive in (("xosc_roundtrip", False), ("xosc_roundtrip_reactive", True)):
                 data, meta = import_file(written["xosc"], reactive=reactive)
                 t0 = time.perf_counter()
-                o, ego = rerun(data, meta.get("jitter_seed"))
+                o, ego = rerun(data, meta.get("jitter_seed"), ads)
                 out[key] = reproduces(meta, o, ego_xosc, ego) | {"seconds": time.perf_counter() - t0}
     if "commonroad" in written:
         from deft_gym.export.commonroad import first_collision_step, read_commonroad
@@ -213,7 +214,7 @@ def check_export(log: Path, written: dict[str, Path], roundtrip: bool = True) ->
                                            "confirmed": k is not None and abs(k - logged) <= 1}
         if roundtrip:
             data, meta = import_file(written["commonroad"])
-            o, ego = rerun(data, meta.get("jitter_seed"))
+            o, ego = rerun(data, meta.get("jitter_seed"), ads)
             out["commonroad_roundtrip"] = reproduces(meta, o, ego_xosc, ego)
     return out
 

@@ -38,9 +38,10 @@ WHEELBASE_HALF = 2.4  # [m] highway-env's bicycle: half the vehicle length
 class ControlNode(Node):
     """Trajectory tracking (``params``: ``kp_speed``, ``kp_station``, ``lookahead_min`` [m],
     ``lookahead_gain`` [s], ``max_accel``, ``max_decel`` [m/s^2], ``max_steering`` [rad],
-    ``lateral``: ``pure_pursuit``, the default, or ``curvature`` - the path's curvature at the
-    matched point plus feedback on the offset and on the heading less the bicycle's slip, over the
-    look-ahead length, which does not cut tight turns as pure pursuit does: :func:`_curvature_law`)."""
+    ``lateral``: ``curvature``, the default - the path's curvature at the matched point plus
+    feedback on the offset and on the heading less the bicycle's slip, over the look-ahead length
+    (:func:`_curvature_law`) - or ``pure_pursuit``, which cuts tight turns: it takes the heading
+    for the course, and a 7 m U-turn's slip is 0.35 rad)."""
 
     def __init__(self, cfg: ModuleConfig, topics: dict[str, str]) -> None:
         self.t_plan, self.t_loc = topics["planning"], topics["localization"]
@@ -55,7 +56,7 @@ class ControlNode(Node):
         self.max_acc = float(p.get("max_accel", 3.0))
         self.max_dec = float(p.get("max_decel", 8.0))
         self.max_steer = float(p.get("max_steering", math.pi / 3))
-        self.lateral = str(p.get("lateral", "pure_pursuit"))
+        self.lateral = str(p.get("lateral", "curvature"))
         if self.lateral not in LATERAL_LAWS:
             raise ValueError(f"control.params.lateral: {self.lateral!r}; expected one of {', '.join(LATERAL_LAWS)}")
         self._cache_seq = -1

@@ -323,23 +323,39 @@ def reference_run(sc: Scenario, ads: AdsConfig | None = None, jitter_seed: int =
     return tr
 
 
-def aborted_changes(trace: Trace) -> list[dict[str, Any]]:
+#: [s] how long a run must want its own lane back, still in it, for a lane change to count as
+#: given up: one or two planning cycles (10 Hz) of another choice that the next cycles take back
+#: are no decision
+GIVE_UP_S = 0.5
+
+
+def aborted_changes(trace: Trace, hold: float = GIVE_UP_S) -> list[dict[str, Any]]:
     """Lane changes the run began and gave up (from the planning decisions in ``trace.meta``):
     ``{"t": start [s], "lane", "target"}`` for each change towards a lane of the same road that
-    ended with the ego still in its lane, wanting it again. A planner that publishes no lanes
-    gives none."""
+    ended with the ego still in its lane, wanting it again for ``hold`` [s] or more. Emergency
+    stops (reason ``estop``: no plan, so no lane decision) are skipped: a change resumed after one
+    was not given up. A planner that publishes no lanes gives none."""
     out: list[dict[str, Any]] = []
     change: dict[str, Any] | None = None
+    back: float | None = None  # when the run began wanting its own lane back, mid-change
     for e in trace.meta.get("timeline") or []:
         lane, target = e["lane"], e["target"]
-        if not lane or not target:
+        if not lane or not target or e.get("reason") == "estop":
             continue
         if change is not None:
             if lane == change["target"] or lane[:2] != change["lane"][:2]:
-                change = None  # reached, or the road ended (a junction): not given up here
+                change, back = None, None  # reached, or the road ended (a junction): not given up here
             elif target == change["lane"] and lane == change["lane"]:
-                out.append(change)
-                change = None
+                back = e["t"] if back is None else back
+                if e["t"] - back >= hold - 1e-9:
+                    out.append(change)
+                    change, back = None, None
+                continue
+            elif target == change["target"]:
+                back = None  # taken back: the change goes on
+                continue
         if change is None and target != lane and target[:2] == lane[:2]:
-            change = {"t": e["t"], "lane": lane, "target": target}
+            change, back = {"t": e["t"], "lane": lane, "target": target}, None
+    if change is not None and back is not None:
+        out.append(change)  # the run ended wanting its own lane back
     return out

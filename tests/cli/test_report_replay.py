@@ -84,12 +84,12 @@ def test_an_rl_episode_card_replays_its_outcome_with_participants_added_mid_run(
     from deft_gym.cli.report import write_report
     from deft_gym.envs.adversary import ALONG, AT_LAST, LATERAL, OPS, AdversaryEnv
 
-    def cone(along: float | str, lateral: float) -> np.ndarray:
+    def parked(along: float | str, lateral: float) -> np.ndarray:
         i = ALONG.index(along) if along in ALONG else len(ALONG) + AT_LAST.index(along)
-        return np.array([OPS.index("cone"), i, LATERAL.index(lateral), 0, 0])
+        return np.array([OPS.index("static_vehicle"), i, LATERAL.index(lateral), 1, 0])
 
     monkeypatch.chdir(tmp_path)
-    plan = {3: cone(80.0, -1.5), 4: cone("last", 1.5)}  # a gate of cones ahead of the ego: a NoDS
+    plan = {1: parked(-10.0, -3.5), 4: parked("last+8", -2.0)}  # a parked car beside the path ahead: a NoDS
     ev = tmp_path / "eval"
     env = AdversaryEnv(scenario="lane_follow_static", log_dir=str(ev / "logs"), keep_passing=0.0, extract=False)
     env.reset(seed=0)

@@ -17,7 +17,7 @@ import pytest
 
 from deft_gym.config import CONFIG_DIR
 
-FLAKY = CONFIG_DIR / "demo" / "flaky_left_turn.yaml"
+FLAKY = CONFIG_DIR / "scenarios" / "handwritten" / "stopped_bus.yaml"  # the demo's: 1002 collides, 1003 completes
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
 
@@ -69,13 +69,13 @@ def reruns(tmp_path_factory) -> Path:
 
 
 def test_run_table_fits_100_columns_and_prints_every_value(reruns: Path) -> None:
-    argv = ["-m", "deft_gym.cli.run", str(FLAKY), "--reruns", "2", "--jitter-seed", "1000", "--render", "none",
+    argv = ["-m", "deft_gym.cli.run", str(FLAKY), "--reruns", "2", "--jitter-seed", "1002", "--render", "none",
             "--no-progress"]
     tty = in_terminal([*argv, "--out", str(reruns / "a")])
     body = table_lines(tty)
     assert "…" not in tty and all(len(ln) <= 100 for ln in body), "\n".join(body)
-    assert re.search(r"0 +collision +cut_in_7 .* 1000 +\(reference\)", tty), tty
-    assert "timeout" in tty and "completed" not in tty  # rerun 1 runs out of time, printed whole
+    assert re.search(r"0 +collision +bus .* 1002 +\(reference\)", tty), tty
+    assert "completed" in tty and "timeout" not in tty  # rerun 1 passes the bus, printed whole
     pipe = piped([*argv, "--out", str(reruns / "b")])
     assert "…" not in pipe and "same plans as rerun 0" in pipe and "not compared" in pipe
 

@@ -8,7 +8,8 @@
 - the round trip (import, rerun on the jitter seed) reproduces the logged outcome;
 - ``deft-gym export`` / ``deft-gym import`` do it from the command line, and the report links it.
 
-One colliding episode of the demo's flaky left turn (jitter seed 1000: collision with cut_in_7)
+One colliding episode of a left turn with a vehicle cutting in (tests/support/data/left_turn_cut_in.yaml
+on the legacy testbed, jitter seed 1000: collision with cut_in_7)
 and one lane-following episode with a cone and a parked vehicle added mid-run are recorded once
 per module; each costs about a second to simulate.
 """
@@ -44,17 +45,20 @@ from deft_gym.export.failures import (
 from deft_gym.export.opendrive import write_xodr
 from deft_gym.world.roadmap import RoadMap
 
-FLAKY = CONFIG_DIR / "demo" / "flaky_left_turn.yaml"
+FLAKY = Path(__file__).resolve().parents[1] / "support" / "data" / "left_turn_cut_in.yaml"
+LEGACY = CONFIG_DIR / "ads" / "legacy.yaml"  # where FLAKY collides (pure pursuit cuts the turn)
 
 
 @pytest.fixture(scope="module")
 def collision(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Path]]:
-    """The flaky left turn on jitter seed 1000 (it collides), exported in both formats."""
+    """The left turn with a cut-in on the legacy testbed, jitter seed 1000 (it collides), exported
+    in both formats."""
+    from deft_gym.bus.ads import load_ads_config
     from deft_gym.sim.simulation import run_episode
 
     out = tmp_path_factory.mktemp("flaky") / "0"
-    res = run_episode(FLAKY, jitter_seed=1000, out_dir=out)
-    assert res.outcome.collision is not None, "the demo's flaky left turn no longer collides on jitter seed 1000"
+    res = run_episode(FLAKY, load_ads_config(LEGACY), jitter_seed=1000, out_dir=out)
+    assert res.outcome.collision is not None, "the left turn with a cut-in no longer collides on jitter seed 1000"
     log = Path(res.log_path)
     return log, write_exports(from_log(log), export_paths(log))
 
@@ -168,6 +172,7 @@ def test_parsed_back_trajectories_match_the_log(fixture: str, request) -> None:
 
 
 def test_the_round_trip_reproduces_the_collision(collision) -> None:
+    from deft_gym.bus.ads import load_ads_config
     from deft_gym.export.openscenario import read_xosc
     from deft_gym.export.roundtrip import import_file
 
@@ -178,7 +183,7 @@ def test_the_round_trip_reproduces_the_collision(collision) -> None:
         kinds = {p["id"]: p["type"] for p in data["participants"]}
         assert kinds == {"oncoming": "scripted", "waiting_west": "scripted", "cone_exit": "static",
                          "cut_in_7": "scripted"}  # the reactive vehicles replay their trajectories
-        outcome, ego_rerun = rerun(data, meta["jitter_seed"])
+        outcome, ego_rerun = rerun(data, meta["jitter_seed"], load_ads_config(LEGACY))
         r = reproduces(meta, outcome, ego, ego_rerun)
         assert r["reproduced"] and r["collision"] == "cut_in_7", (path, r)
         assert r["same_path"], (path, r)
@@ -225,17 +230,17 @@ def test_export_and_import_commands(collision, tmp_path: Path, capsys) -> None:
     c = rec["check"]
     assert c["xosc_errors"] == 0 and c["xodr_errors"] == 0 and c["commonroad_collision"]["confirmed"]
     assert c["xosc_roundtrip"]["reproduced"] and c["commonroad_roundtrip"]["reproduced"]
-    assert import_main([str(run / "0" / "episode.cr.xml"), "--rerun"]) == 0
+    assert import_main([str(run / "0" / "episode.cr.xml"), "--rerun", "--ads-config", str(LEGACY)]) == 0
     text = capsys.readouterr().out
     assert "reproduced" in text and "--jitter-seed 1000" in text and (run / "0" / "episode.cr.yaml").exists()
     from deft_gym.scenarios.scenario import load_scenario
 
-    assert load_scenario(run / "0" / "episode.cr.yaml").name == "flaky_left_turn-import"
+    assert load_scenario(run / "0" / "episode.cr.yaml").name == "left_turn_cut_in-import"
     assert import_main([str(tmp_path / "nothing.xosc")]) == 2
     (tmp_path / "not.xml").write_text("<a/>")
     assert import_main([str(tmp_path / "not.xml")]) == 2
     # the report's failure card links the exports (a run folder needs its summary)
-    (run / "summary.json").write_text(json.dumps({"scenario": "flaky_left_turn", "scenario_file": str(FLAKY),
+    (run / "summary.json").write_text(json.dumps({"scenario": "left_turn_cut_in", "scenario_file": str(FLAKY),
                                                   "reruns": [_rerun_row(log, run)]}))
     html = write_report(run, draw=False).read_text()
     assert 'href="0/episode.xosc"' in html and 'href="0/episode.cr.xml"' in html

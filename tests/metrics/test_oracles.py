@@ -36,17 +36,18 @@ def test_search_records_carry_the_metrics_and_the_oracle(oracle: str) -> None:
 
 
 def test_the_ga_finds_a_confirmed_ttc_finding() -> None:
-    """Decictor-GA aimed at TTC on left_turn (budget 4, seed 0): one of its mutations brings the
-    ego within 1.5 s TTC of an added cone, on two jitter seeds - a counted finding."""
+    """Decictor-GA aimed at TTC on left_turn (budget 4, seed 1): one of its mutations brings the
+    ego within 1.5 s TTC of one of the scenario's vehicles, on two jitter seeds - a counted finding
+    (the reference run keeps above 1.5 s)."""
     from agents.search import search
     from deft_gym.search.context import seed_context
 
-    recs = list(search("decictor", seed_context("left_turn"), 4, seed=0, oracle="ttc"))
+    recs = list(search("decictor", seed_context("left_turn"), 4, seed=1, oracle="ttc"))
     found = [r for r in recs if r["oracle_signature"]]
     assert found, [(r["metric_violations"], r["metric_min_ttc"]) for r in recs]
     for r in found:
         assert r["valid"] and r["metric_ttc_below_s"] > 0.0 and r["metric_min_ttc"] < 1.5
-        assert r["oracle_signature"] == "metric:ttc:cone" and r["oracle_confirmed"] is True
+        assert r["oracle_signature"] == "metric:ttc:seed:vehicle" and r["oracle_confirmed"] is True
         assert "scenario_equivalent" in r  # kept for the findings, as a failure's is
 
 
@@ -63,8 +64,8 @@ def test_a_finding_the_reference_run_has_is_none() -> None:
 
 
 def test_the_env_aims_at_its_metric_oracle() -> None:
-    """blocked_red_light's reference run closes on the parked blocker at a TTC of about 1.07 s <
-    1.5 s. With ``oracle: ttc`` and no-op actions the episode violates TTC the same way - no
+    """blocked_red_light's reference run closes on the parked blocker at a TTC below 1.5 s (0.63 s:
+    it brakes beside it, mid-lane-change). With ``oracle: ttc`` and no-op actions the episode violates TTC the same way - no
     finding, no failure bonus (10), only the severity shaping (2 x exp(-TTC / 1.5 s))."""
     import math
 
@@ -83,7 +84,7 @@ def test_the_env_aims_at_its_metric_oracle() -> None:
     assert env.last_metrics.min_ttc == pytest.approx(m["min_ttc"], abs=1e-4)
     # the end reward is the severity shaping; the per-window shaping (objective: both) adds the rest
     assert total < env.cfg.reward.failure_bonus / 2
-    assert total >= env.cfg.reward.iou_shaping * math.exp(-m["min_ttc"] / 1.5) - 1e-6
+    assert total >= env.cfg.reward.iou_shaping * math.exp(-env.last_metrics.min_ttc / 1.5) - 1e-6
 
 
 def test_the_sink_keeps_a_metric_finding_once(tmp_path) -> None:

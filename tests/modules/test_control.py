@@ -1,11 +1,11 @@
 """The control module's lateral laws, closed loop on the simulation's ego (highway-env's bicycle).
 
 A plan runs straight and then U-turns on a 7 m radius (the generator's tight turns) at 4 m/s; the
-ego, with a steering limit that can hold that radius (50 deg), is steered at 20 Hz by
-:class:`ControlNode`. Pure pursuit, the default, aims at the path 5 m ahead from the car's
+ego, with a steering limit that can hold that radius (50 deg, the default), is steered at 20 Hz
+by :class:`ControlNode`. Pure pursuit, the default until 2026-11-26, aims at the path 5 m ahead from the car's
 heading, which in highway-env's bicycle lags its course by 0.35 rad on this radius, and cuts the
 corner by 1.7 m; the ``curvature`` law follows the path's own curvature, corrects the offset and
-the heading less that slip, and keeps within 0.12 m of it.
+the heading less that slip, and keeps within 0.12 m of it (the default).
 """
 
 from __future__ import annotations
@@ -75,15 +75,17 @@ def test_pure_pursuit_cuts_a_tight_turn_and_the_curvature_law_does_not() -> None
     assert max(_track("curvature", heading_offset=-0.35)) < 0.15
 
 
-def test_the_default_steering_limit_cannot_hold_the_generators_tightest_turn() -> None:
-    """35 deg (the ADS config's default max_steering_deg) turns the ego's centre on 7.26 m at the
-    least: on a 7 m turn it runs wide whatever the law; 50 deg holds it."""
+def test_highway_envs_steering_limit_cannot_hold_the_generators_tightest_turn() -> None:
+    """35 deg (highway-env's limit, the ADS config's default until 2026-11-26) turns the ego's
+    centre on 7.26 m at the least: on a 7 m turn it runs wide whatever the law; 50 deg, the
+    default now, holds it."""
     _, wide = _track("curvature", max_steering_deg=35.0)
     assert wide > 0.3
     ads = load_ads_config()
-    sim = Simulation("u_turn", ads.model_copy(update={"max_steering_deg": 50.0}), jitter_seed=1)
-    assert math.radians(50.0) == sim.world.ego.MAX_STEERING
-    assert Simulation("u_turn", ads, jitter_seed=1).world.ego.MAX_STEERING == EgoVehicle.MAX_STEERING
+    assert ads.max_steering_deg == 50.0 and ads.control.params["lateral"] == "curvature"
+    assert math.radians(50.0) == Simulation("u_turn", ads, jitter_seed=1).world.ego.MAX_STEERING
+    sim = Simulation("u_turn", ads.model_copy(update={"max_steering_deg": 35.0}), jitter_seed=1)
+    assert sim.world.ego.MAX_STEERING == math.radians(35.0) == EgoVehicle.MAX_STEERING
 
 
 def test_an_unknown_lateral_law_is_one_clear_error() -> None:
@@ -93,21 +95,21 @@ def test_an_unknown_lateral_law_is_one_clear_error() -> None:
         ControlNode(cfg, ads.topics)
 
 
-def test_the_faithful_testbed_makes_the_generators_u_turn(tmp_path) -> None:
+def test_the_default_testbed_makes_the_generators_u_turn(tmp_path) -> None:
     """In the simulation: the reference planner's U-turn of gen:2000021 (jitter seed 11) keeps the
-    ego within 0.35 m of the road on configs/ads/faithful.yaml; the same law at 35 deg steering
-    cannot make the turn and runs more than 1.5 m wide."""
+    ego within 0.35 m of the road on the default testbed; the same law at 35 deg steering cannot
+    make the turn and runs more than 1.5 m wide."""
     import json
 
     from deft_gym.cli.run import main
     from deft_gym.config import CONFIG_DIR
 
     narrow = tmp_path / "narrow.yaml"
-    narrow.write_text(f"base: {CONFIG_DIR / 'ads' / 'faithful.yaml'}\nmax_steering_deg: 35.0\n")
+    narrow.write_text(f"base: {CONFIG_DIR / 'ads' / 'default.yaml'}\nmax_steering_deg: 35.0\n")
     off = {}
-    for name, ads in (("faithful", CONFIG_DIR / "ads" / "faithful.yaml"), ("narrow", narrow)):
+    for name, ads in (("default", CONFIG_DIR / "ads" / "default.yaml"), ("narrow", narrow)):
         assert main(["gen:2000021", "--reruns", "1", "--jitter-seed", "11", "--ads-config", str(ads),
                      "--out", str(tmp_path / name), "--quiet", "--render", "none"]) in (0, 1)
         summary = json.loads(next((tmp_path / name).rglob("summary.json")).read_text())
         off[name] = summary["reruns"][0]["metrics"]["off_road_max"]
-    assert off["faithful"] < 0.35 and off["narrow"] > 1.5
+    assert off["default"] < 0.35 and off["narrow"] > 1.5

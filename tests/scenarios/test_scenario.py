@@ -93,15 +93,16 @@ def test_participant_form_checks() -> None:
 
 def test_an_ads_config_can_build_on_another(tmp_path: Path) -> None:
     """``base:`` names a config (relative to the file) that the file's keys are deep-merged onto:
-    the shipped faithful testbeds are the default and CommonRoad configs with the control law and
-    the steering limit changed, nothing else; a missing base, a loop or a base that is no path is
+    the shipped legacy testbeds are the default and CommonRoad configs with the control law and
+    the steering limit changed back, nothing else; a missing base, a loop or a base that is no path is
     one clear error naming the file."""
     from deft_gym.config import CONFIG_DIR
 
-    for name, base in (("faithful", "default"), ("commonroad_faithful", "commonroad")):
+    for name, base in (("legacy", "default"), ("commonroad_legacy", "commonroad")):
         ours, theirs = load_ads_config(CONFIG_DIR / "ads" / f"{name}.yaml"), load_ads_config(CONFIG_DIR / "ads" / f"{base}.yaml")
-        want = theirs.model_copy(update={"max_steering_deg": 50.0, "control": theirs.control.model_copy(
-            update={"params": {**theirs.control.params, "lateral": "curvature"}})})
+        assert theirs.max_steering_deg == 50.0 and theirs.control.params["lateral"] == "curvature"
+        want = theirs.model_copy(update={"max_steering_deg": 35.0, "control": theirs.control.model_copy(
+            update={"params": {**theirs.control.params, "lateral": "pure_pursuit"}})})
         assert ours.model_dump() == want.model_dump()
     (tmp_path / "a.yaml").write_text("base: b.yaml\n")
     (tmp_path / "b.yaml").write_text("base: a.yaml\n")

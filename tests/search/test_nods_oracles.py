@@ -203,6 +203,16 @@ def test_a_reference_that_gives_up_a_lane_change_is_not_robust(ctx):
     assert aborted_changes(dataclasses.replace(ctx.ref, meta={"timeline": gave_up})) == [
         {"t": 2.0, "lane": a, "target": b}]
     assert aborted_changes(dataclasses.replace(ctx.ref, meta={"timeline": done})) == []
+    # an emergency stop (no plan, no lane decision) and a one-cycle flicker back are no give-up;
+    # wanting the own lane back for 0.5 s is
+    stop = {"reason": "estop", "lane": a, "target": a, **entry}
+    flicker = [*gave_up[:2], {"t": 2.1, **stop}, {"t": 2.2, "reason": "borrow", "lane": a, "target": b, **entry},
+               {"t": 2.3, "reason": "keep", "lane": a, "target": a, **entry},
+               {"t": 2.4, "reason": "borrow", "lane": a, "target": b, **entry}, done[-1]]
+    assert aborted_changes(dataclasses.replace(ctx.ref, meta={"timeline": flicker})) == []
+    held = [*flicker[:4], *({"t": 2.3 + 0.1 * k, "reason": "keep", "lane": a, "target": a, **entry} for k in range(6))]
+    assert aborted_changes(dataclasses.replace(ctx.ref, meta={"timeline": held})) == [
+        {"t": 2.0, "lane": a, "target": b}]
     assert aborted_changes(ctx.ref) == []  # the seed itself is clean
     bad = dataclasses.replace(ctx, ref=dataclasses.replace(ctx.ref, meta={"timeline": gave_up}))
     assert robust(bad, cache_dir=None) is False
