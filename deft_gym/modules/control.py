@@ -1,8 +1,9 @@
 """Control: tracks the latest planned trajectory at a high rate.
 
 Longitudinal: feed-forward acceleration of the time-matched trajectory point plus feedback on
-speed and station error. Lateral: pure pursuit on the planned path, converted to a steering
-angle for highway-env's bicycle model. A trajectory that has run out (no fresh plan) is
+speed and station error. Lateral: the planned path's curvature with feedback on offset and
+heading (``lateral: curvature``, the default) or pure pursuit (``pure_pursuit``, which cuts tight
+turns), converted to a steering angle for highway-env's bicycle model. A trajectory that has run out (no fresh plan) is
 answered with braking.
 """
 
