@@ -202,8 +202,8 @@ def adversary_story(args: Any, out: Path, con: Any) -> dict[str, Any]:
     if tests:
         r = _pytest(tests)
         con.print(f"      {len(tests)} planning-module test module(s) extracted from the failures: "
-                  f"{r['failed']} failure test(s) fail (collisions reproduced), {r['passed']} reproduction tests "
-                  f"pass (a non-optimal decision has no failure oracle)", soft_wrap=True)
+                  f"{r['failed']} failure test(s) fail (the failures reproduced: a plan into the collision, a "
+                  f"plan off the optimal path), {r['passed']} reproduction tests pass", soft_wrap=True)
         story["tests"] = [str(t) for t in tests]
     else:
         con.print("      no failure this time, so no test extracted from one", soft_wrap=True)
