@@ -89,7 +89,8 @@ def test_an_rl_episode_card_replays_its_outcome_with_participants_added_mid_run(
         return np.array([OPS.index("static_vehicle"), i, LATERAL.index(lateral), 1, 0])
 
     monkeypatch.chdir(tmp_path)
-    plan = {1: parked(-10.0, -3.5), 4: parked("last+8", -2.0)}  # a parked car beside the path ahead: a NoDS
+    # two parked cars beside the path, the second placed mid-run ahead of the ego: a NoDS
+    plan = {1: parked(-10.0, -3.5), 4: parked("last+8", -2.0)}
     ev = tmp_path / "eval"
     env = AdversaryEnv(scenario="lane_follow_static", log_dir=str(ev / "logs"), keep_passing=0.0, extract=False)
     env.reset(seed=0)

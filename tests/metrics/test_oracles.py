@@ -37,8 +37,7 @@ def test_search_records_carry_the_metrics_and_the_oracle(oracle: str) -> None:
 
 def test_the_ga_finds_a_confirmed_ttc_finding() -> None:
     """Decictor-GA aimed at TTC on left_turn (budget 4, seed 1): one of its mutations brings the
-    ego within 1.5 s TTC of one of the scenario's vehicles, on two jitter seeds - a counted finding
-    (the reference run keeps above 1.5 s)."""
+    ego within 1.5 s TTC of one of the scenario's vehicles, on two jitter seeds - a counted finding."""
     from agents.search import search
     from deft_gym.search.context import seed_context
 
@@ -65,8 +64,9 @@ def test_a_finding_the_reference_run_has_is_none() -> None:
 
 def test_the_env_aims_at_its_metric_oracle() -> None:
     """blocked_red_light's reference run closes on the parked blocker at a TTC below 1.5 s (0.63 s:
-    it brakes beside it, mid-lane-change). With ``oracle: ttc`` and no-op actions the episode violates TTC the same way - no
-    finding, no failure bonus (10), only the severity shaping (2 x exp(-TTC / 1.5 s))."""
+    it brakes beside it, mid-lane-change). With ``oracle: ttc`` and no-op actions the episode
+    violates TTC the same way - no finding, no failure bonus (10), only the severity shaping
+    (2 x exp(-TTC / 1.5 s))."""
     import math
 
     from deft_gym.envs.adversary import AdversaryEnv
