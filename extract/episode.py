@@ -451,13 +451,18 @@ def _wrong_way(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, floa
     role, whether or not the planner reads it) and one of the plans ``(index, time, payload)`` took
     the ego into lanes that all point against it for at least :data:`~extract.oracle.WRONG_WAY_LIMIT`
     m; else None."""
-    msgs = elog.topics.get(mp.topic("map") or "")
-    lanes = map_lanes(msgs.payload(0) if msgs is not None and len(msgs) else None)
+    lanes = map_lanes(map_payload(elog, mp))
     ww = find_wrong_way(outputs, lanes)
     if ww is None:
         return None
     return {"wrong_way": ww, "wrong_way_map": {"lanes": [{"x": xy[:, 0].tolist(), "y": xy[:, 1].tolist(),
                                                           "width": 2.0 * half} for xy, half in lanes]}}
+
+
+def map_payload(elog: EpisodeLog, mp: TopicMapping) -> dict[str, Any] | None:
+    """The log's road map (the first message of the mapping's ``map`` role), or None."""
+    maps = elog.topics.get(mp.topic("map") or "")
+    return maps.payload(0) if maps is not None and len(maps) else None
 
 
 def ego_poses(elog: EpisodeLog, mp: TopicMapping) -> dict[str, list[float]] | None:
@@ -485,8 +490,7 @@ def _off_road(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float
     ``off_road_map``) when the log holds the road map and the ego's poses (the mapping's ``map``
     and ``localization`` roles) and the ego's box left the drivable area by more than
     :data:`~extract.oracle.OFF_ROAD_LIMIT` m where the plans before had put it; else None."""
-    maps = elog.topics.get(mp.topic("map") or "")
-    payload = maps.payload(0) if maps is not None and len(maps) else None
+    payload = map_payload(elog, mp)
     poses = ego_poses(elog, mp)
     if payload is None or poses is None:
         return None

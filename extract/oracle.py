@@ -409,6 +409,18 @@ def off_road_near(trajectory: Mapping[str, Any], area: Any, ego: tuple[float, fl
     return int(near[j]), float(depth[j])
 
 
+def left_road(poses: Mapping[str, Sequence[float]], area: Any, ego: tuple[float, float],
+              limit: float = OFF_ROAD_LIMIT) -> tuple[int, np.ndarray] | None:
+    """Where the ego left the road: the index of the first pose (``poses``: ``x``, ``y`` [m],
+    ``heading`` [rad]) whose box reaches more than ``limit`` [m] outside ``area``, and every pose's
+    depth [m]; None when none does (or there is no area or no pose)."""
+    if area is None or not len(poses.get("x") or ()):
+        return None
+    depth = off_road_depths(poses, area, ego)
+    out_at = np.flatnonzero(depth > limit)
+    return (int(out_at[0]), depth) if len(out_at) else None
+
+
 def find_off_road(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], poses: Mapping[str, Sequence[float]],
                   area: Any, ego: tuple[float, float], limit: float = OFF_ROAD_LIMIT,
                   radius: float = OFF_ROAD_RADIUS) -> dict[str, Any] | None:
@@ -420,13 +432,10 @@ def find_off_road(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], poses
     run. Tied to where the ego left the road, so a long plan run off the end of a road that the
     next plans correct does not count. None when the ego never left the road or the last plan
     before did not take it there (the vehicle left its plan: DeFT's criterion for P_faulty)."""
-    if area is None or not len(poses.get("x") or ()):
+    left = left_road(poses, area, ego, limit)
+    if left is None:
         return None
-    depth = off_road_depths(poses, area, ego)
-    out_at = np.flatnonzero(depth > limit)
-    if not len(out_at):
-        return None
-    p = int(out_at[0])
+    p, depth = left
     t_left, place = float(poses["t"][p]), (float(poses["x"][p]), float(poses["y"][p]))
 
     def planned(k: int) -> tuple[int, float]:

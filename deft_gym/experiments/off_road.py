@@ -31,7 +31,7 @@ from rich.table import Table
 from deft_gym.cli import common
 from deft_gym.files import write_atomic
 from deft_gym.world.geometry import box_polygon
-from extract.episode import ego_poses
+from extract.episode import ego_poses, map_payload
 from extract.logs import LogError, read_log
 from extract.mapping import load_mapping
 from extract.oracle import (
@@ -39,6 +39,7 @@ from extract.oracle import (
     OFF_ROAD_LIMIT,
     OFF_ROAD_RADIUS,
     find_off_road,
+    left_road,
     map_area,
     off_road_depths,
     off_road_near,
@@ -58,17 +59,16 @@ def take_apart(log: Path, ego: tuple[float, float] = DEFAULT_EGO) -> dict[str, A
     mp = load_mapping()
     topics = [mp.topic(r) for r in ("planning", "map", "localization")]
     elog = read_log(log, [t for t in topics if t])
-    maps = elog.topics.get(mp.topic("map") or "")
+    payload = map_payload(elog, mp)
     plans = elog.topics.get(mp.topic("planning") or "")
     poses = ego_poses(elog, mp)
-    if maps is None or not len(maps) or plans is None or not poses or not poses["t"]:
+    if payload is None or plans is None or not poses or not poses["t"]:
         raise LogError(f"{log}: needs the map, planning and localization topics of the mapping")
-    area = map_area(maps.payload(0))
-    depth = off_road_depths(poses, area, ego)
-    out_at = np.flatnonzero(depth > OFF_ROAD_LIMIT)
-    if not len(out_at):
+    area = map_area(payload)
+    left = left_road(poses, area, ego)
+    if left is None:
         return None
-    p = int(out_at[0])
+    p, depth = left
     t_left, place = poses["t"][p], (poses["x"][p], poses["y"][p])
     outputs = [(i, float(pl["header"]["stamp"]), pl) for i in range(len(plans)) if (pl := plans.payload(i))]
     before = [o for o in outputs if o[1] < t_left]
