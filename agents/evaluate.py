@@ -90,6 +90,10 @@ class EvalConfig(BaseModel):
                                "at-fault collisions, docs/search.md) or a driving-quality metric oracle "
                                "(deft_gym.metrics.oracle.ORACLES, docs/metrics.md); default: the model's "
                                "training env.oracle, else default")
+    validity: Literal["lane", "paper"] | None = Field(None, description="where static objects may stand: lane "
+                                                      "(out of the ego's lane) or paper (Decictor's 0.5 m from "
+                                                      "the optimal path; docs/search.md); default: the model's "
+                                                      "training env.feasible, else lane")
     ads: str | None = Field(None, description="ADS config YAML every method runs on, the planner under test "
                             "included (default: the model's training env.ads, else configs/ads/default.yaml), "
                             "e.g. configs/ads/commonroad.yaml")
@@ -114,6 +118,10 @@ def build_parser() -> common.Parser:
                    "(default: 0)")
     p.add_argument("--placements", nargs="+", action=common.ListAction, default=None, metavar="RULE",
                    help="placement rules, of closest, uniform (default: both)")
+    p.add_argument("--validity", choices=["lane", "paper"], default=None,
+                   help="where static objects may stand: lane (out of the ego's lane) or paper (Decictor's 0.5 m "
+                   "from the optimal path, which lets a parked car stand inside the lane); default: the model's "
+                   "training config, else lane")
     p.add_argument("--oracle", default=None, metavar="ORACLE",
                    help="default (NoDS, at-fault collisions) or a metric oracle: collision, ttc, drivable_area, "
                    "direction, red_light, progress, comfort, speed_limit, standstill, score (docs/metrics.md; "
@@ -152,7 +160,7 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
         data = load_mapping(args.config)
     flags: dict[str, tuple[str, Any]] = {}
     for key in ("budget", "repeats", "held_out", "variants", "model", "deterministic", "workers", "seed", "log_failures",
-                "oracle"):
+                "oracle", "validity"):
         flags[key] = ("--" + key.replace("_", "-"), getattr(args, key))
     ads_flag = getattr(args, "ads_config", None)
     flags["ads"] = ("--ads-config", str(ads_flag) if ads_flag is not None else None)
@@ -499,6 +507,12 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
         env["ads"] = cfg.ads
     if cfg.oracle is not None:  # what counts: the evaluation's, else the model's training objective
         env["oracle"] = cfg.oracle
+    if cfg.validity is not None:  # where static objects may stand: the evaluation's, else the model's
+        from deft_gym.search.feasible import PAPER, FeasibleConfig
+
+        rule = PAPER if cfg.validity == "paper" else FeasibleConfig()
+        env["feasible"] = {**(env.get("feasible") or {}), "static_margin": rule.static_margin,
+                           "static_lane_depth": rule.static_lane_depth}
     from deft_gym.search.context import ads_config
 
     ads = ads_config(env.get("ads"))
@@ -588,8 +602,11 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
                                  "repeat": rep, "budget": cfg.budget, "seed": cfg.seed * 1000 + rep, "env": env,
                                  "model": cfg.model, "deterministic": cfg.deterministic, "out": str(out),
                                  "log_failures": cfg.log_failures, "max_added": cfg.max_added})
+    from deft_gym.envs.adversary import load_env_config
+
     write_json_atomic(out / "eval_config.json", {**cfg.model_dump(), "ads": env.get("ads"), "held_out": held_out,
-                                                 "unfit": unfit})
+                                                 "unfit": unfit,
+                                                 "feasible": load_env_config(env).feasible.model_dump()})
     # rewrite the journal without partial jobs and stale records (set aside, never deleted), then
     # append as jobs finish
     kept, aside = {id(r) for r in records}, out / "records.set_aside.jsonl"

@@ -57,13 +57,34 @@ def split_equivalent(rec: dict[str, Any]) -> tuple[dict[str, Any], dict[str, flo
     return eq["scenario"], eq["added_at"] or None, eq["jitter_seed"]
 
 
-def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None) -> tuple[Any, Any]:
+def eval_feasible(folder: Path) -> Any:
+    """The validity rule an evaluation folder's records were judged under: its
+    ``eval_config.json``'s ``feasible``; an evaluation written before that was recorded ran under
+    Decictor's 0.5 m for static objects too; no eval_config.json: the default rule."""
+    from deft_gym.search.feasible import PAPER, FeasibleConfig
+
+    path = folder / "eval_config.json"
+    if not path.exists():
+        return FeasibleConfig()
+    data = json.loads(path.read_text())
+    if "feasible" not in data:
+        return PAPER
+    try:
+        return FeasibleConfig(**data["feasible"])
+    except ValueError as err:
+        raise RecordError(f"{path}: field 'feasible': {str(err).splitlines()[0]}") from None
+
+
+def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None,
+               feasible: Any = None) -> tuple[Any, Any]:
     """``(context, run)``: the record's failure simulated again with its jitter seed (on the ADS
-    config ``ads``, default: the default one; its MCAP log in ``out_dir`` when given)."""
+    config ``ads``, default: the default one; judged under ``feasible``, a
+    :class:`~deft_gym.search.feasible.FeasibleConfig`, default: the default one; its MCAP log in
+    ``out_dir`` when given)."""
     from deft_gym.search.context import ads_config, seed_context
     from deft_gym.search.episode import run_scenario
 
-    ctx = seed_context(rec["scenario"], ads=ads_config(ads))
+    ctx = seed_context(rec["scenario"], feasible, ads=ads_config(ads))
     data, added_at, jitter = split_equivalent(rec)
     specs = data["participants"][len(ctx.scenario.participants):]
     return ctx, run_scenario(ctx, specs, jitter, out_dir, added_at=added_at)
@@ -220,6 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         raw = read_jsonl(rec_path)
         rows, _ = normalize(raw, str(rec_path))
         ads = str(args.ads_config) if args.ads_config is not None else None
+        feasible = eval_feasible(folder)
         if ads is None and (folder / "eval_config.json").exists():  # the ADS the evaluation ran on
             ads = json.loads((folder / "eval_config.json").read_text()).get("ads")
     except (RecordError, ValueError) as err:
@@ -234,11 +256,11 @@ def main(argv: list[str] | None = None) -> int:
         con.print("no counted failures in the records")
         return 0
     with common.locked_out(out):
-        return _draw(args, con, out, by_cause, counts, ads)
+        return _draw(args, con, out, by_cause, counts, ads, feasible)
 
 
 def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any]]],
-          counts: dict[str, dict[str, int]], ads: str | None) -> int:
+          counts: dict[str, dict[str, int]], ads: str | None, feasible: Any = None) -> int:
     from deft_gym.search.episode import read_replay, write_replay
 
     out.mkdir(parents=True, exist_ok=True)
@@ -263,7 +285,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
                 current = cause
             stem = f"{n:03d}_{rec['method']}_{rec['scenario'].replace(':', '_').replace('/', '_')}_r{rec['repeat']}_{rec['index']}"
             log_dir = out / f"{stem}_log" if args.tests else None
-            ctx, run = resimulate(rec, ads, log_dir)
+            ctx, run = resimulate(rec, ads, log_dir, feasible)
             v = run.verdict
             same = v.signature == rec.get("signature") and v.failure == rec.get("failure")
             name = f"{stem}.png"

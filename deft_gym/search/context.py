@@ -144,7 +144,8 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
         areas = motion_areas(ref, rm, feasible, sc.duration)
         oracle = DecisionOracle(ref, rm, threshold=threshold, grid_kind=grid,  # type: ignore[arg-type]
                                 clearance=feasible.margin, window=(feasible.early_window, feasible.late_window),
-                                spawn_distance=feasible.spawn_distance)
+                                spawn_distance=feasible.spawn_distance, static_clearance=feasible.static_margin,
+                                static_lane_depth=feasible.static_lane_depth)
         if len(_CTX) > 256:
             _CTX.clear()
         ctx = _CTX[key] = SeedContext(sc, ads, ref, rm, areas, RefPath(ref, rm), oracle, feasible)

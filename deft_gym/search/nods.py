@@ -23,9 +23,11 @@
   and the planner's own hard buffer) to the reference ego box while that stretch of the path is
   reserved - from ``EARLY_WINDOW`` (1 s) before the reference ego is there until ``LATE_WINDOW``
   (3 s) after it left, and all of the path once the reference run has ended (a static one at any
-  time) - makes the
-  mutation invasive, and so does one that appears within ``SPAWN_DISTANCE`` (15 m) of the live
-  ego, or a seed participant (which may react to what was added) overlapping the reference ego.
+  time) - makes the mutation invasive. So does a static one (cone, parked vehicle) closer than
+  ``static_clearance`` (0.75 m) or standing in a lane the optimal path drives in
+  (:func:`lane_strips`): inside the ego's lane, where a planner goes round it by design. So does
+  one that appears within ``SPAWN_DISTANCE`` (15 m) of the live ego, or a seed participant (which
+  may react to what was added) overlapping the reference ego.
 - **Fault**: a collision is the ego's when the ego closed the gap (:func:`collision_fault`).
 - **Findings**: every failure carries its root cause (:class:`Finding`): the trigger (the added
   object the planner's decision names: cone, parked vehicle, vehicle), its clearance band to the
@@ -51,6 +53,8 @@ from deft_gym.world.world import EgoVehicle
 GRID = 2.0  # [m] cell size
 THRESHOLD = 0.6  # IoU <= threshold: non-optimal
 CLEARANCE = 0.5  # [m] validity: the reference path keeps this far from every added object
+STATIC_CLEARANCE = 0.75  # [m] ... and this far from every added static one (out of the ego's lane)
+LANE_DEPTH = 0.0  # [m] ... which stands no deeper than this in a lane the optimal path drives in
 LOCAL_LENGTH = 20.0  # [m] local check: this long farther than half a lane from the reference
 _SLICES = 100_000  # cell id = lane index * _SLICES + slice
 
@@ -297,13 +301,37 @@ def spawned_near(trace: Trace, distance: float = SPAWN_DISTANCE) -> list[int]:
     return bad
 
 
+def lane_strips(ref: Trace, roadmap: RoadMap, depth: float, reach: float = 8.0) -> shapely.Geometry:
+    """The lanes the optimal path drives in, each from ``reach`` [m] before the first point the
+    reference is in it to ``reach`` after the last, shrunk by ``depth`` [m] each side: a static
+    object touching it stands at least ``depth`` inside the ego's lane."""
+    spans: dict[Any, tuple[float, float]] = {}
+    run = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref.xy, axis=0).T))])
+    for k in np.unique(np.searchsorted(run, np.arange(0.0, run[-1] + 1.0, 1.0)).clip(0, len(run) - 1)):  # every 1 m
+        loc = roadmap.locate(ref.xy[k], float(ref.ego[k, 2]))
+        if loc is not None:
+            lo, hi = spans.get(loc[0], (math.inf, -math.inf))
+            spans[loc[0]] = (min(lo, float(loc[1])), max(hi, float(loc[1])))
+    strips = []
+    for lane, (lo, hi) in spans.items():
+        g = roadmap.geom(lane)
+        a, b = max(lo - reach, 0.0), min(hi + reach, g.length)
+        if b - a > 1e-6 and g.width / 2 > depth:
+            strips.append(lane_surface(g, np.linspace(a, b, max(2, int((b - a) / 2.0) + 2)), g.width / 2 - depth))
+    return shapely.union_all(strips) if strips else shapely.Polygon()
+
+
 def invasive_why(ref: Trace, trace: Trace, clear: dict[int, float], clearance: float = CLEARANCE,
-                 spawn_distance: float = SPAWN_DISTANCE) -> dict[str, str]:
+                 spawn_distance: float = SPAWN_DISTANCE,
+                 static_clearance: float = STATIC_CLEARANCE) -> dict[str, str]:
     """Participants of ``trace`` that make a mutation invasive, with why: an added one closer
-    than ``clearance`` [m] to the optimal path while it is reserved (``clear``:
-    :func:`clearances`; ``"path"``) or appearing within ``spawn_distance`` [m] of the live ego
-    (``"spawn"``); a seed one overlapping the reference ego at the same instant (``"seed"``)."""
-    bad = {trace.actors[i].id: "path" for i, c in clear.items() if c < clearance}
+    than ``clearance`` [m] (a static one: ``static_clearance``, never less than ``clearance``) to
+    the optimal path while it is reserved (``clear``: :func:`clearances`; ``"path"``) or appearing
+    within ``spawn_distance`` [m] of the live ego (``"spawn"``); a seed one overlapping the
+    reference ego at the same instant (``"seed"``)."""
+    static = max(static_clearance, clearance)
+    bad = {trace.actors[i].id: "path" for i, c in clear.items()
+           if c < (static if trace.actors[i].kind == "static" else clearance)}
     for i in spawned_near(trace, spawn_distance):
         bad.setdefault(trace.actors[i].id, "spawn")
     for i in seed_overlaps(ref, trace):
@@ -503,10 +531,14 @@ class DecisionOracle:
     def __init__(self, ref: Trace, roadmap: RoadMap, threshold: float = THRESHOLD, grid: float = GRID,
                  grid_kind: Literal["lane", "world"] = "lane", clearance: float = CLEARANCE,
                  local_length: float = LOCAL_LENGTH, window: tuple[float, float] = (EARLY_WINDOW, LATE_WINDOW),
-                 spawn_distance: float = SPAWN_DISTANCE) -> None:
+                 spawn_distance: float = SPAWN_DISTANCE, static_clearance: float = STATIC_CLEARANCE,
+                 static_lane_depth: float | None = LANE_DEPTH) -> None:
         self.ref, self.roadmap = ref, roadmap
         self.threshold, self.grid, self.grid_kind = threshold, grid, grid_kind
-        self.clearance, self.local_length = clearance, local_length
+        self.clearance, self.static_clearance, self.local_length = clearance, static_clearance, local_length
+        self.ego_lanes = None if static_lane_depth is None else lane_strips(ref, roadmap, static_lane_depth)
+        if self.ego_lanes is not None:
+            shapely.prepare(self.ego_lanes)
         self.window, self.spawn_distance = window, spawn_distance
         self.lanes = LaneCells(roadmap, grid)
         self.ref_cells = self.cells(ref.xy)
@@ -576,7 +608,9 @@ class DecisionOracle:
         dist = self.distances(xy)  # computed once: f_p, off_length, the finding
         io, fp, fb = self.iou(xy), self.f_p(dist), self.f_b(trace.ego)
         clear = clearances(self.ref, trace, self.window)
-        why = invasive_why(self.ref, trace, clear, self.clearance, self.spawn_distance)
+        why = invasive_why(self.ref, trace, clear, self.clearance, self.spawn_distance, self.static_clearance)
+        for i in self._in_ego_lane(trace):
+            why.setdefault(trace.actors[i].id, "lane")
         is_collision = outcome == "collision"
         nods = outcome == "completed" and io <= self.threshold
         off = self.off_length(xy, dist)
@@ -590,6 +624,20 @@ class DecisionOracle:
             v.finding = self.explain(trace, kind, dist, clear, collision, how)
             v.signature = v.finding.key(kind)
         return v
+
+    def _in_ego_lane(self, trace: Trace) -> list[int]:
+        """Added static participants standing inside a lane the optimal path drives in (actor
+        indices; none when the rule is off)."""
+        if self.ego_lanes is None or self.ego_lanes.is_empty:
+            return []
+        out = []
+        for i, a in enumerate(trace.actors):
+            if not (a.added and a.kind == "static"):
+                continue
+            rows = trace.parts[trace.parts[:, 1] == i]
+            if len(rows) and self.ego_lanes.intersects(box_polygon(*rows[0, 2:5], a.length, a.width)):
+                out.append(i)
+        return out
 
     # -- root causes ----------------------------------------------------------------------------
     def explain(self, trace: Trace, kind: str, dist: np.ndarray, clear: dict[int, float],

@@ -459,3 +459,19 @@ def test_a_scenario_the_planner_does_not_complete_is_left_out_by_name(tmp_path, 
     assert "Left out, not seeds for the planner under test" in (out / "table.md").read_text()
     assert eval_report.main([str(out)]) == 0  # re-rendered the same way
     assert "`left_turn`" in (out / "table.md").read_text()
+
+
+def test_the_validity_rule_is_the_evaluations_and_recorded(tmp_path):
+    """``--validity paper`` runs every method under Decictor's rule for static objects (0.5 m, no
+    lane test) and eval_config.json records it, for ``deft-gym findings`` to re-simulate under;
+    without the flag the rule is the default one (out of the ego's lane)."""
+    from agents import evaluate, findings
+    from deft_gym.search.feasible import PAPER, FeasibleConfig
+
+    for flag, rule in ((["--validity", "paper"], PAPER), ([], FeasibleConfig())):
+        out = tmp_path / (flag[-1] if flag else "default")
+        code = evaluate.main(["--methods", "random", "--budget", "1", "--scenarios", "lane_follow_static",
+                              "--held-out", "0", "--placements", "closest", "--workers", "1", *flag,
+                              "--out", str(out), "--quiet"])
+        assert code == 0
+        assert findings.eval_feasible(out) == rule

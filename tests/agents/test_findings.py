@@ -11,18 +11,20 @@ from agents import findings
 from agents.search import record_of
 from deft_gym.search.context import seed_context
 from deft_gym.search.episode import run_scenario
-from deft_gym.search.feasible import Layout
+from deft_gym.search.feasible import PAPER, Layout
 from tests.support.nods_helpers import place_static
 
 
 def test_a_counted_failure_is_simulated_again_drawn_and_listed(tmp_path) -> None:
-    ctx = seed_context("lane_follow_static")
+    ctx = seed_context("lane_follow_static", PAPER)  # an evaluation under Decictor's rule, as before 2026-11-26
     added = [place_static(ctx, Layout(ctx.areas), "STATIC_VEHICLE", 40.0, -0.5, "added_0")]  # a NoDS (seed tests)
     run = run_scenario(ctx, added, 0)
     v = run.verdict
     assert v.failure == "nods" and v.signature == "nods:parked:in_lane:blocked"
     rec = {"method": "decictor", "placement": "closest", "scenario": "lane_follow_static", "repeat": 0,
            **record_of(v, 3, 1.0, 1.0, 2, True, 0, 1, run.result.sim_time), "scenario_equivalent": run.scenario}
+    # re-simulated under the rule the evaluation ran under (its eval_config.json)
+    (tmp_path / "eval_config.json").write_text(json.dumps({"feasible": PAPER.model_dump()}))
     (tmp_path / "records.jsonl").write_text(json.dumps(rec) + "\n" + json.dumps({**rec, "index": 4, "failure": None})
                                              + "\n")
     assert findings.main([str(tmp_path), "--no-progress"]) == 0
@@ -46,12 +48,13 @@ def test_a_drawn_failure_gets_a_replay_command_and_a_failing_test(tmp_path) -> N
     import subprocess
     import sys
 
-    ctx = seed_context("lane_follow_static")
+    ctx = seed_context("lane_follow_static", PAPER)
     added = [place_static(ctx, Layout(ctx.areas), "STATIC_VEHICLE", 40.0, -0.5, "added_0")]
     run = run_scenario(ctx, added, 0)
     rec = {"method": "decictor", "placement": "closest", "scenario": "lane_follow_static", "repeat": 0,
            **record_of(run.verdict, 3, 1.0, 1.0, 2, True, 0, 1, run.result.sim_time),
            "scenario_equivalent": run.scenario}
+    (tmp_path / "eval_config.json").write_text("{}")  # written before the rule was recorded: Decictor's
     (tmp_path / "records.jsonl").write_text(json.dumps(rec) + "\n")
     assert findings.main([str(tmp_path), "--tests", "2", "--no-progress"]) == 0
     out = tmp_path / "findings"
@@ -64,3 +67,17 @@ def test_a_drawn_failure_gets_a_replay_command_and_a_failing_test(tmp_path) -> N
     kept = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
                            "-k", "keeps_to_the_optimal_path", str(tests)], env=env, capture_output=True, text=True)
     assert kept.returncode == 0, kept.stdout[-2000:]
+
+
+def test_a_record_judged_under_decictors_rule_is_invasive_under_the_default(tmp_path, capsys) -> None:
+    """The same in-lane parked car, with no eval_config.json (the default rule): the re-simulation
+    calls the mutation invasive, so the failure is not confirmed."""
+    ctx = seed_context("lane_follow_static", PAPER)
+    added = [place_static(ctx, Layout(ctx.areas), "STATIC_VEHICLE", 40.0, -0.5, "added_0")]
+    _, again = findings.resimulate({"scenario": "lane_follow_static", "jitter_seed": 0,
+                                    "scenario_equivalent": run_scenario(ctx, added, 0).scenario})
+    assert not again.verdict.valid and again.verdict.invasive_why == {"added_0": "path"}
+    assert findings.eval_feasible(tmp_path).static_margin == 0.75
+    (tmp_path / "eval_config.json").write_text(json.dumps({"feasible": {"static_margin": -1}}))
+    (tmp_path / "records.jsonl").write_text("")
+    assert findings.main([str(tmp_path)]) == 2 and "field 'feasible'" in capsys.readouterr().err

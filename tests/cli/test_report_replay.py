@@ -58,11 +58,11 @@ def test_a_search_failure_card_replays_its_outcome(tmp_path: Path, monkeypatch) 
     from deft_gym.metrics.oracle import run_metrics
     from deft_gym.search.context import seed_context
     from deft_gym.search.episode import REPLAY_FORMAT, run_scenario
-    from deft_gym.search.feasible import Layout
+    from deft_gym.search.feasible import PAPER, Layout
     from tests.support.nods_helpers import place_static
 
     monkeypatch.chdir(tmp_path)  # the user's project folder: the report's paths are relative to it
-    ctx = seed_context("lane_follow_static")
+    ctx = seed_context("lane_follow_static", PAPER)  # Decictor's rule lets it stand in the lane
     added = [place_static(ctx, Layout(ctx.areas), "STATIC_VEHICLE", 40.0, -0.5, "added_0")]  # a NoDS
     ev = tmp_path / "eval"
     d = ev / "logs" / "decictor" / "lane_follow_static" / "0"
@@ -83,6 +83,7 @@ def test_a_search_failure_card_replays_its_outcome(tmp_path: Path, monkeypatch) 
 def test_an_rl_episode_card_replays_its_outcome_with_participants_added_mid_run(tmp_path: Path, monkeypatch) -> None:
     from deft_gym.cli.report import write_report
     from deft_gym.envs.adversary import ALONG, AT_LAST, LATERAL, OPS, AdversaryEnv
+    from deft_gym.search.feasible import PAPER
 
     def parked(along: float | str, lateral: float) -> np.ndarray:
         i = ALONG.index(along) if along in ALONG else len(ALONG) + AT_LAST.index(along)
@@ -92,7 +93,8 @@ def test_an_rl_episode_card_replays_its_outcome_with_participants_added_mid_run(
     # two parked cars beside the path, the second placed mid-run ahead of the ego: a NoDS
     plan = {1: parked(-10.0, -3.5), 4: parked("last+8", -2.0)}
     ev = tmp_path / "eval"
-    env = AdversaryEnv(scenario="lane_follow_static", log_dir=str(ev / "logs"), keep_passing=0.0, extract=False)
+    env = AdversaryEnv(scenario="lane_follow_static", log_dir=str(ev / "logs"), keep_passing=0.0, extract=False,
+                       feasible=PAPER)  # Decictor's rule: the closest rule puts the second car inside the lane
     env.reset(seed=0)
     done, k, info = False, 0, {}
     while not done:

@@ -36,17 +36,17 @@ def test_search_records_carry_the_metrics_and_the_oracle(oracle: str) -> None:
 
 
 def test_the_ga_finds_a_confirmed_ttc_finding() -> None:
-    """Decictor-GA aimed at TTC on left_turn (budget 4, seed 1): one of its mutations brings the
-    ego within 1.5 s TTC of one of the scenario's vehicles, on two jitter seeds - a counted finding."""
+    """Decictor-GA aimed at TTC on left_turn (budget 4, seed 2): one of its mutations brings the
+    ego within 1.5 s TTC of the cone it added, on two jitter seeds - a counted finding."""
     from agents.search import search
     from deft_gym.search.context import seed_context
 
-    recs = list(search("decictor", seed_context("left_turn"), 4, seed=1, oracle="ttc"))
+    recs = list(search("decictor", seed_context("left_turn"), 4, seed=2, oracle="ttc"))
     found = [r for r in recs if r["oracle_signature"]]
     assert found, [(r["metric_violations"], r["metric_min_ttc"]) for r in recs]
     for r in found:
         assert r["valid"] and r["metric_ttc_below_s"] > 0.0 and r["metric_min_ttc"] < 1.5
-        assert r["oracle_signature"] == "metric:ttc:seed:vehicle" and r["oracle_confirmed"] is True
+        assert r["oracle_signature"] == "metric:ttc:cone" and r["oracle_confirmed"] is True
         assert "scenario_equivalent" in r  # kept for the findings, as a failure's is
 
 

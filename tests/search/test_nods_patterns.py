@@ -1,13 +1,16 @@
 """Decictor's six root causes of non-optimal decisions (Table II), each shown on a hand-built
-scenario: a *valid* mutation (every added object at least 0.5 m from the optimal path while it is
-reserved - from 1 s before the reference ego is there until 3 s after it left - checked by the
-replay validity check) yields a NoDS under the paper's oracle (task completed, 2 m grid IoU <=
+scenario: a mutation valid under Decictor's rule (every added object at least 0.5 m from the
+optimal path while it is reserved - from 1 s before the reference ego is there until 3 s after it
+left - checked by the replay validity check; ``feasible.PAPER``) yields a NoDS under the paper's oracle (task completed, 2 m grid IoU <=
 0.6) for two jitter seeds, the mechanism shows in what the modules published and the oracle's
 root cause names it, and a control mutation that differs only in the point that matters yields
 none.
 
 The ADS is the default one: each pattern is the consequence of a parameter of the planner's
-lane decisions (deft_gym/planner/decision.py) or of prediction, not of a planted bug.
+lane decisions (deft_gym/planner/decision.py) or of prediction, not of a planted bug. Patterns 2,
+3 and 5 stand their objects inside the ego's lane, which the default rule refuses (static objects
+0.75 m from the optimal path: a planner may rightly go round what stands in its lane);
+``test_the_default_rule_refuses_a_parked_car_inside_the_lane`` shows that for pattern 2.
 """
 
 from __future__ import annotations
@@ -20,9 +23,19 @@ import pytest
 
 from deft_gym.scenarios.scenario import scenario_from_dict
 from deft_gym.search.context import SeedContext, seed_context
-from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH
+from deft_gym.search.feasible import PAPER, Layout
+from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH, clearances
 from deft_gym.world.geometry import box_gap
-from tests.support.nods_helpers import assert_no_nods, assert_nods, cone, parked, run, vehicle
+from tests.support.nods_helpers import (
+    SEEDS,
+    assert_no_nods,
+    assert_nods,
+    cone,
+    parked,
+    place_static,
+    run,
+    vehicle,
+)
 
 LANE_W = 3.5
 
@@ -66,14 +79,14 @@ RIGHT_CONE = LANE_W + EDGE + 0.3
 
 @pytest.fixture(scope="module")
 def keep() -> SeedContext:
-    ctx = seed_context(scenario_from_dict(KEEP))
+    ctx = seed_context(scenario_from_dict(KEEP), PAPER)
     assert ctx.ref.outcome == "completed" and np.allclose(ctx.ref.xy[:, 1], LANE_W, atol=0.3)
     return ctx
 
 
 @pytest.fixture(scope="module")
 def change() -> SeedContext:
-    ctx = seed_context(scenario_from_dict(CHANGE))
+    ctx = seed_context(scenario_from_dict(CHANGE), PAPER)
     assert ctx.ref.outcome == "completed" and ctx.ref.xy[ctx.ref.t > 6.0, 1].min() > LANE_W - 1.0
     return ctx
 
@@ -102,6 +115,34 @@ def test_2_obstacle_impact_on_lane_bounds_enlarged(keep: SeedContext) -> None:
     runs = assert_nods(keep, [parked("parked", 80.0, LANE_W - EDGE - 1.0)], "blocked")
     assert any("a-b-1" in d["blocked"] for _, d in runs[0].decisions)
     assert_no_nods(keep, [parked("parked", 80.0, LANE_W - 1.0 - 0.75 - 1.0)])
+
+
+def test_the_default_rule_refuses_a_parked_car_inside_the_lane() -> None:
+    """Under the default rule pattern 2's parked car (0.55 m from the optimal path, 0.2 m inside
+    the ego's lane) makes the mutation invasive, and the search's placer grants the same request
+    only out of the lane, where the ego keeps its lane."""
+    ctx = seed_context(scenario_from_dict(KEEP))
+    r = run(ctx, [parked("parked", 80.0, LANE_W - EDGE - 1.0)], SEEDS[0])
+    assert not r.verdict.valid and r.verdict.invasive_why == {"parked": "path"}
+    spec = place_static(ctx, Layout(ctx.areas), "STATIC_VEHICLE", 70.0, -0.55, "parked")
+    r = assert_no_nods(ctx, [spec])
+    assert r.verdict.finding is None or r.verdict.finding.band != "in_lane"
+    assert min(clearances(ctx.ref, r.trace).values()) >= 0.75  # the parked car out of the ego's lane
+
+
+def test_the_default_rule_keeps_static_objects_out_of_a_wide_lane() -> None:
+    """In 4.5 m lanes a lane-centred ego has 1.25 m each side: a parked car 0.9 m from the optimal
+    path passes the 0.75 m clearance but stands 0.35 m inside the ego's lane - invasive by the
+    lane test - and the placer grants the same request only out of the lane."""
+    w = 4.5
+    ctx = seed_context(scenario_from_dict({**KEEP, "name": "pattern_wide", "map": {**KEEP["map"], "lane_width": w}}))
+    assert np.allclose(ctx.ref.xy[:, 1], w, atol=0.3)
+    r = run(ctx, [parked("parked", 80.0, w - 1.0 - 0.9 - 1.0)], SEEDS[0])
+    assert 0.85 < min(clearances(ctx.ref, r.trace).values()) < 0.95
+    assert not r.verdict.valid and r.verdict.invasive_why == {"parked": "lane"}
+    spec = place_static(ctx, Layout(ctx.areas), "STATIC_VEHICLE", 70.0, -0.9, "parked")
+    assert spec["y"] + 1.0 <= w - w / 2 + 0.05  # its side on or beyond the lane's edge
+    assert run(ctx, [spec], SEEDS[0]).verdict.valid
 
 
 def test_3_accessible_region_between_parallel_obstacles_underestimated(keep: SeedContext) -> None:

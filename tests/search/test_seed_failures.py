@@ -1,6 +1,6 @@
-"""A failure can be found on every seed scenario the evaluation searches: for each seed a
-hand-built *valid* mutation (every added object at least 0.5 m from the optimal path, as the
-oracle's replay judges it), placed where the search methods may place objects (granted by their
+"""A failure can be found on every seed scenario the evaluation searches under Decictor's rule
+(``feasible.PAPER``): for each seed a hand-built *valid* mutation (every added object at least
+0.5 m from the optimal path, as the oracle's replay judges it), placed where the search methods may place objects (granted by their
 own placer under the ``closest`` rule, inside the seed's feasible areas), yields a NoDS under
 the paper's oracle (task completed, 2 m grid IoU <= 0.6) for two jitter seeds.
 
@@ -8,7 +8,9 @@ The three turns were laid out for it (docs/search.md, seeds): their turn may be 
 lanes (map ``turn_lanes: 2``, ``right_turn_lanes: 2``), so a borrow of the other lane before the
 junction persists through the turn (no lane change starts within 20 m of a junction) and along
 part of the road after it. Their tests also show that path, and that the seeds stay
-optimal-decision seeds under timing noise. (With a right turn from one lane only, no single
+optimal-decision seeds under timing noise. Each of these mutations stands a parked car or a cone
+inside the ego's lane, which the default rule refuses (static objects 0.75 m from the optimal
+path; docs/search.md): under it, these are no findings. (With a right turn from one lane only, no single
 parked vehicle or cone beside `right_turn`'s path - either side, every 10 m - gave a failure on
 both jitter seeds: most left the ego standing before the junction, a task failure.)
 """
@@ -21,7 +23,7 @@ import numpy as np
 import pytest
 
 from deft_gym.search.context import SeedContext, robust, seed_context
-from deft_gym.search.feasible import Layout
+from deft_gym.search.feasible import PAPER, Layout
 from tests.support.nods_helpers import assert_nods, assert_placeable, place_static
 
 # per seed: the objects asked for, as (obstacle, sigma [m] along the optimal path, lateral [m],
@@ -61,7 +63,7 @@ def mutation(ctx: SeedContext, name: str) -> list[dict[str, Any]]:
 
 @pytest.mark.parametrize("name", sorted(MUTATIONS))
 def test_a_placeable_valid_mutation_gives_a_nods(name: str) -> None:
-    ctx = seed_context(name)
+    ctx = seed_context(name, PAPER)
     specs = mutation(ctx, name)
     assert_placeable(ctx, specs)
     assert_nods(ctx, specs)
@@ -72,7 +74,7 @@ def test_redesigned_turns_borrow_through_the_junction(name: str) -> None:
     """The unmutated seed is an optimal-decision seed (its reference run completes in sensible
     time; eight jitter seeds complete consistently with it), and under the mutation the ego makes
     its turn from the other lane: the wrong decision lasts through the junction."""
-    ctx = seed_context(name)
+    ctx = seed_context(name, PAPER)
     assert ctx.ref.outcome == "completed" and ctx.ref.sim_time < 30.0
     assert 140.0 < ctx.path.length < 175.0
     assert robust(ctx, cache_dir=None)
