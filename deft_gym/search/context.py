@@ -8,6 +8,8 @@ name (``left_turn~v1000003``: :func:`deft_gym.scenarios.variants.perturb` with t
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -152,13 +154,25 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
     return ctx
 
 
+@functools.cache
+def _judge_key() -> str:
+    """Hash of the source that judges a run robust - the lane-change give-ups
+    (``search/trace.py``) and the consistency oracle (``search/nods.py``) - which the simulation's
+    :func:`~deft_gym.search.trace.code_fingerprint` leaves out: an edit there makes cached
+    verdicts stale."""
+    h = hashlib.sha256()
+    for name in ("trace.py", "nods.py"):
+        h.update((Path(__file__).parent / name).read_bytes())
+    return h.hexdigest()[:8]
+
+
 def robust(ctx: SeedContext, runs: int = 8, cache_dir: Path | str | None = CACHE_DIR) -> bool:
     """Is the scenario an optimal-decision seed under timing noise? Its reference must not give up a
     lane change it began (:func:`~deft_gym.search.trace.aborted_changes`), and its unmutated runs
     with jitter seeds 1..``runs`` (8) must all complete without a collision and stay consistent
     with the reference (IoU above the threshold). A variant that fails this would report failures the adversary did
     not cause. Cached on disk next to the reference."""
-    key = f"{ctx.name}-{content_key(ctx.scenario, ctx.ads, 0)}-robust{runs}-{ctx.oracle.grid_kind}"
+    key = f"{ctx.name}-{content_key(ctx.scenario, ctx.ads, 0)}-robust{runs}-{ctx.oracle.grid_kind}-{_judge_key()}"
     path = Path(cache_dir) / f"{key}.json" if cache_dir else None
     if path is not None and path.exists():
         return bool(json.loads(path.read_text())["robust"])

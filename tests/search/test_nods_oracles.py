@@ -216,3 +216,20 @@ def test_a_reference_that_gives_up_a_lane_change_is_not_robust(ctx):
     assert aborted_changes(ctx.ref) == []  # the seed itself is clean
     bad = dataclasses.replace(ctx, ref=dataclasses.replace(ctx.ref, meta={"timeline": gave_up}))
     assert robust(bad, cache_dir=None) is False
+
+
+def test_a_cached_robust_verdict_is_keyed_by_the_source_that_judged_it(tmp_path, monkeypatch) -> None:
+    """The robustness verdict is cached on disk under a key that hashes the judging source
+    (search/trace.py, search/nods.py), which the simulation's fingerprint leaves out: a cached
+    verdict is reused while that source is the same and judged again once it changes."""
+    from deft_gym.search import context
+    from deft_gym.search.context import robust, seed_context
+
+    ctx = seed_context("lane_follow_static")
+    assert robust(ctx, runs=1, cache_dir=tmp_path)
+    (cached,) = tmp_path.glob("*.json")
+    assert context._judge_key() in cached.name
+    cached.write_text('{"robust": false, "runs": 1}')  # as if other judging code had said no
+    assert not robust(ctx, runs=1, cache_dir=tmp_path)
+    monkeypatch.setattr(context, "_judge_key", lambda: "edited00")
+    assert robust(ctx, runs=1, cache_dir=tmp_path)
