@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -356,6 +357,7 @@ def aborted_changes(trace: Trace, hold: float = GIVE_UP_S) -> list[dict[str, Any
                 continue
         if change is None and target != lane and target[:2] == lane[:2]:
             change, back = {"t": e["t"], "lane": lane, "target": target}, None
-    if change is not None and back is not None:
-        out.append(change)  # the run ended wanting its own lane back
+    end = float(trace.t[-1]) if len(trace.t) else -math.inf
+    if change is not None and back is not None and end - back >= hold - 1e-9:
+        out.append(change)  # the run ended wanting its own lane back, for hold or more
     return out

@@ -75,8 +75,16 @@ def test_training_never_uses_a_handwritten_scenario(tmp_path: Path) -> None:
             check_train_settings(cfg, "train.yaml")
 
 
+# the reference planner's own failure (docs/simulation.md): its lane change round the stopped bus
+# begins too late and some jitter seeds brake into the bus's corner - the demo's flaky collision,
+# so no optimal-decision seed
+NOT_SEEDS = {"handwritten/stopped_bus"}
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("spec", HANDWRITTEN)
+@pytest.mark.parametrize("spec", [pytest.param(s, marks=pytest.mark.xfail(strict=True, reason="collides on some "
+                                                 "jitter seeds: the reference planner's late lane change"))
+                                  if s in NOT_SEEDS else s for s in HANDWRITTEN])
 def test_handwritten_scenario_is_robust(spec: str) -> None:
     """What the evaluation demands of a held-out scenario: the reference run (medoid of five
     jitter seeds) completes without a lane change it gave up, and the unmutated runs with jitter

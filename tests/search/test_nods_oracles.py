@@ -213,6 +213,12 @@ def test_a_reference_that_gives_up_a_lane_change_is_not_robust(ctx):
     held = [*flicker[:4], *({"t": 2.3 + 0.1 * k, "reason": "keep", "lane": a, "target": a, **entry} for k in range(6))]
     assert aborted_changes(dataclasses.replace(ctx.ref, meta={"timeline": held})) == [
         {"t": 2.0, "lane": a, "target": b}]
+    # a run that ends wanting its own lane back counts only when it had wanted it for 0.5 s
+    end = float(ctx.ref.t[-1])
+    late = [{**e, "t": end - 3.0 + e["t"] - 1.0} for e in gave_up[:2]]
+    assert aborted_changes(dataclasses.replace(ctx.ref, meta={"timeline": [*late, {**gave_up[2], "t": end - 0.3}]})) == []
+    assert aborted_changes(dataclasses.replace(ctx.ref, meta={"timeline": [*late, {**gave_up[2], "t": end - 0.6}]})) == [
+        {"t": end - 2.0, "lane": a, "target": b}]
     assert aborted_changes(ctx.ref) == []  # the seed itself is clean
     bad = dataclasses.replace(ctx, ref=dataclasses.replace(ctx.ref, meta={"timeline": gave_up}))
     assert robust(bad, cache_dir=None) is False
