@@ -147,7 +147,7 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
         oracle = DecisionOracle(ref, rm, threshold=threshold, grid_kind=grid,  # type: ignore[arg-type]
                                 clearance=feasible.margin, window=(feasible.early_window, feasible.late_window),
                                 spawn_distance=feasible.spawn_distance, static_clearance=feasible.static_margin,
-                                static_lane_depth=feasible.static_lane_depth)
+                                ego_lanes=areas.ego_lanes)
         if len(_CTX) > 256:
             _CTX.clear()
         ctx = _CTX[key] = SeedContext(sc, ads, ref, rm, areas, RefPath(ref, rm), oracle, feasible)

@@ -154,7 +154,11 @@ class MotionAreas:
         sm = max(cfg.static_margin, cfg.margin) + cfg.tolerance
         idx = _window_samples(t, t[0], t[-1], cfg.sample_dt)
         static_path = swept_area(e[idx, 0], e[idx, 1], e[idx, 2], EGO_LENGTH + 2 * sm, EGO_WIDTH + 2 * sm)
-        lanes = [] if cfg.static_lane_depth is None else [lane_strips(ref, roadmap, cfg.static_lane_depth)]
+        # the lanes the path drives in (the validity check's ``ego_lanes`` too); None: no lane test
+        self.ego_lanes = None if cfg.static_lane_depth is None else lane_strips(ref, roadmap, cfg.static_lane_depth)
+        if self.ego_lanes is not None:
+            shapely.prepare(self.ego_lanes)
+        lanes = [] if self.ego_lanes is None else [self.ego_lanes]
         self.static_forbidden = shapely.union_all([*self.forbidden, static_path, *lanes])
         shapely.prepare(self.static_forbidden)
         self.ref_line = shapely.LineString(ref.xy)

@@ -54,7 +54,6 @@ GRID = 2.0  # [m] cell size
 THRESHOLD = 0.6  # IoU <= threshold: non-optimal
 CLEARANCE = 0.5  # [m] validity: the reference path keeps this far from every added object
 STATIC_CLEARANCE = 0.75  # [m] ... and this far from every added static one (out of the ego's lane)
-LANE_DEPTH = 0.0  # [m] ... which stands no deeper than this in a lane the optimal path drives in
 LOCAL_LENGTH = 20.0  # [m] local check: this long farther than half a lane from the reference
 _SLICES = 100_000  # cell id = lane index * _SLICES + slice
 
@@ -321,17 +320,35 @@ def lane_strips(ref: Trace, roadmap: RoadMap, depth: float, reach: float = 8.0) 
     return shapely.union_all(strips) if strips else shapely.Polygon()
 
 
+def in_lanes(trace: Trace, lanes: shapely.Geometry | None) -> list[int]:
+    """Added static participants of ``trace`` whose box touches ``lanes`` (:func:`lane_strips`;
+    actor indices; none for None)."""
+    if lanes is None or lanes.is_empty:
+        return []
+    out = []
+    for i, a in enumerate(trace.actors):
+        if not (a.added and a.kind == "static"):
+            continue
+        rows = trace.parts[trace.parts[:, 1] == i]
+        if len(rows) and lanes.intersects(box_polygon(*rows[0, 2:5], a.length, a.width)):
+            out.append(i)
+    return out
+
+
 def invasive_why(ref: Trace, trace: Trace, clear: dict[int, float], clearance: float = CLEARANCE,
-                 spawn_distance: float = SPAWN_DISTANCE,
-                 static_clearance: float = STATIC_CLEARANCE) -> dict[str, str]:
+                 spawn_distance: float = SPAWN_DISTANCE, static_clearance: float = STATIC_CLEARANCE,
+                 ego_lanes: shapely.Geometry | None = None) -> dict[str, str]:
     """Participants of ``trace`` that make a mutation invasive, with why: an added one closer
     than ``clearance`` [m] (a static one: ``static_clearance``, never less than ``clearance``) to
-    the optimal path while it is reserved (``clear``: :func:`clearances`; ``"path"``) or appearing
-    within ``spawn_distance`` [m] of the live ego (``"spawn"``); a seed one overlapping the
-    reference ego at the same instant (``"seed"``)."""
+    the optimal path while it is reserved (``clear``: :func:`clearances`; ``"path"``), a static
+    one touching ``ego_lanes`` (:func:`lane_strips`; ``"lane"``), or one appearing within
+    ``spawn_distance`` [m] of the live ego (``"spawn"``); a seed one overlapping the reference ego
+    at the same instant (``"seed"``)."""
     static = max(static_clearance, clearance)
     bad = {trace.actors[i].id: "path" for i, c in clear.items()
            if c < (static if trace.actors[i].kind == "static" else clearance)}
+    for i in in_lanes(trace, ego_lanes):
+        bad.setdefault(trace.actors[i].id, "lane")
     for i in spawned_near(trace, spawn_distance):
         bad.setdefault(trace.actors[i].id, "spawn")
     for i in seed_overlaps(ref, trace):
@@ -532,13 +549,11 @@ class DecisionOracle:
                  grid_kind: Literal["lane", "world"] = "lane", clearance: float = CLEARANCE,
                  local_length: float = LOCAL_LENGTH, window: tuple[float, float] = (EARLY_WINDOW, LATE_WINDOW),
                  spawn_distance: float = SPAWN_DISTANCE, static_clearance: float = STATIC_CLEARANCE,
-                 static_lane_depth: float | None = LANE_DEPTH) -> None:
+                 ego_lanes: shapely.Geometry | None = None) -> None:
         self.ref, self.roadmap = ref, roadmap
         self.threshold, self.grid, self.grid_kind = threshold, grid, grid_kind
         self.clearance, self.static_clearance, self.local_length = clearance, static_clearance, local_length
-        self.ego_lanes = None if static_lane_depth is None else lane_strips(ref, roadmap, static_lane_depth)
-        if self.ego_lanes is not None:
-            shapely.prepare(self.ego_lanes)
+        self.ego_lanes = ego_lanes  # static objects stay out of them (:func:`lane_strips`; None: no lane test)
         self.window, self.spawn_distance = window, spawn_distance
         self.lanes = LaneCells(roadmap, grid)
         self.ref_cells = self.cells(ref.xy)
@@ -608,9 +623,8 @@ class DecisionOracle:
         dist = self.distances(xy)  # computed once: f_p, off_length, the finding
         io, fp, fb = self.iou(xy), self.f_p(dist), self.f_b(trace.ego)
         clear = clearances(self.ref, trace, self.window)
-        why = invasive_why(self.ref, trace, clear, self.clearance, self.spawn_distance, self.static_clearance)
-        for i in self._in_ego_lane(trace):
-            why.setdefault(trace.actors[i].id, "lane")
+        why = invasive_why(self.ref, trace, clear, self.clearance, self.spawn_distance, self.static_clearance,
+                           self.ego_lanes)
         is_collision = outcome == "collision"
         nods = outcome == "completed" and io <= self.threshold
         off = self.off_length(xy, dist)
@@ -624,20 +638,6 @@ class DecisionOracle:
             v.finding = self.explain(trace, kind, dist, clear, collision, how)
             v.signature = v.finding.key(kind)
         return v
-
-    def _in_ego_lane(self, trace: Trace) -> list[int]:
-        """Added static participants standing inside a lane the optimal path drives in (actor
-        indices; none when the rule is off)."""
-        if self.ego_lanes is None or self.ego_lanes.is_empty:
-            return []
-        out = []
-        for i, a in enumerate(trace.actors):
-            if not (a.added and a.kind == "static"):
-                continue
-            rows = trace.parts[trace.parts[:, 1] == i]
-            if len(rows) and self.ego_lanes.intersects(box_polygon(*rows[0, 2:5], a.length, a.width)):
-                out.append(i)
-        return out
 
     # -- root causes ----------------------------------------------------------------------------
     def explain(self, trace: Trace, kind: str, dist: np.ndarray, clear: dict[int, float],
