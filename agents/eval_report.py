@@ -319,6 +319,36 @@ def quality_markdown(summary: dict[str, Any], group: str = "all") -> str:
     return "\n".join(lines) + "\n"
 
 
+def oracles_markdown(summary: dict[str, Any], group: str = "all") -> str:
+    """Findings per counted oracle (``count_oracles``) per method and placement on ``group``:
+    distinct (scenario, signature) pairs of confirmed findings (mean ± sd over repeats), the
+    decision oracle's distinct failures beside them, every oracle together, and the scenarios
+    where the method counted one in some repeat; empty without counted oracles."""
+    counted = summary.get("config", {}).get("count_oracles") or []
+    names = ((summary.get(group) or []) if group != "all"
+             else [s for g in ("seeds", "held_out", "handwritten") for s in summary.get(g, [])])
+    if not counted or not names:
+        return ""
+    cols = ["method", "placement", "decision oracle"] + [f"`{o}`" for o in counted] + ["any oracle", "scenarios"]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for m, p in _rows(summary):
+        c = summary["groups"].get(m, {}).get(p, {}).get(group)
+        if c is None or "any_distinct" not in c:
+            continue
+        found = sum(_found_in(summary, m, p, s, "any_distinct") for s in names)
+        row = [_label(m), p, fmt(c["distinct"])] + [fmt(c.get(f"found_{o}")) for o in counted]
+        lines.append("| " + " | ".join([*row, fmt(c["any_distinct"]), f"{found} of {len(names)}"]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _found_in(summary: dict[str, Any], method: str, placement: str | None, scenario: str, measure: str) -> bool:
+    """Whether ``method`` counted ``measure`` > 0 on ``scenario`` in some repeat (of ``placement``,
+    else of any placement)."""
+    pls = summary["per_scenario"].get(method, {})
+    cells = [pl.get(scenario) for name, pl in pls.items() if placement in (None, name)]
+    return any(sum(v or 0 for v in (c.get(measure) or {}).get("values", [])) > 0 for c in cells if c)
+
+
 def table_markdown(summary: dict[str, Any]) -> str:
     """``table.md``: the headline table, every measure per group, failures per scenario, the
     statistics and the targets."""
@@ -351,6 +381,18 @@ def table_markdown(summary: dict[str, Any]) -> str:
                  f"score, the share of scenarios violating each metric, and the findings on the configured oracle "
                  f"`{oracle}` (valid, reproduced on a second jitter seed; root causes: distinct signatures).", "",
                  quality]
+    counted = cfg.get("count_oracles") or []
+    if counted:
+        text += ["## Findings per oracle", "",
+                 "Distinct (scenario, signature) pairs per repeat (mean ± sd) of each counted oracle's findings: a "
+                 "valid mutation whose run violates the oracle where the seed's reference run does not (docs/metrics.md), "
+                 "reproduced with the same signature on a second jitter seed; the methods do not aim at them. "
+                 "`any oracle`: the decision oracle's distinct failures and every counted oracle's findings "
+                 "(an at-fault collision once); scenarios: where the method counted one in some repeat.", ""]
+        for g in stats.shown_groups(summary):
+            table = oracles_markdown(summary, g)
+            if table:
+                text += [f"**{GROUP_TITLES[g]}**", "", table]
     for g in stats.shown_groups(summary):
         text += [f"## {GROUP_TITLES[g]}", "", group_markdown(summary, g)]
     text += ["## Failures per scenario", "", per_scenario_markdown(summary),
@@ -498,14 +540,13 @@ PLANNER_MEASURES = (("failures", "failures", 1), ("distinct", "distinct", 1), ("
                     ("distinct_per_cpu_hour", "distinct/CPU-h", 1))
 
 
-def coverage(summary: dict[str, Any], method: str, group: str = "handwritten") -> tuple[int, int]:
-    """``(scenarios of the group where the method counted a confirmed failure in some repeat and
-    placement, scenarios of the group)``."""
-    found, names = 0, summary.get(group, [])
-    for name in names:
-        cells = [c for pl in summary["per_scenario"].get(method, {}).values() if (c := pl.get(name))]
-        found += any(sum(v or 0 for v in c["failures"]["values"]) > 0 for c in cells)
-    return found, len(names)
+def coverage(summary: dict[str, Any], method: str, group: str = "handwritten",
+             measure: str = "failures") -> tuple[int, int]:
+    """``(scenarios of the group where the method counted a confirmed failure - with ``measure``
+    ``any_distinct``, a confirmed finding of any counted oracle - in some repeat and placement,
+    scenarios of the group)``."""
+    names = summary.get(group, [])
+    return sum(_found_in(summary, method, None, name, measure) for name in names), len(names)
 
 
 def planner_targets(summary: dict[str, Any]) -> dict[str, Any]:
@@ -514,6 +555,10 @@ def planner_targets(summary: dict[str, Any]) -> dict[str, Any]:
     found, n = coverage(summary, "rl")
     out["coverage"] = {"found": found, "scenarios": n, "share": found / n if n else None,
                        "met": bool(n) and found / n >= TARGET_COVERAGE}
+    if summary.get("config", {}).get("count_oracles"):  # the target's "any oracle"
+        found, n = coverage(summary, "rl", measure="any_distinct")
+        out["coverage_any"] = {"found": found, "scenarios": n, "share": found / n if n else None,
+                               "met": bool(n) and found / n >= TARGET_COVERAGE}
     for pl in summary["placements"]:
         cx = summary["groups"].get("rl", {}).get(pl, {}).get("handwritten")
         cy = summary["groups"].get("decictor", {}).get(pl, {}).get("handwritten")
@@ -580,6 +625,10 @@ def planners_markdown(summaries: dict[str, dict[str, Any]]) -> str:
             cov = t["coverage"]
             lines.append(f"- RL found a confirmed failure on {cov['found']} of {cov['scenarios']} hand-written "
                          f"scenarios (target >= {TARGET_COVERAGE:.0%}): {_met(cov['met'])}")
+            if "coverage_any" in t:
+                cov = t["coverage_any"]
+                lines.append(f"- counting every oracle (`count_oracles`), on {cov['found']} of {cov['scenarios']}: "
+                             f"{_met(cov['met'])}")
             for pl in summary["placements"]:
                 r = t[pl]
                 ratio = f"{r['ratio']:.2f}x" if r["ratio"] is not None else r["note"] or "n/a"

@@ -90,6 +90,10 @@ class EvalConfig(BaseModel):
                                "at-fault collisions, docs/search.md) or a driving-quality metric oracle "
                                "(deft_gym.metrics.oracle.ORACLES, docs/metrics.md); default: the model's "
                                "training env.oracle, else default")
+    count_oracles: list[str] = Field(default_factory=list, description="metric oracles whose confirmed findings "
+                                     "are counted beside the aimed oracle's, on the same runs (per oracle and "
+                                     "'any oracle' in table.md; all: every metric oracle but score); the search "
+                                     "does not aim at them")
     validity: Literal["lane", "paper"] | None = Field(None, description="where static objects may stand: lane "
                                                       "(out of the ego's lane) or paper (Decictor's 0.5 m from "
                                                       "the optimal path; docs/search.md); default: the model's "
@@ -126,6 +130,10 @@ def build_parser() -> common.Parser:
                    help="default (NoDS, at-fault collisions) or a metric oracle: collision, ttc, drivable_area, "
                    "direction, red_light, progress, comfort, speed_limit, standstill, score (docs/metrics.md; "
                    "default: the model's training env.oracle, else default)")
+    p.add_argument("--count-oracles", nargs="+", action=common.ListAction, default=None, metavar="ORACLE",
+                   dest="count_oracles", help="also count the confirmed findings of these metric oracles on the "
+                   "same runs, without aiming at them: names as for --oracle, or all (every one but score); "
+                   "table.md then has findings per oracle and RL's coverage by any oracle (default: none)")
     p.add_argument("--model", default=None, help="trained adversary (model.zip) for method 'rl', or 'default': the "
                    "adversary shipped in the package (deft_gym/models/adversary; default: none)")
     p.add_argument("--ads-config", type=Path, nargs="+", default=None, metavar="YAML",
@@ -164,9 +172,9 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
         flags[key] = ("--" + key.replace("_", "-"), getattr(args, key))
     ads_flag = getattr(args, "ads_config", None)
     flags["ads"] = ("--ads-config", str(ads_flag) if ads_flag is not None else None)
-    for key in ("methods", "scenarios", "placements"):
+    for key in ("methods", "scenarios", "placements", "count_oracles"):
         value = getattr(args, key)
-        flags[key] = ("--" + key, common.split_list(value) if value is not None else None)
+        flags[key] = ("--" + key.replace("_", "-"), common.split_list(value) if value is not None else None)
     data.setdefault("workers", common.cpus())
     from deft_gym.models import resolve_model
 
@@ -195,6 +203,15 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
 
         if cfg.oracle not in ORACLES:
             raise ConfigError(f"{where('oracle')}: unknown oracle {cfg.oracle!r}; expected one of {list(ORACLES)}")
+    if cfg.count_oracles:
+        from deft_gym.metrics.oracle import COUNTED_ORACLES, ORACLES
+
+        if cfg.count_oracles == ["all"]:
+            cfg.count_oracles = list(COUNTED_ORACLES)
+        bad = [o for o in cfg.count_oracles if o not in ORACLES[1:]]
+        if bad:
+            raise ConfigError(f"{where('count_oracles')}: unknown {bad}; expected all or some of {list(ORACLES[1:])}")
+        cfg.count_oracles = list(dict.fromkeys(cfg.count_oracles))
     bad = [m for m in cfg.methods if m not in METHODS]
     if bad:
         raise ConfigError(f"{where('methods')}: unknown {bad}; expected some of {list(METHODS)}")
@@ -316,7 +333,7 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
             return (log_root / f"{i:05d}") if job["log_failures"] else None
 
         for rec in search(method, ctx, budget, seed, job["max_added"], log_dir, rule=job["placement"],
-                          oracle=env_cfg.oracle):
+                          oracle=env_cfg.oracle, count=tuple(job.get("count", ()))):
             if job["log_failures"]:
                 _keep_or_drop(log_dir(rec["index"]), rec)
             recs.append({**base, **rec})
@@ -366,7 +383,8 @@ def _keep_or_drop(d: Path | None, rec: dict[str, Any]) -> None:
 
     if d is None:
         return
-    if not (rec.get("failure") or rec.get("oracle_signature")):  # a failure, or a metric oracle's finding
+    if not (rec.get("failure") or rec.get("oracle_signature") or rec.get("found_by_oracle")):  # a failure, or a
+        # metric oracle's finding
         shutil.rmtree(d, ignore_errors=True)
         return
     from deft_gym.envs.sink import extract_log
@@ -427,11 +445,11 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
         specs = eq["scenario"]["participants"][len(env.ctx.scenario.participants):]
         confirmed, _, _ = confirm(env.ctx, v, specs, int(rng.integers(2**31 - 1)), eq["added_at"])
         cols, _, _, n_o = oracle_columns(env.ctx, env.last_metrics, v.valid, env_cfg.oracle, specs, rng,
-                                         eq["added_at"])
+                                         eq["added_at"], tuple(job.get("count", ())), int(info["jitter_seed"]))
         rec = record_of(v, i, time.perf_counter() - w0, time.process_time() - c0,
                         1 + (confirmed is not None) + n_o, confirmed, int(info["jitter_seed"]), int(info["added"]),
                         float(info["sim_time"]), cols)
-        if v.failure or v.task_failure or cols.get("oracle_signature"):
+        if v.failure or v.task_failure or cols.get("oracle_signature") or cols.get("found_by_oracle"):
             rec["scenario_equivalent"] = eq
             rec["ops"] = env.ops
             if info.get("log"):
@@ -552,7 +570,7 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
                     or (r["scenario"] in keys and r.get("scenario_key") != keys[r["scenario"]]))
         oracle = env.get("oracle", "default")  # records of another oracle count other findings
         records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code
-                   and r.get("oracle", "default") == oracle
+                   and r.get("oracle", "default") == oracle and r.get("counted_oracles", []) == cfg.count_oracles
                    and r["scenario"] in keys and r.get("scenario_key") == keys[r["scenario"]]]
         if stale:
             con.print(f"{stale} earlier record(s) ran other simulation code or another version of their "
@@ -601,7 +619,8 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
                     jobs.append({"method": m, "placement": pl, "scenario": scn, "scenario_kind": kinds[scn],
                                  "repeat": rep, "budget": cfg.budget, "seed": cfg.seed * 1000 + rep, "env": env,
                                  "model": cfg.model, "deterministic": cfg.deterministic, "out": str(out),
-                                 "log_failures": cfg.log_failures, "max_added": cfg.max_added})
+                                 "log_failures": cfg.log_failures, "max_added": cfg.max_added,
+                                 "count": list(cfg.count_oracles)})
     from deft_gym.envs.adversary import load_env_config
 
     write_json_atomic(out / "eval_config.json", {**cfg.model_dump(), "ads": env.get("ads"), "held_out": held_out,

@@ -7,7 +7,10 @@ counted failures in ``records.jsonl`` this takes up to ``--per-cause`` failures 
 scenario, repeat and index: deterministic), simulates each again from its equivalent scenario with
 the jitter seed it ran with, checks that it fails again with the same root cause, and draws it:
 the optimal (reference) path, the ego's path, every added object with the trigger in red and its
-clearance to the optimal path, the collision if any. ``findings.md`` lists the root causes with
+clearance to the optimal path, the collision if any. An evaluation that counted metric oracles
+(``--count-oracles``) has their confirmed findings as root causes too (``metric:<oracle>:<detail>``;
+an at-fault collision is the decision oracle's already): each re-simulated, checked for the same
+signature, drawn with the participant of the smallest TTC in red, and its metric's values listed. ``findings.md`` lists the root causes with
 their counts per method and, under each, the pictures, the numbers (IoU, longest stretch off the
 path, clearance) and the decision the planner took when it left the optimal path - what a reader
 needs to judge whether a competent driver would call it a failure.
@@ -163,9 +166,9 @@ def leaving_decision(trace: Any, dist: np.ndarray, half_lane: float) -> str:
     return "; ".join(parts)
 
 
-def draw(ctx: Any, run: Any, path: Path, title: str) -> None:
-    """The optimal path, the ego's path, the added objects (green; the trigger in red), the seed's
-    participants (grey) and the collision."""
+def draw(ctx: Any, run: Any, path: Path, title: str, highlight: set[str] | None = None) -> None:
+    """The optimal path, the ego's path, the added objects (green; the trigger, or the participants
+    in ``highlight``, in red), the seed's participants (grey) and the collision."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -176,6 +179,7 @@ def draw(ctx: Any, run: Any, path: Path, title: str) -> None:
 
     tr, v = run.trace, run.verdict
     trig = set(v.finding.trigger_ids) if v.finding else set()
+    trig |= highlight or set()
     fig, ax = plt.subplots(figsize=(9, 6))
     draw_map(ax, ctx.roadmap)
     ref = ctx.ref.xy
@@ -249,9 +253,19 @@ def main(argv: list[str] | None = None) -> int:
     by_cause: dict[str, list[dict[str, Any]]] = defaultdict(list)
     counts: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
     for r, full in zip(rows, raw):
-        if counted_failure(r) and (args.methods is None or r["method"] in common.split_list(args.methods)):
+        if args.methods is not None and r["method"] not in common.split_list(args.methods):
+            continue
+        if counted_failure(r):
             by_cause[r["signature"]].append(full)
             counts[r["signature"]][r["method"]] += 1
+        found = dict(r["found_by_oracle"])  # counted metric oracles (--count-oracles)
+        if r["oracle_signature"] and r["oracle_confirmed"] is True:  # the aimed metric oracle (--oracle)
+            found[full["oracle"]] = r["oracle_signature"]
+            r["confirmed_by_oracle"] = {**r["confirmed_by_oracle"], full["oracle"]: True}
+        for oracle, sig in found.items():
+            if r["valid"] and oracle != "collision" and r["confirmed_by_oracle"].get(oracle) is True:
+                by_cause[sig].append({**full, "_oracle": oracle})
+                counts[sig][r["method"]] += 1
     if not by_cause:
         con.print("no counted failures in the records")
         return 0
@@ -269,7 +283,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
               for r in sorted(by_cause[c], key=lambda r: (r["scenario"], r["repeat"], r["index"], r["method"]))[
                   : args.per_cause]]
     lines = [f"# Findings of {args.folder}", "",
-             f"{sum(len(v) for v in by_cause.values())} counted failures, {len(causes)} root causes; up to "
+             f"{sum(len(v) for v in by_cause.values())} counted failures and findings, {len(causes)} root causes; up to "
              f"{args.per_cause} of each simulated again with their jitter seed and drawn (dashed: the optimal path; "
              "blue: the ego; red: the trigger; green: other added objects; grey: the seed's participants).", "",
              "| root cause | failures | " + " | ".join(METHOD_LABELS.values()) + " |",
@@ -288,18 +302,27 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             ctx, run = resimulate(rec, ads, log_dir, feasible)
             v = run.verdict
             same = v.signature == rec.get("signature") and v.failure == rec.get("failure")
+            oracle, m, highlight = rec.get("_oracle"), None, None
+            if oracle:  # a metric oracle's finding: the same signature on it again
+                from deft_gym.metrics.oracle import run_metrics, seed_finding
+
+                m = run_metrics(ctx, run.trace, v.collision_detail)
+                got = seed_finding(ctx, v.valid, m, oracle)
+                same = got == cause
+                highlight = {m.ttc_actor} if oracle == "ttc" and m.ttc_actor else None
             name = f"{stem}.png"
             replay = write_replay(out / f"{stem}.replay.yaml", read_replay(rec.get("scenario_equivalent"),
                                                                            rec.get("jitter_seed")))
             replay_cmd = f"deft-gym run {replay} --reruns 1" + (f" --ads-config {ads}" if ads else "")
             title = (f"{METHOD_LABELS.get(rec['method'], rec['method'])} {rec['placement']} on {rec['scenario']} "
-                     f"(repeat {rec['repeat']}, #{rec['index']}): {v.signature or v.outcome}")
-            draw(ctx, run, out / name, title)
+                     f"(repeat {rec['repeat']}, #{rec['index']}): {(got or 'none') if oracle else v.signature or v.outcome}")
+            draw(ctx, run, out / name, title, highlight)
             dist = ctx.oracle.distances(run.trace.xy)
             clear = v.finding.clearance if v.finding else None
             lines += [f"![{cause}]({name})", "",
                       f"- {rec['method']} / {rec['placement']} / {rec['scenario']} repeat {rec['repeat']} #{rec['index']}, "
-                      f"jitter seed {rec['jitter_seed']}: again **{'the same' if same else 'NOT the same: ' + (v.signature or v.outcome)}**",
+                      f"jitter seed {rec['jitter_seed']}: again **{'the same' if same else 'NOT the same: ' + ((got or 'no finding') if oracle else v.signature or v.outcome)}**",
+                      *([f"- {metric_line(m, oracle)}"] if oracle else []),
                       f"- IoU {v.iou:.2f}, off the optimal path for {v.off_length:.0f} m, outcome {v.outcome}"
                       + (f", clearance of the trigger {clear:.2f} m" if clear is not None and math.isfinite(clear) else ""),
                       f"- the planner when it left the path: {leaving_decision(run.trace, dist, ctx.roadmap.spec.lane_width / 2)}",
@@ -311,6 +334,28 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
     write_atomic(out / "findings.md", "\n".join(lines) + "\n")
     con.print(f"{len(causes)} root causes, {len(sample)} failures drawn -> {out / 'findings.md'}")
     return 0
+
+
+def metric_line(m: Any, oracle: str) -> str:
+    """What a metric oracle's finding measured, in a line (docs/metrics.md)."""
+    if oracle == "ttc":
+        return (f"min TTC {m.min_ttc:.2f} s to {m.ttc_actor} ({m.ttc_trigger}), below 1.5 s for {m.ttc_below_s:.2f} s"
+                if m.min_ttc is not None else "no TTC")
+    if oracle == "comfort":
+        return "out of bounds: " + ", ".join(f"{k} {m.comfort[k]:.2f}" for k in m.uncomfortable)
+    if oracle == "standstill":
+        return f"standing unheld for {m.standstill_max_s:.1f} s at a stretch ({m.standstill_s:.1f} s in all)"
+    if oracle == "drivable_area":
+        return f"a corner {m.off_road_max:.2f} m off the road, {m.off_road_s:.2f} s beyond 0.3 m"
+    if oracle == "direction":
+        return f"{m.wrong_way_max_1s:.1f} m against the lanes within 1 s ({m.wrong_way_m:.1f} m in all)"
+    if oracle == "progress":
+        return f"progress {m.progress_ratio:.1%} of the reference's ({m.progress:.0f} m)"
+    if oracle == "speed_limit":
+        return f"up to {m.max_overspeed:.2f} m/s over the limit ({m.overspeed_integral:.1f} m in all)"
+    if oracle == "red_light":
+        return "ran " + ", ".join(f"{r['light']} at {r['t']:.1f} s" for r in m.red_lights)
+    return f"score {m.score:.2f}"
 
 
 def _test_line(run: Any, tests_dir: Path, times: int) -> str:

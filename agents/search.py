@@ -36,7 +36,9 @@ from agents.mutation import Mutant, NonInvasiveMutator, RandomMutator
 from deft_gym.metrics.episode import EpisodeMetrics
 from deft_gym.metrics.oracle import (
     ORACLES,
+    confirm_findings,
     confirm_oracle,
+    findings_by_oracle,
     record_columns,
     run_metrics,
     seed_finding,
@@ -93,42 +95,57 @@ def record_of(v: Verdict, index: int, seconds: float, cpu_seconds: float, sims: 
 
 
 def oracle_columns(ctx: SeedContext, m: EpisodeMetrics, valid: bool, oracle: str, specs: list[dict[str, Any]],
-                   rng: np.random.Generator, added_at: dict[str, float] | None = None
-                   ) -> tuple[dict[str, Any], float, float, int]:
+                   rng: np.random.Generator, added_at: dict[str, float] | None = None,
+                   count: tuple[str, ...] = (), jitter_seed: int = 0) -> tuple[dict[str, Any], float, float, int]:
     """The record's ``metric_*`` columns, and with a metric ``oracle`` its finding
     (``oracle_signature``: on a valid mutation) and ``oracle_confirmed`` (re-checked on a jitter
     seed drawn from ``rng`` - only then - :func:`deft_gym.metrics.oracle.confirm_oracle`);
+    with ``count`` (oracles counted beside the aimed one) ``found_by_oracle`` and
+    ``confirmed_by_oracle``, re-checked together on one jitter seed derived from the run's
+    ``jitter_seed`` (``rng`` untouched: the methods draw what they drew without counting);
     ``(columns, wall s, cpu s, extra simulations)``."""
     cols = record_columns(m)
+    w = c = 0.0
+    n = 0
+    if count:
+        found = findings_by_oracle(ctx, valid, m, count)
+        again = int(np.random.default_rng([jitter_seed, 15485863]).integers(2**31 - 1))
+        ok_by, w, c = confirm_findings(ctx, found, specs, again, added_at)
+        cols = {**cols, "counted_oracles": list(count), "found_by_oracle": found, "confirmed_by_oracle": ok_by}
+        n = int(bool(found))
     if oracle == "default":
-        return cols, 0.0, 0.0, 0
+        return cols, w, c, n
     sig = seed_finding(ctx, valid, m, oracle)
-    ok, w, c = confirm_oracle(ctx, oracle, sig, specs, int(rng.integers(2**31 - 1)), added_at)
-    return {**cols, "oracle": oracle, "oracle_signature": sig, "oracle_confirmed": ok}, w, c, int(ok is not None)
+    ok, w2, c2 = confirm_oracle(ctx, oracle, sig, specs, int(rng.integers(2**31 - 1)), added_at)
+    return ({**cols, "oracle": oracle, "oracle_signature": sig, "oracle_confirmed": ok}, w + w2, c + c2,
+            n + int(ok is not None))
 
 
 def _run_record(ctx: SeedContext, run: EpisodeRun, index: int, t_mut: float, c_mut: float, rng: np.random.Generator,
-                extra: dict[str, Any], m: EpisodeMetrics, oracle: str = "default") -> dict[str, Any]:
+                extra: dict[str, Any], m: EpisodeMetrics, oracle: str = "default",
+                count: tuple[str, ...] = ()) -> dict[str, Any]:
     v = run.verdict
     specs = extra.pop("specs")
     confirmed, w_c, c_c = confirm(ctx, v, specs, int(rng.integers(2**31 - 1)))
-    cols, w_o, c_o, n_o = oracle_columns(ctx, m, v.valid, oracle, specs, rng)
+    cols, w_o, c_o, n_o = oracle_columns(ctx, m, v.valid, oracle, specs, rng, count=count,
+                                         jitter_seed=run.result.jitter_seed)
     rec = record_of(v, index, t_mut + run.seconds + w_c + w_o, c_mut + run.cpu_seconds + c_c + c_o,
                     1 + (confirmed is not None) + n_o, confirmed, run.result.jitter_seed,
                     sum(1 for a in run.trace.actors if a.added), run.result.sim_time, {**extra, **cols})
-    if v.failure or v.task_failure or cols.get("oracle_signature"):
+    if v.failure or v.task_failure or cols.get("oracle_signature") or cols.get("found_by_oracle"):
         rec["scenario_equivalent"] = replay_record(run.scenario, run.result.jitter_seed)
     return rec
 
 
 def search(method: str, ctx: SeedContext, budget: int, seed: int, max_added: int = 8,
            log_dir: Callable[[int], Path | None] | None = None, rule: str = "closest",
-           oracle: str = "default") -> Iterator[dict[str, Any]]:
+           oracle: str = "default", count: tuple[str, ...] = ()) -> Iterator[dict[str, Any]]:
     """Run a search baseline for ``budget`` simulated scenarios under placement ``rule``; yields
     one record per primary simulation. ``log_dir(index)`` may give a directory for its MCAP log.
     ``oracle``: ``default`` selects by :func:`feedback` (the decision oracle); a metric oracle
     (:data:`deft_gym.metrics.oracle.ORACLES`) selects by its severity, and children that do not
-    fail it join the population."""
+    fail it join the population. ``count``: metric oracles whose findings are counted besides
+    (:func:`oracle_columns`); selection does not see them."""
     if oracle not in ORACLES:
         raise ValueError(f"unknown oracle {oracle!r}; expected one of {ORACLES}")
     if method not in SEARCH_METHODS:
@@ -162,7 +179,7 @@ def search(method: str, ctx: SeedContext, budget: int, seed: int, max_added: int
             child.fitness = feedback(v) if oracle == "default" else severity(m, oracle)
             yield _run_record(ctx, run, used, t_mut, c_mut, rng,
                               {"mutation": child.history[-1] if child.history else "", "specs": child.specs},
-                              m, oracle)
+                              m, oracle, count)
             used += 1
             passed = not v.nods if oracle == "default" else not violated(m, oracle)
             if v.valid and v.outcome == "completed" and passed:

@@ -45,6 +45,13 @@ MEASURES = ("root_causes", "root_causes_in_lane", "failures", "nods", "collision
 METRIC_VIOLATIONS = ("collision", "ttc", "drivable_area", "direction", "red_light", "comfort", "speed_limit",
                      "standstill")
 MEASURES = MEASURES + tuple(f"viol_{v}" for v in METRIC_VIOLATIONS)
+# the metric oracles an evaluation may count beside the aimed one (count_oracles; the metric
+# oracles but score, deft_gym.metrics.oracle.COUNTED_ORACLES): found_<name> is the distinct
+# (scenario, signature) pairs of its confirmed findings; any_distinct the same over every oracle,
+# the decision oracle's counted failures included
+FOUND_ORACLES = ("collision", "ttc", "drivable_area", "direction", "red_light", "progress", "comfort",
+                 "speed_limit", "standstill")
+MEASURES = (*MEASURES, "any_distinct", *tuple(f"found_{o}" for o in FOUND_ORACLES))
 # a root cause whose trigger stood inside the ego's own lane (< 0.75 m from the optimal path): the
 # headline leaves it out (docs/search.md, "What counts"), the in_lane column counts it too
 IN_LANE = "in_lane"
@@ -137,7 +144,10 @@ def normalize(records: Iterable[dict[str, Any]], source: str = "records",
              "metric_violations": _field(rec, "metric_violations", where, (list, type(None)), None, None),
              # only with a metric oracle (oracle: in the config): not missing without one
              "oracle_signature": _field(rec, "oracle_signature", where, (str, type(None)), None, None),
-             "oracle_confirmed": _field(rec, "oracle_confirmed", where, (bool, type(None)), None, None)}
+             "oracle_confirmed": _field(rec, "oracle_confirmed", where, (bool, type(None)), None, None),
+             # only with count_oracles: {oracle: signature} found, {oracle: reproduced}
+             "found_by_oracle": _field(rec, "found_by_oracle", where, (dict, type(None)), None, None) or {},
+             "confirmed_by_oracle": _field(rec, "confirmed_by_oracle", where, (dict, type(None)), None, None) or {}}
         if isinstance(rec.get("scenario_equivalent"), dict):
             r["scenario_equivalent"] = rec["scenario_equivalent"]
         out.append(r)
@@ -164,6 +174,8 @@ class Tally:
     causes_in_lane: set[str] = field(default_factory=set)
     scores: list[float] = field(default_factory=list)  # metric_score of the records that have one
     oracle_causes: set[str] = field(default_factory=set)  # signatures of counted metric-oracle findings
+    # (scenario, signature) of confirmed findings per counted oracle (count_oracles)
+    found: dict[str, set[tuple[str, str]]] = field(default_factory=lambda: defaultdict(set))
 
     def add(self, r: dict[str, Any]) -> None:
         c = self.counts
@@ -174,6 +186,10 @@ class Tally:
         if r.get("oracle_signature") and r["valid"] and r.get("oracle_confirmed") is True:
             c["oracle_findings"] += 1
             self.oracle_causes.add(r["oracle_signature"])
+        if r["valid"]:
+            for o, sig in r["found_by_oracle"].items():
+                if r["confirmed_by_oracle"].get(o) is True:
+                    self.found[o].add((r["scenario"], sig))
         kind = counted_failure(r)
         c["simulated"] += 1
         c["sims"] += r["sims"]
@@ -203,6 +219,8 @@ class Tally:
         self.causes_in_lane |= other.causes_in_lane
         self.scores += other.scores
         self.oracle_causes |= other.oracle_causes
+        for o, pairs in other.found.items():
+            self.found[o] |= pairs
 
     def measures(self) -> dict[str, float | None]:
         """The per-repeat values of :data:`MEASURES` (validity a share, times in s, rates per CPU-hour)."""
@@ -218,6 +236,9 @@ class Tally:
                 "cpu_seconds": cpu, "distinct_per_cpu_hour": distinct / (cpu / 3600.0) if cpu else None,
                 "metric_score": float(np.mean(self.scores)) if self.scores else None,
                 "oracle_findings": float(c["oracle_findings"]), "oracle_root_causes": float(len(self.oracle_causes)),
+                # a counted collision is the decision oracle's already (the same fault analysis)
+                "any_distinct": float(len(self.signatures.union(*(v for o, v in self.found.items() if o != "collision")))),
+                **{f"found_{o}": float(len(self.found.get(o, ()))) for o in FOUND_ORACLES},
                 **{f"viol_{v}": c[f"viol_{v}"] / len(self.scores) if self.scores else None for v in METRIC_VIOLATIONS}}
 
 

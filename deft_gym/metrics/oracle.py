@@ -29,6 +29,12 @@ from deft_gym.search.trace import Trace
 #: the oracles a config may name (``default``: the decision oracle, no metric)
 ORACLES = ("default", "collision", "ttc", "drivable_area", "direction", "red_light", "progress", "comfort",
            "speed_limit", "standstill", "score")
+#: what ``count_oracles: all`` counts beside the aimed oracle: every metric oracle but ``score``
+#: (a weighted sum of the others, so it would count their findings twice)
+COUNTED_ORACLES = tuple(o for o in ORACLES if o not in ("default", "score"))
+#: oracles whose signature names no participant or light (the first comfort signal out of bounds,
+#: the violated metrics): a seed whose reference run fails one has no finding on it at all
+UNSPECIFIC = ("comfort", "score")
 PROGRESS_BAD = 0.8  # progress ratio below this is a progress violation
 SCORE_BAD = 0.5  # score below this is a score violation
 
@@ -117,10 +123,14 @@ def record_columns(m: EpisodeMetrics) -> dict[str, Any]:
 def oracle_finding(valid: bool, m: EpisodeMetrics, oracle: str, reference: str | None = None) -> str | None:
     """The signature of a finding on ``oracle`` - only for a valid mutation, and only when it is
     not the ``reference`` run's own signature on that oracle (what the seed scenario does
-    without any mutation is no finding: the seed's parked car that every run closes on) - or None."""
+    without any mutation is no finding: the seed's parked car that every run closes on) - or None.
+    On an :data:`UNSPECIFIC` oracle any reference violation rules findings out: a mutation that
+    only changes which comfort signal breaks first finds nothing the seed does not."""
     if oracle == "default" or not valid:
         return None
     sig = signature(m, oracle)
+    if reference is not None and oracle in UNSPECIFIC:
+        return None
     return None if sig is not None and sig == reference else sig
 
 
@@ -160,3 +170,24 @@ def confirm_oracle(ctx: SeedContext, oracle: str, sig: str | None, specs: list[d
     m = run_metrics(ctx, again.trace, again.verdict.collision_detail)
     same = seed_finding(ctx, again.verdict.valid, m, oracle) == sig
     return bool(same), time.perf_counter() - w0, time.process_time() - c0
+
+
+def findings_by_oracle(ctx: SeedContext, valid: bool, m: EpisodeMetrics, oracles: tuple[str, ...]) -> dict[str, str]:
+    """:func:`seed_finding` on each of ``oracles``: ``{oracle: signature}`` of those with a finding."""
+    found = {o: seed_finding(ctx, valid, m, o) for o in oracles}
+    return {o: sig for o, sig in found.items() if sig is not None}
+
+
+def confirm_findings(ctx: SeedContext, found: dict[str, str], specs: list[dict[str, Any]], jitter_seed: int,
+                     added_at: dict[str, float] | None = None) -> tuple[dict[str, bool], float, float]:
+    """:func:`confirm_oracle` for several oracles with one run: the scenario again on
+    ``jitter_seed``; ``({oracle: reproduced}, wall s, cpu s)``, nothing run when ``found`` is empty."""
+    if not found:
+        return {}, 0.0, 0.0
+    from deft_gym.search.episode import run_scenario
+
+    w0, c0 = time.perf_counter(), time.process_time()
+    again = run_scenario(ctx, specs, jitter_seed, added_at=added_at)
+    m = run_metrics(ctx, again.trace, again.verdict.collision_detail)
+    same = {o: seed_finding(ctx, again.verdict.valid, m, o) == sig for o, sig in found.items()}
+    return same, time.perf_counter() - w0, time.process_time() - c0

@@ -475,3 +475,71 @@ def test_the_validity_rule_is_the_evaluations_and_recorded(tmp_path):
                               "--out", str(out), "--quiet"])
         assert code == 0
         assert findings.eval_feasible(out) == rule
+
+
+def test_counted_oracles_per_oracle_any_oracle_and_coverage(tmp_path):
+    """``count_oracles``: a confirmed finding of a counted metric oracle on a valid mutation counts
+    per oracle, distinct by (scenario, signature); ``any_distinct`` adds them to the decision
+    oracle's distinct failures (a metric collision once: it is the decision oracle's at-fault
+    collision) and the hand-written coverage counts a scenario found by any oracle."""
+    hand = ["handwritten/a", "handwritten/b", "handwritten/c"]
+    recs = []
+    for rep in range(2):
+        recs += cell("rl", hand[0], rep, 3, [("collision", "c")])
+        recs += cell("rl", hand[1], rep, 3, [])
+        recs += cell("rl", hand[2], rep, 3, [])
+        recs += cell("decictor", hand[0], rep, 3, [])
+        recs += cell("decictor", hand[1], rep, 3, [])
+        recs += cell("decictor", hand[2], rep, 3, [])
+    for r in recs:
+        r["scenario_kind"] = "handwritten"
+        r["found_by_oracle"], r["confirmed_by_oracle"] = {}, {}
+    first = {(r["method"], r["scenario"], r["repeat"], r["index"]): r for r in recs}
+    # a: RL's collision, also the metric collision's finding (counted once in any_distinct)
+    first[("rl", hand[0], 0, 0)].update(found_by_oracle={"collision": "metric:collision:rear_end"},
+                                        confirmed_by_oracle={"collision": True})
+    # b: TTC to a cone twice in repeat 0 (one distinct pair), once to a parked car in repeat 1
+    for i in (1, 2):
+        first[("rl", hand[1], 0, i)].update(found_by_oracle={"ttc": "metric:ttc:cone"},
+                                            confirmed_by_oracle={"ttc": True})
+    first[("rl", hand[1], 1, 0)].update(found_by_oracle={"ttc": "metric:ttc:parked", "standstill": "metric:standstill:standstill"},
+                                        confirmed_by_oracle={"ttc": True, "standstill": True})
+    # c: not reproduced, or an invalid mutation: nothing counts
+    first[("rl", hand[2], 0, 0)].update(found_by_oracle={"comfort": "metric:comfort:jerk"},
+                                        confirmed_by_oracle={"comfort": False})
+    first[("rl", hand[2], 1, 0)].update(valid=False, found_by_oracle={"ttc": "metric:ttc:cone"},
+                                        confirmed_by_oracle={"ttc": True})
+    cfg = {"methods": ["rl", "decictor"], "placements": ["closest"], "budget": 3, "repeats": 2,
+           "count_oracles": ["collision", "ttc", "comfort", "standstill"]}
+    summary = eval_report.build_summary(recs, cfg, hand, [])
+    g = summary["groups"]["rl"]["closest"]["handwritten"]
+    assert g["distinct"]["values"] == [1, 1]
+    assert g["found_ttc"]["values"] == [1, 1] and g["found_standstill"]["values"] == [0, 1]
+    assert g["found_collision"]["values"] == [1, 0] and g["found_comfort"]["values"] == [0, 0]
+    assert g["any_distinct"]["values"] == [2, 3]
+    assert eval_report.coverage(summary, "rl") == (1, 3)
+    assert eval_report.coverage(summary, "rl", measure="any_distinct") == (2, 3)
+    t = eval_report.planner_targets(summary)
+    assert t["coverage_any"] == {"found": 2, "scenarios": 3, "share": 2 / 3, "met": False}
+    table = eval_report.write_report(recs, summary, tmp_path)
+    assert "## Findings per oracle" in table
+    assert "| RL | closest | 1.0 ± 0.0 | 0.5 ± 0.7 | 1.0 ± 0.0 | 0.0 ± 0.0 | 0.5 ± 0.7 | 2.5 ± 0.7 | 2 of 3 |" in table
+    # without counted oracles the section is absent and the coverage by any oracle is not claimed
+    plain = eval_report.build_summary(recs, {**cfg, "count_oracles": []}, hand, [])
+    assert "Findings per oracle" not in eval_report.table_markdown(plain)
+    assert "coverage_any" not in eval_report.planner_targets(plain)
+
+
+def test_count_oracles_config(tmp_path):
+    from agents.evaluate import load_eval_config, parse_args
+    from deft_gym.config import ConfigError
+    from deft_gym.metrics.oracle import COUNTED_ORACLES
+
+    base = ["--methods", "random", "--out", str(tmp_path)]
+    assert load_eval_config(parse_args(base)).count_oracles == []
+    assert load_eval_config(parse_args([*base, "--count-oracles", "all"])).count_oracles == list(COUNTED_ORACLES)
+    assert load_eval_config(parse_args([*base, "--count-oracles", "ttc", "ttc", "comfort"])).count_oracles == \
+        ["ttc", "comfort"]
+    assert stats.FOUND_ORACLES == COUNTED_ORACLES  # the stats' copy of the list (no import of the metrics)
+    with pytest.raises(ConfigError, match="--count-oracles: unknown \\['default'\\]"):
+        load_eval_config(parse_args([*base, "--count-oracles", "default"]))

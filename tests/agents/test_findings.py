@@ -4,6 +4,7 @@ jitter seed, checked to fail with the same root cause, drawn, and listed by root
 from __future__ import annotations
 
 import json
+import re
 
 import matplotlib.pyplot as plt
 
@@ -81,3 +82,22 @@ def test_a_record_judged_under_decictors_rule_is_invasive_under_the_default(tmp_
     (tmp_path / "eval_config.json").write_text(json.dumps({"feasible": {"static_margin": -1}}))
     (tmp_path / "records.jsonl").write_text("")
     assert findings.main([str(tmp_path)]) == 2 and "field 'feasible'" in capsys.readouterr().err
+
+
+def test_a_counted_metric_finding_is_simulated_again_and_drawn(tmp_path) -> None:
+    """An evaluation that counted metric oracles (``--count-oracles``): each confirmed finding's
+    signature is a root cause of its own, re-simulated and checked for the same signature on its
+    oracle, drawn, and listed with what the metric measured."""
+    from agents.search import search
+
+    recs = list(search("decictor", seed_context("handwritten/stalled_car"), 2, seed=0, count=("ttc", "comfort")))
+    found = [r for r in recs if r["confirmed_by_oracle"].get("ttc")]
+    assert found  # the near miss at the warning triangle (tests/metrics/test_oracles.py)
+    lines = [json.dumps({"method": "decictor", "placement": "closest", "scenario": "handwritten/stalled_car",
+                         "repeat": 0, **r}) for r in recs]
+    (tmp_path / "records.jsonl").write_text("\n".join(lines) + "\n")  # no eval_config.json: the default rule
+    assert findings.main([str(tmp_path), "--per-cause", "1", "--no-progress"]) == 0
+    text = (tmp_path / "findings" / "findings.md").read_text()
+    assert f"| `metric:ttc:seed:cone` | {len(found)} |" in text and "## `metric:ttc:seed:cone`" in text
+    assert "again **the same**" in text
+    assert re.search(r"min TTC [01]\.\d\d s to triangle \(seed:cone\), below 1\.5 s for [0-9.]+ s", text), text

@@ -83,6 +83,25 @@ def test_a_car_behind_or_beside_gives_no_ttc(highway: MetricsContext) -> None:
     assert m.min_ttc is None and m.ttc_below_s == 0.0
 
 
+def test_ttc_counts_what_the_ego_then_came_close_to(highway: MetricsContext, monkeypatch) -> None:
+    """The ego's heading sweeps across a cone 2 m beyond the end of its turn: projected straight
+    ahead it is 8 m off, TTC under 1.5 s, but the ego turns away and never comes within 1 m of it -
+    no TTC. The same cone where the ego then passes 0.5 m from it is a near miss: TTC counts."""
+    n = 41  # a quarter circle of radius 10 m at 8 m/s, from (0, 0) heading 0 towards (10, 10)
+    ang = np.linspace(0.0, np.pi / 2, n)
+    ego = np.column_stack([10 * np.sin(ang), 10 - 10 * np.cos(ang), ang, np.full(n, 8.0), np.zeros(n)])
+    cone = Actor("cone", "static", "cone", 0.4, 0.4, added=True)
+    far = np.array([[k, 0, 16.0, 3.0, 0.0] for k in range(n)], dtype=float)  # ahead of the heading at ~20 deg
+    m = episode_metrics(trace_of(ego, actors=[cone], parts=far), highway)
+    assert m.min_ttc is None and "ttc" not in m.violations()
+    with monkeypatch.context() as mp:  # what the straight projection alone says
+        mp.setattr("deft_gym.metrics.episode.NEAR_MISS", 100.0)
+        assert episode_metrics(trace_of(ego, actors=[cone], parts=far), highway).min_ttc < TTC_BOUND
+    path_side = np.array([[k, 0, 10.0 + 1.0 + 0.2 + 0.5, 9.0, 0.0] for k in range(n)], dtype=float)  # 0.5 m off
+    m = episode_metrics(trace_of(ego, actors=[cone], parts=path_side), highway)
+    assert m.min_ttc is not None and m.min_ttc < TTC_BOUND and m.ttc_actor == "cone"
+
+
 def test_driving_against_the_lanes(highway: MetricsContext) -> None:
     """Heading pi on the highway's forward lane for 2 s at 10 m/s: 20 m against the direction."""
     m = episode_metrics(trace_of(straight(60.0, 0.0, 10.0, 2.0, heading=np.pi)), highway)

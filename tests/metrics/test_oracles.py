@@ -36,17 +36,19 @@ def test_search_records_carry_the_metrics_and_the_oracle(oracle: str) -> None:
 
 
 def test_the_ga_finds_a_confirmed_ttc_finding() -> None:
-    """Decictor-GA aimed at TTC on left_turn (budget 4, seed 2): one of its mutations brings the
-    ego within 1.5 s TTC of the cone it added, on two jitter seeds - a counted finding."""
+    """Decictor-GA aimed at TTC on handwritten/stalled_car (seed 0): its first mutation, a parked
+    car in the next lane, delays the ego's lane change so that it closes on the warning triangle
+    within 1.5 s TTC and swerves past it - a near miss the reference run does not have, on two
+    jitter seeds: a counted finding."""
     from agents.search import search
     from deft_gym.search.context import seed_context
 
-    recs = list(search("decictor", seed_context("left_turn"), 4, seed=2, oracle="ttc"))
+    recs = list(search("decictor", seed_context("handwritten/stalled_car"), 1, seed=0, oracle="ttc"))
     found = [r for r in recs if r["oracle_signature"]]
     assert found, [(r["metric_violations"], r["metric_min_ttc"]) for r in recs]
     for r in found:
         assert r["valid"] and r["metric_ttc_below_s"] > 0.0 and r["metric_min_ttc"] < 1.5
-        assert r["oracle_signature"] == "metric:ttc:cone" and r["oracle_confirmed"] is True
+        assert r["oracle_signature"] == "metric:ttc:seed:cone" and r["oracle_confirmed"] is True
         assert "scenario_equivalent" in r  # kept for the findings, as a failure's is
 
 
@@ -100,3 +102,38 @@ def test_the_sink_keeps_a_metric_finding_once(tmp_path) -> None:
     assert done["kept"] and (d / "episode.json").exists()
     assert not sink.keeps(rec)  # distinct: the same finding again
     assert not sink.keeps({**rec, "oracle_signature": None})
+
+
+def test_a_comfort_finding_needs_a_reference_that_is_comfortable() -> None:
+    """Comfort's signature names the first signal out of bounds, no participant: where the seed's
+    reference run is uncomfortable already, a mutation that only changes which signal breaks
+    first is no finding."""
+    from deft_gym.metrics.episode import EpisodeMetrics
+    from deft_gym.metrics.oracle import oracle_finding
+
+    m = EpisodeMetrics(comfort={"lon_jerk": 9.0}, uncomfortable=["lon_jerk"])
+    assert oracle_finding(True, m, "comfort") == "metric:comfort:lon_jerk"
+    assert oracle_finding(True, m, "comfort", reference="metric:comfort:lon_accel") is None
+
+
+def test_counted_oracles_leave_the_search_as_it_was() -> None:
+    """``count`` adds each counted oracle's finding and its re-check to a record, on a jitter seed
+    derived from the run's: the search's own draws - mutations, jitter seeds, the decision
+    oracle's re-check - are what they are without counting."""
+    from agents.search import search
+    from deft_gym.metrics.oracle import COUNTED_ORACLES
+    from deft_gym.search.context import seed_context
+
+    ctx = seed_context("handwritten/stalled_car")
+    plain = list(search("decictor", ctx, 3, seed=0))
+    counted = list(search("decictor", ctx, 3, seed=0, count=COUNTED_ORACLES))
+    volatile = {"seconds", "cpu_seconds", "metric_cpu_s", "sims", "scenario_equivalent"}
+    for a, b in zip(plain, counted, strict=True):
+        assert b["counted_oracles"] == list(COUNTED_ORACLES)
+        extra = {"counted_oracles", "found_by_oracle", "confirmed_by_oracle"}
+        assert {k: v for k, v in a.items() if k not in volatile} == \
+            {k: v for k, v in b.items() if k not in volatile | extra}
+        assert set(b["confirmed_by_oracle"]) == set(b["found_by_oracle"])
+        assert b["sims"] == a["sims"] + int(bool(b["found_by_oracle"]))
+    # the near miss of test_the_ga_finds_a_confirmed_ttc_finding, counted here without aiming at it
+    assert counted[0]["found_by_oracle"]["ttc"] == "metric:ttc:seed:cone" and counted[0]["confirmed_by_oracle"]["ttc"]
