@@ -28,7 +28,7 @@ from deft_gym.world.traffic_lights import TrafficLights
 # -- thresholds (nuPlan's closed-loop metric defaults unless said otherwise) ---------------------
 TTC_BOUND = 1.5  # [s] time to collision below this is a violation (nuPlan: 0.95 s)
 STOPPED_SPEED = 0.05  # [m/s] nuPlan: no TTC for a stopped ego
-NEAR_MISS = 1.0  # [m] a TTC under 2 x TTC_BOUND counts only where the ego's footprint then came this close to its
+NEAR_MISS = 0.5  # [m] a TTC under 2 x TTC_BOUND counts only where the ego's footprint then came this close to its
 NEAR_MISS_HORIZON = 3.0  # [s] ... within this time
 DRIVABLE_TOLERANCE = 0.3  # [m] footprint this far outside the road is a violation (nuPlan)
 DIRECTION_OK = 2.0  # [m] against the lane's direction within any 1 s: compliant (nuPlan)
@@ -297,8 +297,8 @@ def _ttc(trace: Trace, m: EpisodeMetrics, dt: float) -> np.ndarray:
         ttc = np.where(gap <= 0.0, 0.0, gap / closing)
     ttc = np.where(in_path & (closing > 1e-3) & (ev > STOPPED_SPEED), ttc, np.inf)
     np.minimum.at(gap_ahead, i[in_path], np.maximum(gap[in_path], 0.0))
-    near = ttc < 2 * TTC_BOUND  # (only these: a longer TTC is no violation, and the check costs)
-    ttc[np.flatnonzero(near)[~_came_close(trace, p[near], i[near], idx[near], length[near], width[near], dt)]] = np.inf
+    near = np.flatnonzero(ttc < 2 * TTC_BOUND)  # (only these: a longer TTC is no violation, and the check costs)
+    ttc[near[~_came_close(trace, p, i, idx, near, length, width, dt)]] = np.inf
     per_step = np.full(n, np.inf)
     np.minimum.at(per_step, i, ttc)
     m.ttc_below_s = float((per_step < TTC_BOUND).sum() * dt)
@@ -311,18 +311,19 @@ def _ttc(trace: Trace, m: EpisodeMetrics, dt: float) -> np.ndarray:
     return gap_ahead
 
 
-def _came_close(trace: Trace, p: np.ndarray, i: np.ndarray, idx: np.ndarray, length: np.ndarray,
-                width: np.ndarray, dt: float) -> np.ndarray:
-    """For each participant row ``p`` (at ego step ``i``, actor ``idx``): whether the ego's footprint
-    came within :data:`NEAR_MISS` of the participant's in the next :data:`NEAR_MISS_HORIZON` (what
-    both actually did). A heading projected straight ahead sweeps across a cone beside a turn or an
-    oncoming car the turning ego waits for; a conflict comes close."""
+def _came_close(trace: Trace, p: np.ndarray, i: np.ndarray, idx: np.ndarray, rows: np.ndarray,
+                length: np.ndarray, width: np.ndarray, dt: float) -> np.ndarray:
+    """For the participant rows ``p[rows]`` (every row of ``p`` at ego step ``i``, actor ``idx``):
+    whether the ego's footprint came within :data:`NEAR_MISS` of the participant's in the next
+    :data:`NEAR_MISS_HORIZON` (what both actually did). A heading projected straight ahead sweeps
+    across a cone beside a turn or an oncoming car the turning ego waits for; a conflict comes close."""
     ego, n = trace.ego, len(trace.ego)
-    out = np.zeros(len(p), dtype=bool)
-    if not len(p):
+    out = np.zeros(len(rows), dtype=bool)
+    if not len(rows):
         return out
     pose = np.full((len(trace.actors), n, 3), np.nan)  # every actor's pose at every ego step, held after its last
     pose[idx, i] = p[:, 2:5]
+    i, idx, length, width = i[rows], idx[rows], length[rows], width[rows]
     for a in range(len(trace.actors)):
         seen = np.flatnonzero(~np.isnan(pose[a, :, 0]))
         if len(seen):
@@ -330,7 +331,7 @@ def _came_close(trace: Trace, p: np.ndarray, i: np.ndarray, idx: np.ndarray, len
     window = np.minimum(i[:, None] + np.arange(round(NEAR_MISS_HORIZON / dt) + 1)[None, :], n - 1)
     other = pose[idx[:, None], window]
     centre = np.hypot(other[..., 0] - ego[window, 0], other[..., 1] - ego[window, 1])
-    w = window[np.arange(len(p)), np.nanargmin(np.where(np.isnan(centre), np.inf, centre), axis=1)]
+    w = window[np.arange(len(rows)), np.argmin(np.where(np.isnan(centre), np.inf, centre), axis=1)]
     at = pose[idx, w]
     ok = ~np.isnan(at[:, 0])
     if ok.any():

@@ -90,14 +90,14 @@ def test_a_counted_metric_finding_is_simulated_again_and_drawn(tmp_path) -> None
     oracle, drawn, and listed with what the metric measured."""
     from agents.search import search
 
-    recs = list(search("decictor", seed_context("handwritten/stalled_car"), 2, seed=0, count=("ttc", "comfort")))
+    recs = list(search("decictor", seed_context("handwritten/parked_street"), 2, seed=0, count=("ttc", "comfort")))
     found = [r for r in recs if r["confirmed_by_oracle"].get("ttc")]
-    assert found  # the near miss at the warning triangle (tests/metrics/test_oracles.py)
-    lines = [json.dumps({"method": "decictor", "placement": "closest", "scenario": "handwritten/stalled_car",
+    assert found  # the near miss at the double-parked van (tests/metrics/test_oracles.py)
+    lines = [json.dumps({"method": "decictor", "placement": "closest", "scenario": "handwritten/parked_street",
                          "repeat": 0, **r}) for r in recs]
     (tmp_path / "records.jsonl").write_text("\n".join(lines) + "\n")  # no eval_config.json: the default rule
     assert findings.main([str(tmp_path), "--per-cause", "1", "--no-progress"]) == 0
     text = (tmp_path / "findings" / "findings.md").read_text()
-    assert f"| `metric:ttc:seed:cone` | {len(found)} |" in text and "## `metric:ttc:seed:cone`" in text
+    assert f"| `metric:ttc:seed:parked` | {len(found)} |" in text and "## `metric:ttc:seed:parked`" in text
     assert "again **the same**" in text
-    assert re.search(r"min TTC [01]\.\d\d s to triangle \(seed:cone\), below 1\.5 s for [0-9.]+ s", text), text
+    assert re.search(r"min TTC [01]\.\d\d s to van \(seed:parked\), below 1\.5 s for [0-9.]+ s", text), text

@@ -85,8 +85,8 @@ def test_a_car_behind_or_beside_gives_no_ttc(highway: MetricsContext) -> None:
 
 def test_ttc_counts_what_the_ego_then_came_close_to(highway: MetricsContext, monkeypatch) -> None:
     """The ego's heading sweeps across a cone 2 m beyond the end of its turn: projected straight
-    ahead it is 8 m off, TTC under 1.5 s, but the ego turns away and never comes within 1 m of it -
-    no TTC. The same cone where the ego then passes 0.5 m from it is a near miss: TTC counts."""
+    ahead it is 8 m off, TTC under 1.5 s, but the ego turns away and never comes within 0.5 m of it -
+    no TTC. The same cone where the ego then passes 0.3 m from it is a near miss: TTC counts."""
     n = 41  # a quarter circle of radius 10 m at 8 m/s, from (0, 0) heading 0 towards (10, 10)
     ang = np.linspace(0.0, np.pi / 2, n)
     ego = np.column_stack([10 * np.sin(ang), 10 - 10 * np.cos(ang), ang, np.full(n, 8.0), np.zeros(n)])
@@ -97,9 +97,22 @@ def test_ttc_counts_what_the_ego_then_came_close_to(highway: MetricsContext, mon
     with monkeypatch.context() as mp:  # what the straight projection alone says
         mp.setattr("deft_gym.metrics.episode.NEAR_MISS", 100.0)
         assert episode_metrics(trace_of(ego, actors=[cone], parts=far), highway).min_ttc < TTC_BOUND
-    path_side = np.array([[k, 0, 10.0 + 1.0 + 0.2 + 0.5, 9.0, 0.0] for k in range(n)], dtype=float)  # 0.5 m off
+    path_side = np.array([[k, 0, 10.0 + 1.0 + 0.2 + 0.3, 9.0, 0.0] for k in range(n)], dtype=float)  # 0.3 m off
     m = episode_metrics(trace_of(ego, actors=[cone], parts=path_side), highway)
     assert m.min_ttc is not None and m.min_ttc < TTC_BOUND and m.ttc_actor == "cone"
+
+
+def test_ttc_follows_a_moving_participant_where_it_went(highway: MetricsContext) -> None:
+    """A car 2.5 m ahead at 8 m/s (ego 10 m/s: TTC 1.25 s) that then pulls away at 15 m/s: the ego
+    never comes within 0.5 m of where it actually is, so no TTC - the gate reads every later pose
+    of the car, not only those of the rows whose TTC was short."""
+    ego = straight(0.0, 0.0, 10.0, 3.0)
+    t = np.arange(len(ego)) * DT
+    x = 2.4 + 2.5 + 2.25 + np.where(t < 0.1, 8.0 * t, 0.8 + 15.0 * (t - 0.1))
+    car = Actor("lead", "scripted", "vehicle", 4.5, 2.0, added=True)
+    rows = np.array([[k, 0, x[k], 0.0, 0.0] for k in range(len(ego))], dtype=float)
+    m = episode_metrics(trace_of(ego, actors=[car], parts=rows), highway)
+    assert m.min_ttc is None or m.min_ttc >= 2 * TTC_BOUND
 
 
 def test_driving_against_the_lanes(highway: MetricsContext) -> None:

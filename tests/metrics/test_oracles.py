@@ -36,19 +36,19 @@ def test_search_records_carry_the_metrics_and_the_oracle(oracle: str) -> None:
 
 
 def test_the_ga_finds_a_confirmed_ttc_finding() -> None:
-    """Decictor-GA aimed at TTC on handwritten/stalled_car (seed 0): its first mutation, a parked
-    car in the next lane, delays the ego's lane change so that it closes on the warning triangle
-    within 1.5 s TTC and swerves past it - a near miss the reference run does not have, on two
-    jitter seeds: a counted finding."""
+    """Decictor-GA aimed at TTC on handwritten/parked_street (seed 0): its first mutation delays the
+    ego's change round the double-parked van, so that it closes on the van and squeezes past it
+    within 0.5 m - a near miss the reference run does not have, on two jitter seeds: a counted
+    finding."""
     from agents.search import search
     from deft_gym.search.context import seed_context
 
-    recs = list(search("decictor", seed_context("handwritten/stalled_car"), 1, seed=0, oracle="ttc"))
+    recs = list(search("decictor", seed_context("handwritten/parked_street"), 1, seed=0, oracle="ttc"))
     found = [r for r in recs if r["oracle_signature"]]
     assert found, [(r["metric_violations"], r["metric_min_ttc"]) for r in recs]
     for r in found:
         assert r["valid"] and r["metric_ttc_below_s"] > 0.0 and r["metric_min_ttc"] < 1.5
-        assert r["oracle_signature"] == "metric:ttc:seed:cone" and r["oracle_confirmed"] is True
+        assert r["oracle_signature"] == "metric:ttc:seed:parked" and r["oracle_confirmed"] is True
         assert "scenario_equivalent" in r  # kept for the findings, as a failure's is
 
 
@@ -124,7 +124,7 @@ def test_counted_oracles_leave_the_search_as_it_was() -> None:
     from deft_gym.metrics.oracle import COUNTED_ORACLES
     from deft_gym.search.context import seed_context
 
-    ctx = seed_context("handwritten/stalled_car")
+    ctx = seed_context("handwritten/parked_street")
     plain = list(search("decictor", ctx, 3, seed=0))
     counted = list(search("decictor", ctx, 3, seed=0, count=COUNTED_ORACLES))
     volatile = {"seconds", "cpu_seconds", "metric_cpu_s", "sims", "scenario_equivalent"}
@@ -136,4 +136,4 @@ def test_counted_oracles_leave_the_search_as_it_was() -> None:
         assert set(b["confirmed_by_oracle"]) == set(b["found_by_oracle"])
         assert b["sims"] == a["sims"] + int(bool(b["found_by_oracle"]))
     # the near miss of test_the_ga_finds_a_confirmed_ttc_finding, counted here without aiming at it
-    assert counted[0]["found_by_oracle"]["ttc"] == "metric:ttc:seed:cone" and counted[0]["confirmed_by_oracle"]["ttc"]
+    assert counted[0]["found_by_oracle"]["ttc"] == "metric:ttc:seed:parked" and counted[0]["confirmed_by_oracle"]["ttc"]
