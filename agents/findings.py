@@ -3,8 +3,8 @@
     deft-gym findings runs/eval/x --per-cause 2          # -> runs/eval/x/findings/findings.md
 
 A finding is a mechanism, not a count. For every root cause (``kind:trigger:band:mechanism``) of the
-counted failures in ``records.jsonl`` this takes up to ``--per-cause`` failures (the first ones by
-scenario, repeat and index: deterministic), simulates each again from its equivalent scenario with
+counted failures in ``records.jsonl`` this takes up to ``--per-cause`` failures, spread over the
+scenarios it was found on (the first of each scenario by repeat and index: deterministic), simulates each again from its equivalent scenario with
 the jitter seed it ran with, checks that it fails again with the same root cause, and draws it:
 the optimal (reference) path, the ego's path, every added object with the trigger in red and its
 clearance to the optimal path, the collision if any. An evaluation that counted metric oracles
@@ -233,6 +233,17 @@ def draw(ctx: Any, run: Any, path: Path, title: str, highlight: set[str] | None 
     plt.close(fig)
 
 
+def spread(recs: list[dict[str, Any]], n: int) -> list[dict[str, Any]]:
+    """Up to ``n`` of ``recs`` (one root cause's), spread over its scenarios: the first of each
+    scenario (by repeat, index, method) in scenario order, then the second of each, ...
+    (deterministic): a root cause found on several scenarios is drawn on several."""
+    by_scenario: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for r in sorted(recs, key=lambda r: (r["scenario"], r["repeat"], r["index"], r["method"])):
+        by_scenario[r["scenario"]].append(r)
+    rounds = max((len(v) for v in by_scenario.values()), default=0)
+    return [v[k] for k in range(rounds) for v in by_scenario.values() if k < len(v)][:n]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     folder: Path = args.folder
@@ -279,9 +290,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
 
     out.mkdir(parents=True, exist_ok=True)
     causes = sorted(by_cause, key=lambda c: (-len(by_cause[c]), c))
-    sample = [(c, r) for c in causes
-              for r in sorted(by_cause[c], key=lambda r: (r["scenario"], r["repeat"], r["index"], r["method"]))[
-                  : args.per_cause]]
+    sample = [(c, r) for c in causes for r in spread(by_cause[c], args.per_cause)]
     lines = [f"# Findings of {args.folder}", "",
              f"{sum(len(v) for v in by_cause.values())} counted failures and findings, {len(causes)} root causes; up to "
              f"{args.per_cause} of each simulated again with their jitter seed and drawn (dashed: the optimal path; "

@@ -101,3 +101,12 @@ def test_a_counted_metric_finding_is_simulated_again_and_drawn(tmp_path) -> None
     assert f"| `metric:ttc:seed:parked` | {len(found)} |" in text and "## `metric:ttc:seed:parked`" in text
     assert "again **the same**" in text
     assert re.search(r"min TTC [01]\.\d\d s to van \(seed:parked\), below 1\.5 s for [0-9.]+ s", text), text
+
+
+def test_the_sample_of_a_root_cause_spreads_over_its_scenarios() -> None:
+    recs = [{"scenario": s, "repeat": rep, "index": i, "method": "rl"}
+            for s in ("b", "a", "c") for rep in (1, 0) for i in (3, 1)]
+    picked = findings.spread(recs, 4)
+    assert [(r["scenario"], r["repeat"], r["index"]) for r in picked] == [("a", 0, 1), ("b", 0, 1), ("c", 0, 1),
+                                                                          ("a", 0, 3)]
+    assert findings.spread(recs[:1], 3) == recs[:1] and findings.spread([], 2) == []
