@@ -331,7 +331,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             lines += [f"![{cause}]({name})", "",
                       f"- {rec['method']} / {rec['placement']} / {rec['scenario']} repeat {rec['repeat']} #{rec['index']}, "
                       f"jitter seed {rec['jitter_seed']}: again **{'the same' if same else 'NOT the same: ' + ((got or 'no finding') if oracle else v.signature or v.outcome)}**",
-                      *([f"- {metric_line(m, oracle)}"] if oracle else []),
+                      *([f"- {metric_line(m, oracle, run.trace)}"] if oracle else []),
                       f"- IoU {v.iou:.2f}, off the optimal path for {v.off_length:.0f} m, outcome {v.outcome}"
                       + (f", clearance of the trigger {clear:.2f} m" if clear is not None and math.isfinite(clear) else ""),
                       f"- the planner when it left the path: {leaving_decision(run.trace, dist, ctx.roadmap.spec.lane_width / 2)}",
@@ -345,11 +345,34 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
     return 0
 
 
-def metric_line(m: Any, oracle: str) -> str:
-    """What a metric oracle's finding measured, in a line (docs/metrics.md)."""
+def closest_pass(trace: Any, actor_id: str) -> tuple[float, float]:
+    """``(distance [m], ego speed [m/s])`` where the ego's footprint came closest to participant
+    ``actor_id``'s: how near a near miss was, and how fast."""
+    import shapely
+
+    from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH
+    from deft_gym.world.geometry import box_corners
+
+    k = [a.id for a in trace.actors].index(actor_id)
+    a, rows = trace.actors[k], trace.parts[trace.parts[:, 1] == k]
+    e = trace.ego[np.clip(np.searchsorted(trace.ticks, rows[:, 0]), 0, len(trace.ego) - 1)]
+    d = shapely.distance(shapely.polygons(box_corners(e[:, 0], e[:, 1], e[:, 2], EGO_LENGTH, EGO_WIDTH)),
+                         shapely.polygons(box_corners(rows[:, 2], rows[:, 3], rows[:, 4], a.length, a.width)))
+    j = int(np.argmin(d))
+    return float(d[j]), float(e[j, 3])
+
+
+def metric_line(m: Any, oracle: str, trace: Any = None) -> str:
+    """What a metric oracle's finding measured, in a line (docs/metrics.md); for TTC with the
+    episode's ``trace``, also how close the ego came to that participant and how fast."""
     if oracle == "ttc":
-        return (f"min TTC {m.min_ttc:.2f} s to {m.ttc_actor} ({m.ttc_trigger}), below 1.5 s for {m.ttc_below_s:.2f} s"
-                if m.min_ttc is not None else "no TTC")
+        if m.min_ttc is None:
+            return "no TTC"
+        line = f"min TTC {m.min_ttc:.2f} s to {m.ttc_actor} ({m.ttc_trigger}), below 1.5 s for {m.ttc_below_s:.2f} s"
+        if trace is not None and m.ttc_actor:
+            dist, speed = closest_pass(trace, m.ttc_actor)
+            line += f"; closest {dist:.2f} m, at {speed:.1f} m/s"
+        return line
     if oracle == "comfort":
         return "out of bounds: " + ", ".join(f"{k} {m.comfort[k]:.2f}" for k in m.uncomfortable)
     if oracle == "standstill":

@@ -100,7 +100,8 @@ def test_a_counted_metric_finding_is_simulated_again_and_drawn(tmp_path) -> None
     text = (tmp_path / "findings" / "findings.md").read_text()
     assert f"| `metric:ttc:seed:parked` | {len(found)} |" in text and "## `metric:ttc:seed:parked`" in text
     assert "again **the same**" in text
-    assert re.search(r"min TTC [01]\.\d\d s to van \(seed:parked\), below 1\.5 s for [0-9.]+ s", text), text
+    assert re.search(r"min TTC [01]\.\d\d s to van \(seed:parked\), below 1\.5 s for [0-9.]+ s; "
+                     r"closest 0\.[0-4]\d m, at [0-9.]+ m/s", text), text
 
 
 def test_the_sample_of_a_root_cause_spreads_over_its_scenarios() -> None:
