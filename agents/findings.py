@@ -270,11 +270,11 @@ def main(argv: list[str] | None = None) -> int:
             by_cause[r["signature"]].append(full)
             counts[r["signature"]][r["method"]] += 1
         found = dict(r["found_by_oracle"])  # counted metric oracles (--count-oracles)
+        confirmed = dict(r["confirmed_by_oracle"])
         if r["oracle_signature"] and r["oracle_confirmed"] is True:  # the aimed metric oracle (--oracle)
-            found[full["oracle"]] = r["oracle_signature"]
-            r["confirmed_by_oracle"] = {**r["confirmed_by_oracle"], full["oracle"]: True}
+            found[full["oracle"]], confirmed[full["oracle"]] = r["oracle_signature"], True
         for oracle, sig in found.items():
-            if r["valid"] and oracle != "collision" and r["confirmed_by_oracle"].get(oracle) is True:
+            if r["valid"] and oracle != "collision" and confirmed.get(oracle) is True:
                 by_cause[sig].append({**full, "_oracle": oracle})
                 counts[sig][r["method"]] += 1
     if not by_cause:
@@ -348,16 +348,12 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
 def closest_pass(trace: Any, actor_id: str) -> tuple[float, float]:
     """``(distance [m], ego speed [m/s])`` where the ego's footprint came closest to participant
     ``actor_id``'s: how near a near miss was, and how fast."""
-    import shapely
-
-    from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH
-    from deft_gym.world.geometry import box_corners
+    from deft_gym.search.nods import ego_distances
 
     k = [a.id for a in trace.actors].index(actor_id)
     a, rows = trace.actors[k], trace.parts[trace.parts[:, 1] == k]
     e = trace.ego[np.clip(np.searchsorted(trace.ticks, rows[:, 0]), 0, len(trace.ego) - 1)]
-    d = shapely.distance(shapely.polygons(box_corners(e[:, 0], e[:, 1], e[:, 2], EGO_LENGTH, EGO_WIDTH)),
-                         shapely.polygons(box_corners(rows[:, 2], rows[:, 3], rows[:, 4], a.length, a.width)))
+    d = ego_distances(e[:, :3], rows[:, 2:5], a.length, a.width)
     j = int(np.argmin(d))
     return float(d[j]), float(e[j, 3])
 

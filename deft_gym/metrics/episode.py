@@ -18,7 +18,7 @@ import numpy as np
 import shapely
 
 from deft_gym.scenarios.scenario import Scenario, destination_xy, pose_xyh
-from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH, collision_fault, trigger_type
+from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH, collision_fault, ego_distances, trigger_type
 from deft_gym.search.trace import Trace
 from deft_gym.sim.oracles import held_by_light
 from deft_gym.world.geometry import box_corners
@@ -335,9 +335,7 @@ def _came_close(trace: Trace, p: np.ndarray, i: np.ndarray, idx: np.ndarray, row
     at = pose[idx, w]
     ok = ~np.isnan(at[:, 0])
     if ok.any():
-        mine = shapely.polygons(box_corners(ego[w[ok], 0], ego[w[ok], 1], ego[w[ok], 2], EGO_LENGTH, EGO_WIDTH))
-        theirs = shapely.polygons(box_corners(at[ok, 0], at[ok, 1], at[ok, 2], length[ok], width[ok]))
-        out[ok] = shapely.distance(mine, theirs) <= NEAR_MISS
+        out[ok] = ego_distances(ego[w[ok], :3], at[ok], length[ok], width[ok]) <= NEAR_MISS
     return out
 
 

@@ -179,6 +179,14 @@ SPAWN_DISTANCE = 15.0  # [m] a participant appears at least this far from the li
 _REACH = 2.5  # [m] clearances are computed exactly up to this distance (farther: inf)
 
 
+def ego_distances(ego: np.ndarray, boxes: np.ndarray, length: float | np.ndarray,
+                  width: float | np.ndarray) -> np.ndarray:
+    """Exact distances [m] between the ego's footprints at ``ego`` (n, 3: x, y, h) and participant
+    boxes ``boxes`` (n, 3) of ``length`` x ``width`` [m], paired row by row (0: they touch)."""
+    return shapely.distance(shapely.polygons(box_corners(ego[:, 0], ego[:, 1], ego[:, 2], EGO_LENGTH, EGO_WIDTH)),
+                            shapely.polygons(box_corners(boxes[:, 0], boxes[:, 1], boxes[:, 2], length, width)))
+
+
 def _exact_min(ego: np.ndarray, boxes: np.ndarray, gap: np.ndarray, dims: np.ndarray) -> float:
     """Smallest exact distance [m] between ego boxes ``ego`` (n, 3: x, y, h) and participant boxes
     ``boxes`` (n, 3) paired row by row, whose separating-axis gaps ``gap`` are lower bounds:
@@ -189,9 +197,7 @@ def _exact_min(ego: np.ndarray, boxes: np.ndarray, gap: np.ndarray, dims: np.nda
         blk = order[a:a + 256]
         if gap[blk[0]] >= best:
             break
-        pa = shapely.polygons(box_corners(ego[blk, 0], ego[blk, 1], ego[blk, 2], EGO_LENGTH, EGO_WIDTH))
-        pb = shapely.polygons(box_corners(boxes[blk, 0], boxes[blk, 1], boxes[blk, 2], dims[0], dims[1]))
-        best = min(best, float(shapely.distance(pa, pb).min()))
+        best = min(best, float(ego_distances(ego[blk], boxes[blk], dims[0], dims[1]).min()))
     return best
 
 
