@@ -360,6 +360,11 @@ def failure_callback(out: Path | None, counts: Counter[str] | None = None) -> An
                     self.logger.record_mean("adversary/driving_score", float(info["metrics"]["score"]))
                 if info.get("oracle_signature"):  # a finding on the configured metric oracle
                     c["oracle_findings"] += 1
+                found = info.get("found_by_oracle") or {}
+                for oracle in found:  # every metric oracle's finding (not re-checked): oracle any's curve
+                    c[f"found_{oracle}"] += 1
+                c["any_findings"] += int(bool(fail or found))  # episodes with a failure or a metric finding
+                self.logger.record_mean("adversary/any_finding", float(bool(fail or found)))
                 if out is not None and c["episodes"] % 50 == 0:
                     self._write()
             return True
@@ -377,6 +382,16 @@ def failure_callback(out: Path | None, counts: Counter[str] | None = None) -> An
                 self._write()
 
     return FailureStats()
+
+
+def close_envs(vec_env: Any, interrupted: bool) -> None:
+    """Close the envs; after an interrupt, without waiting for the step replies SB3's
+    ``SubprocVecEnv`` still expects: interrupted between two of them, its ``close`` waits for
+    replies that were already read and never comes back (a worker finishing its step still
+    sends into its pipe, then reads ``close`` and exits)."""
+    if interrupted and getattr(vec_env, "waiting", False):
+        vec_env.waiting = False
+    vec_env.close()
 
 
 # -- summary --------------------------------------------------------------------------------------
@@ -487,6 +502,11 @@ def _train(args: argparse.Namespace, con: Any, cfg: Any, backend: Any, out: Path
     else:
         model = algo_cls(cfg.policy, vec_env, seed=cfg.seed, tensorboard_log=str(out / "tb"), device="cpu",
                          policy_kwargs=cfg.policy_kwargs, verbose=0, **cfg.algo_kwargs)
+        if cfg.init_model:  # fine-tuning: the trained policy, this run's steps and schedule
+            from deft_gym.models import resolve_model
+
+            model.set_parameters(resolve_model(cfg.init_model), exact_match=True, device="cpu")
+            con.print(f"started from the policy of {resolve_model(cfg.init_model)}")
     remaining = max(cfg.timesteps - (model.num_timesteps if args.resume else 0), 0)
     stats = failure_callback(out, monitor_totals(out) if args.resume is not None else None)
     callbacks = CallbackList([
@@ -509,9 +529,15 @@ def _train(args: argparse.Namespace, con: Any, cfg: Any, backend: Any, out: Path
     finally:
         with atomic_path(out / "model.zip") as tmp:
             model.save(tmp)
-        vec_env.close()
+        close_envs(vec_env, interrupted)
     seconds = time.time() - t0
     summary = summarize_run(out)
+    if not summary["episodes"]:  # no episode journals (log_episodes: false): the envs' own counts
+        c = stats.counts
+        summary.update({"episodes": c["episodes"], "collisions": c["collision"], "nods": c["nods"],
+                        "valid": c["valid"], "validity": round(c["valid"] / max(c["episodes"], 1), 4),
+                        "failure_rate": round((c["collision"] + c["nods"]) / max(c["episodes"], 1), 4)})
+    summary["findings"] = {k: v for k, v in sorted(stats.counts.items()) if k.startswith("found_") or k.endswith("findings")}
     summary.update({"timesteps": int(model.num_timesteps), "train_seconds": round(seconds, 1),
                     "interrupted": interrupted,
                     "env_steps_per_second": round((model.num_timesteps - steps0) / max(seconds, 1e-9), 2),
