@@ -38,6 +38,9 @@ class TrainConfig(BaseModel):
                            "added to env.scenarios for training; held-out evaluation seeds start at 1000000")
     env: AdversaryConfig = Field(default_factory=lambda: _env_config()())
     log_episodes: bool = Field(True, description="record every episode's MCAP log (failures -> extractor)")
+    init_model: str | None = Field(None, description="start from this trained model's policy and optimiser "
+                                   "(a model.zip of the same algo and network, or default: the shipped adversary), "
+                                   "e.g. to aim it at another oracle; none: a fresh policy")
 
     @field_validator("policy_kwargs")
     @classmethod
@@ -122,6 +125,12 @@ def check_train_settings(cfg: TrainConfig, source: Path | str | None) -> None:
         if key not in policy_params:
             raise ConfigError(f"{name}: policy_kwargs.{key}: not a parameter of SB3's MlpPolicy; expected one of "
                               f"{sorted(policy_params)}")
+    if cfg.init_model:
+        from deft_gym.models import resolve_model
+
+        if not Path(resolve_model(cfg.init_model)).is_file():
+            raise ConfigError(f"{name}: init_model: {cfg.init_model}: no such file; expected a model.zip written by "
+                              "agents.train, or default (the shipped adversary)")
     if cfg.algo_kwargs.get("n_steps", params["n_steps"].default) * cfg.n_envs < 2:
         raise ConfigError(f"{name}: algo_kwargs.n_steps: n_steps x n_envs must be at least 2")
     from deft_gym.scenarios.scenario import SCENARIO_GROUPS, is_group_scenario

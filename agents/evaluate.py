@@ -87,7 +87,8 @@ class EvalConfig(BaseModel):
         default_factory=lambda: ["closest", "uniform"], min_length=1,
         description="placement rules every method runs under (one table row per method and placement)")
     oracle: str | None = Field(None, description="what every method aims at and what counts: default (NoDS and "
-                               "at-fault collisions, docs/search.md) or a driving-quality metric oracle "
+                               "at-fault collisions, docs/search.md), any (those and every metric oracle's "
+                               "findings; counts all of them) or a driving-quality metric oracle "
                                "(deft_gym.metrics.oracle.ORACLES, docs/metrics.md); default: the model's "
                                "training env.oracle, else default")
     count_oracles: list[str] = Field(default_factory=list, description="metric oracles whose confirmed findings "
@@ -127,7 +128,8 @@ def build_parser() -> common.Parser:
                    "from the optimal path, which lets a parked car stand inside the lane); default: the model's "
                    "training config, else lane")
     p.add_argument("--oracle", default=None, metavar="ORACLE",
-                   help="default (NoDS, at-fault collisions) or a metric oracle: collision, ttc, drivable_area, "
+                   help="default (NoDS, at-fault collisions), any (those and every metric oracle's findings: the GA "
+                   "selects by both, counted oracle by oracle) or a metric oracle: collision, ttc, drivable_area, "
                    "direction, red_light, progress, comfort, speed_limit, standstill, score (docs/metrics.md; "
                    "default: the model's training env.oracle, else default)")
     p.add_argument("--count-oracles", nargs="+", action=common.ListAction, default=None, metavar="ORACLE",
@@ -203,14 +205,17 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
 
         if cfg.oracle not in ORACLES:
             raise ConfigError(f"{where('oracle')}: unknown oracle {cfg.oracle!r}; expected one of {list(ORACLES)}")
+    if cfg.oracle == "any" and not cfg.count_oracles:  # the union is counted oracle by oracle
+        cfg.count_oracles = ["all"]
     if cfg.count_oracles:
-        from deft_gym.metrics.oracle import COUNTED_ORACLES, ORACLES
+        from deft_gym.metrics.oracle import COUNTED_ORACLES, DECISION_ORACLES, ORACLES
 
         if cfg.count_oracles == ["all"]:
             cfg.count_oracles = list(COUNTED_ORACLES)
-        bad = [o for o in cfg.count_oracles if o not in ORACLES[1:]]
+        metric = [o for o in ORACLES if o not in DECISION_ORACLES]
+        bad = [o for o in cfg.count_oracles if o not in metric]
         if bad:
-            raise ConfigError(f"{where('count_oracles')}: unknown {bad}; expected all or some of {list(ORACLES[1:])}")
+            raise ConfigError(f"{where('count_oracles')}: unknown {bad}; expected all or some of {metric}")
         cfg.count_oracles = list(dict.fromkeys(cfg.count_oracles))
     bad = [m for m in cfg.methods if m not in METHODS]
     if bad:
@@ -525,6 +530,10 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
         env["ads"] = cfg.ads
     if cfg.oracle is not None:  # what counts: the evaluation's, else the model's training objective
         env["oracle"] = cfg.oracle
+    if env.get("oracle") == "any" and not cfg.count_oracles:  # the union is counted oracle by oracle
+        from deft_gym.metrics.oracle import COUNTED_ORACLES
+
+        cfg.count_oracles = list(COUNTED_ORACLES)
     if cfg.validity is not None:  # where static objects may stand: the evaluation's, else the model's
         from deft_gym.search.feasible import PAPER, FeasibleConfig
 

@@ -35,6 +35,8 @@ import numpy as np
 from agents.mutation import Mutant, NonInvasiveMutator, RandomMutator
 from deft_gym.metrics.episode import EpisodeMetrics
 from deft_gym.metrics.oracle import (
+    COUNTED_ORACLES,
+    DECISION_ORACLES,
     ORACLES,
     confirm_findings,
     confirm_oracle,
@@ -43,6 +45,7 @@ from deft_gym.metrics.oracle import (
     run_metrics,
     seed_finding,
     severity,
+    severity_growth,
     violated,
 )
 from deft_gym.search.context import SeedContext
@@ -63,6 +66,27 @@ def feedback(v: Verdict) -> float:
     check's own threshold. Only children that passed both checks join the population, so the term
     is always there where it matters."""
     return v.f_p + v.f_b + (0.0 if v.nods else 1.0 - v.iou)
+
+
+def fitness(ctx: SeedContext, v: Verdict, m: EpisodeMetrics, oracle: str) -> float:
+    """What the GA selects by when aiming at ``oracle``: :func:`feedback` (the decision oracle),
+    a metric oracle's severity, or for ``any`` the feedback plus the largest growth of a counted
+    metric's severity over the seed's reference run (:func:`deft_gym.metrics.oracle.severity_growth`)."""
+    if oracle == "default":
+        return feedback(v)
+    if oracle == "any":
+        return feedback(v) + severity_growth(ctx, m)
+    return severity(m, oracle)
+
+
+def passes(ctx: SeedContext, v: Verdict, m: EpisodeMetrics, oracle: str) -> bool:
+    """Whether a child passes what the GA aims at (then it may join the population): no NoDS
+    (``default``), no NoDS and no metric finding (``any``), or no violation of the metric oracle."""
+    if oracle == "default":
+        return not v.nods
+    if oracle == "any":
+        return not (v.nods or findings_by_oracle(ctx, v.valid, m, COUNTED_ORACLES))
+    return not violated(m, oracle)
 
 
 def confirm(ctx: SeedContext, verdict: Verdict, specs: list[dict[str, Any]], jitter_seed: int,
@@ -113,8 +137,8 @@ def oracle_columns(ctx: SeedContext, m: EpisodeMetrics, valid: bool, oracle: str
         ok_by, w, c = confirm_findings(ctx, found, specs, again, added_at)
         cols = {**cols, "counted_oracles": list(count), "found_by_oracle": found, "confirmed_by_oracle": ok_by}
         n = int(bool(found))
-    if oracle == "default":
-        return cols, w, c, n
+    if oracle in DECISION_ORACLES:  # the decision oracle's findings are the record's own
+        return ({**cols, "oracle": oracle} if oracle != "default" else cols), w, c, n
     sig = seed_finding(ctx, valid, m, oracle)
     ok, w2, c2 = confirm_oracle(ctx, oracle, sig, specs, int(rng.integers(2**31 - 1)), added_at)
     return ({**cols, "oracle": oracle, "oracle_signature": sig, "oracle_confirmed": ok}, w + w2, c + c2,
@@ -144,7 +168,8 @@ def search(method: str, ctx: SeedContext, budget: int, seed: int, max_added: int
     one record per primary simulation. ``log_dir(index)`` may give a directory for its MCAP log.
     ``oracle``: ``default`` selects by :func:`feedback` (the decision oracle); a metric oracle
     (:data:`deft_gym.metrics.oracle.ORACLES`) selects by its severity, and children that do not
-    fail it join the population. ``count``: metric oracles whose findings are counted besides
+    fail it join the population; ``any`` selects by :func:`fitness`, and children with no finding
+    on any oracle join. ``count``: metric oracles whose findings are counted besides
     (:func:`oracle_columns`); selection does not see them."""
     if oracle not in ORACLES:
         raise ValueError(f"unknown oracle {oracle!r}; expected one of {ORACLES}")
@@ -176,13 +201,12 @@ def search(method: str, ctx: SeedContext, budget: int, seed: int, max_added: int
             run = run_scenario(ctx, child.specs, int(rng.integers(2**31 - 1)), log_dir(used) if log_dir else None)
             v = run.verdict
             m = run_metrics(ctx, run.trace, v.collision_detail)
-            child.fitness = feedback(v) if oracle == "default" else severity(m, oracle)
+            child.fitness = fitness(ctx, v, m, oracle)
             yield _run_record(ctx, run, used, t_mut, c_mut, rng,
                               {"mutation": child.history[-1] if child.history else "", "specs": child.specs},
                               m, oracle, count)
             used += 1
-            passed = not v.nods if oracle == "default" else not violated(m, oracle)
-            if v.valid and v.outcome == "completed" and passed:
+            if v.valid and v.outcome == "completed" and passes(ctx, v, m, oracle):
                 offspring.append(child)
         pool = population + offspring
         if method == "decictor":

@@ -894,6 +894,7 @@ def test_kill_9_of_training_then_resume_from_the_last_checkpoint(tmp_path):
     ("algo_kwargs: {learnin_rate: 0.001}", "algo_kwargs.learnin_rate"),
     ("algo_kwargs: {gamma: .nan}", "algo_kwargs.gamma"),
     ("env: {scenarios: [no_such_scenario]}", "env.scenarios.0"),
+    ("init_model: no/such/model.zip", "init_model"),
 ])
 def test_bad_training_settings_are_one_line_before_any_env_starts(body, field, tmp_path, capsys):
     """Hyper-parameters SB3 would reject (or silently accept) and scenario names that do not

@@ -34,9 +34,12 @@ the ego (not the ego's fault), and shaping by 1 - IoU.
 
 **Oracle** (``oracle:``, default ``default``): a driving-quality metric oracle instead
 (:mod:`deft_gym.metrics.oracle`): the end bonus goes to its finding on a valid mutation, novelty
-by its signature, and a run without one earns ``iou_shaping`` x its severity.
+by its signature, and a run without one earns ``iou_shaping`` x its severity. ``any``: the bonus
+for the decision oracle's failure and for each counted metric oracle's finding, each with its own
+novelty (the evaluation's "any oracle"); a run with none is rewarded as under ``default``.
 
-**info** (final step): ``metrics`` (docs/metrics.md), ``oracle_signature``, ``collision``, ``ego_at_fault``, ``nods``, ``failure``, ``iou``, ``f_p``, ``f_b``,
+**info** (final step): ``metrics`` (docs/metrics.md), ``oracle_signature``, ``found_by_oracle`` (every
+counted metric oracle's finding, not re-checked), ``collision``, ``ego_at_fault``, ``nods``, ``failure``, ``iou``, ``f_p``, ``f_b``,
 ``valid``, ``invasive``, ``outcome``, ``signature``, ``scenario``, ``jitter_seed``, ``added``,
 ``env_steps`` (the env's steps so far, all episodes), and the log / extraction results when logging.
 """
@@ -58,7 +61,14 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from deft_gym.config import load_mapping, validate
 from deft_gym.envs.sink import EpisodeSink
-from deft_gym.metrics.oracle import ORACLES, run_metrics, seed_finding, severity
+from deft_gym.metrics.oracle import (
+    COUNTED_ORACLES,
+    ORACLES,
+    findings_by_oracle,
+    run_metrics,
+    seed_finding,
+    severity,
+)
 from deft_gym.scenarios.scenario import with_participants
 from deft_gym.search.context import SEED_SCENARIOS, SeedContext, ads_config, robust, seed_context
 from deft_gym.search.episode import replay_record, run_scenario, write_optimal_path
@@ -115,9 +125,10 @@ class AdversaryConfig(BaseModel):
                             "planner under test")
     objective: Literal["collision", "nods", "both"] = "both"
     oracle: Literal[ORACLES] = Field("default", description="what the end-of-episode bonus rewards: default "  # type: ignore[valid-type]
-                                     "(the objective's failures: NoDS, at-fault collisions) or a driving-quality "
-                                     "metric oracle (deft_gym.metrics.oracle, docs/metrics.md): its finding on a "
-                                     "valid mutation, novelty by its signature; the shaping stays the objective's")
+                                     "(the objective's failures: NoDS, at-fault collisions), any (those and every "
+                                     "counted metric oracle's findings) or a driving-quality metric oracle "
+                                     "(deft_gym.metrics.oracle, docs/metrics.md): its finding on a valid mutation, "
+                                     "novelty by its signature; the shaping stays the objective's")
     variant_prob: float = Field(0.0, ge=0.0, le=1.0, description="share of episodes on a training variant")
     variant_seeds: int = Field(200, ge=1, description="training variants use seeds [0, variant_seeds)")
     feasible: FeasibleConfig = FeasibleConfig()
@@ -493,10 +504,13 @@ class AdversaryEnv(gym.Env):
         verdict = ctx.oracle.judge(trace, o.collision.as_dict() if o.collision else None)
         self.last_verdict = verdict
         metrics = self.last_metrics = run_metrics(ctx, trace, o.collision.as_dict() if o.collision else None)
+        found = findings_by_oracle(ctx, verdict.valid, metrics, COUNTED_ORACLES)  # every metric's, unchecked
         rw = cfg.reward
         r = 0.0
         if not verdict.valid:
             r += rw.invalid
+        elif cfg.oracle == "any":  # the union: each decision and metric finding, novelty by signature
+            r += self._union_bonus(verdict, found, o.outcome)
         elif cfg.oracle != "default":  # a metric oracle: its finding, novelty by its signature
             sig = seed_finding(ctx, verdict.valid, metrics, cfg.oracle)
             if sig is not None:
@@ -513,6 +527,7 @@ class AdversaryEnv(gym.Env):
                 r += rw.iou_shaping * (1.0 - verdict.iou)
         info = {**verdict.as_dict(), "metrics": metrics.as_dict(),
                 "oracle_signature": seed_finding(ctx, verdict.valid, metrics, cfg.oracle),
+                "found_by_oracle": found,
                 "scenario": ctx.name, "jitter_seed": self.jitter_seed,
                 "pid": os.getpid(), "process_cpu": round(time.process_time() - self._cpu0, 3),
                 "added": len(self.layout.placed), "sim_time": round(o.sim_time, 3),
@@ -528,6 +543,26 @@ class AdversaryEnv(gym.Env):
             info["log"] = done.get("dir")
             info["extraction"] = done.get("extraction")
         return r, info
+
+    def _union_bonus(self, verdict: Any, found: dict[str, str], outcome: str) -> float:
+        """The end reward of ``oracle: any``: :meth:`_failure_bonus` for the decision oracle's
+        failure (the objective's) and for each metric finding in ``found`` (``{oracle:
+        signature}``; an at-fault collision once), each with its own novelty; without any, the
+        task-failure penalty or the objective's IoU shaping, as ``default``."""
+        cfg, rw = self.cfg, self.cfg.reward
+        decision = (verdict.failure == "collision" and cfg.objective in ("collision", "both")) or \
+            (verdict.nods and cfg.objective in ("nods", "both"))
+        if decision and verdict.failure == "collision":
+            found = {o: sig for o, sig in found.items() if o != "collision"}
+        r = (self._failure_bonus(verdict) if decision else 0.0) + sum(self._failure_bonus(verdict, sig)
+                                                                        for sig in found.values())
+        if decision or found:
+            return r
+        if outcome in ("timeout", "stuck") or (verdict.collision and not verdict.ego_at_fault):
+            return rw.task_failure
+        if outcome == "completed" and cfg.objective in ("nods", "both"):
+            return rw.iou_shaping * (1.0 - verdict.iou)
+        return 0.0
 
     def _failure_bonus(self, verdict: Any, sig: str | None = None) -> float:
         """``failure_bonus`` for a failure, less for a trigger inside the ego's lane and for a

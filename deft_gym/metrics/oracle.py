@@ -26,12 +26,15 @@ from deft_gym.metrics.episode import (
 from deft_gym.search.context import SeedContext
 from deft_gym.search.trace import Trace
 
-#: the oracles a config may name (``default``: the decision oracle, no metric)
-ORACLES = ("default", "collision", "ttc", "drivable_area", "direction", "red_light", "progress", "comfort",
+#: the oracles a config may name (``default``: the decision oracle, no metric; ``any``: the
+#: decision oracle and every counted metric oracle together)
+ORACLES = ("default", "any", "collision", "ttc", "drivable_area", "direction", "red_light", "progress", "comfort",
            "speed_limit", "standstill", "score")
 #: what ``count_oracles: all`` counts beside the aimed oracle: every metric oracle but ``score``
 #: (a weighted sum of the others, so it would count their findings twice)
-COUNTED_ORACLES = tuple(o for o in ORACLES if o not in ("default", "score"))
+COUNTED_ORACLES = tuple(o for o in ORACLES if o not in ("default", "any", "score"))
+#: the oracles whose aimed findings are the decision oracle's (NoDS, at-fault collisions)
+DECISION_ORACLES = ("default", "any")
 #: oracles whose signature names no participant or light (the first comfort signal out of bounds,
 #: the violated metrics): a seed whose reference run fails one has no finding on it at all
 UNSPECIFIC = ("comfort", "score")
@@ -126,7 +129,7 @@ def oracle_finding(valid: bool, m: EpisodeMetrics, oracle: str, reference: str |
     without any mutation is no finding: the seed's parked car that every run closes on) - or None.
     On an :data:`UNSPECIFIC` oracle any reference violation rules findings out: a mutation that
     only changes which comfort signal breaks first finds nothing the seed does not."""
-    if oracle == "default" or not valid:
+    if oracle in DECISION_ORACLES or not valid:
         return None
     sig = signature(m, oracle)
     if reference is not None and oracle in UNSPECIFIC:
@@ -134,24 +137,37 @@ def oracle_finding(valid: bool, m: EpisodeMetrics, oracle: str, reference: str |
     return None if sig is not None and sig == reference else sig
 
 
-_REFERENCE: dict[tuple[int, str], tuple[Any, str | None]] = {}
+_REFERENCE: dict[int, tuple[Any, EpisodeMetrics]] = {}
+
+
+def reference_metrics(ctx: SeedContext) -> EpisodeMetrics:
+    """The metrics of the seed context's reference run (memoised per context)."""
+    hit = _REFERENCE.get(id(ctx))
+    if hit is not None and hit[0] is ctx:
+        return hit[1]
+    if len(_REFERENCE) > 512:
+        _REFERENCE.clear()
+    m = run_metrics(ctx, ctx.ref, None)
+    _REFERENCE[id(ctx)] = (ctx, m)
+    return m
 
 
 def reference_signature(ctx: SeedContext, oracle: str) -> str | None:
     """The seed context's reference run's own signature on ``oracle`` (None: it passes)."""
-    hit = _REFERENCE.get((id(ctx), oracle))
-    if hit is not None and hit[0] is ctx:
-        return hit[1]
-    if len(_REFERENCE) > 4096:
-        _REFERENCE.clear()
-    sig = signature(run_metrics(ctx, ctx.ref, None), oracle) if oracle != "default" else None
-    _REFERENCE[(id(ctx), oracle)] = (ctx, sig)
-    return sig
+    return None if oracle in DECISION_ORACLES else signature(reference_metrics(ctx), oracle)
+
+
+def severity_growth(ctx: SeedContext, m: EpisodeMetrics) -> float:
+    """The largest growth of a counted metric oracle's :func:`severity` in run ``m`` over the
+    seed's reference run, in [0, 1]: what the GA's fitness adds to the decision oracle's for
+    ``any`` (a metric the seed already fails badly gives no pressure)."""
+    ref = reference_metrics(ctx)
+    return max(0.0, *(severity(m, o) - severity(ref, o) for o in COUNTED_ORACLES))
 
 
 def seed_finding(ctx: SeedContext, valid: bool, m: EpisodeMetrics, oracle: str) -> str | None:
     """:func:`oracle_finding` of a run of ``ctx``'s scenario, its reference run's signature left out."""
-    if oracle == "default" or not valid:
+    if oracle in DECISION_ORACLES or not valid:
         return None
     return oracle_finding(valid, m, oracle, reference_signature(ctx, oracle))
 

@@ -137,3 +137,62 @@ def test_counted_oracles_leave_the_search_as_it_was() -> None:
         assert b["sims"] == a["sims"] + int(bool(b["found_by_oracle"]))
     # the near miss of test_the_ga_finds_a_confirmed_ttc_finding, counted here without aiming at it
     assert counted[0]["found_by_oracle"]["ttc"] == "metric:ttc:seed:parked" and counted[0]["confirmed_by_oracle"]["ttc"]
+
+
+def test_the_union_oracle_rewards_each_finding_with_its_own_novelty() -> None:
+    """``oracle: any``: the end bonus is the decision oracle's failure bonus plus one for each counted
+    metric oracle's finding, each divided by sqrt(1 + n) for the n times this env was rewarded for
+    that signature before; a run with none is rewarded as under ``default``."""
+    import math
+    from types import SimpleNamespace
+
+    from deft_gym.envs.adversary import AdversaryEnv
+    from deft_gym.metrics.episode import EpisodeMetrics
+    from deft_gym.metrics.oracle import COUNTED_ORACLES, findings_by_oracle
+
+    env = AdversaryEnv("handwritten/parked_street", oracle="any")
+    env.reset(seed=0, options={"jitter_seed": 0})
+    bonus = env.cfg.reward.failure_bonus
+    passed = SimpleNamespace(valid=True, failure=None, nods=False, collision=False, ego_at_fault=False,
+                             iou=0.75, finding=None, signature="")
+    near_miss = EpisodeMetrics(duration=20.0, min_ttc=0.8, ttc_below_s=0.5, ttc_trigger="cone", progress_ratio=0.5)
+    found = findings_by_oracle(env.ctx, True, near_miss, COUNTED_ORACLES)
+    assert found == {"ttc": "metric:ttc:cone", "progress": "metric:progress:progress"}
+    assert env._union_bonus(passed, found, "timeout") == pytest.approx(2 * bonus)
+    assert env._union_bonus(passed, found, "timeout") == pytest.approx(2 * bonus / math.sqrt(2))
+    nods = SimpleNamespace(**{**vars(passed), "nods": True, "signature": "nods:cone:edge"})
+    assert env._union_bonus(nods, {}, "completed") == pytest.approx(bonus)
+    crash = SimpleNamespace(**{**vars(passed), "failure": "collision", "signature": "collision:cone"})
+    assert env._union_bonus(crash, {"collision": "metric:collision:rear_end"}, "collision") == pytest.approx(bonus)
+    assert env._union_bonus(passed, {}, "completed") == pytest.approx(env.cfg.reward.iou_shaping * 0.25)
+    assert env._union_bonus(passed, {}, "stuck") == env.cfg.reward.task_failure
+    env.close()
+
+
+def test_the_ga_aims_at_every_oracle_with_any() -> None:
+    """Decictor-GA with ``oracle: any`` keeps the decision oracle's columns, selects by its feedback
+    plus the largest growth of a metric's severity over the seed's reference run, and counts the
+    metric findings (here the near miss of test_the_ga_finds_a_confirmed_ttc_finding)."""
+    from agents.search import feedback, fitness, search
+    from deft_gym.metrics.oracle import (
+        COUNTED_ORACLES,
+        reference_metrics,
+        run_metrics,
+        severity,
+        severity_growth,
+    )
+    from deft_gym.search.context import seed_context
+    from deft_gym.search.episode import run_scenario
+
+    ctx = seed_context("handwritten/parked_street")
+    recs = list(search("decictor", ctx, 1, seed=0, oracle="any", count=COUNTED_ORACLES))
+    assert recs[0]["oracle"] == "any" and "oracle_signature" not in recs[0]
+    assert recs[0]["found_by_oracle"]["ttc"] == "metric:ttc:seed:parked"
+    ref = reference_metrics(ctx)
+    assert severity_growth(ctx, ref) == 0.0  # the seed itself: nothing grew
+    eq = recs[0]["scenario_equivalent"]
+    run = run_scenario(ctx, eq["scenario"]["participants"][len(ctx.scenario.participants):], eq["jitter_seed"])
+    m = run_metrics(ctx, run.trace, run.verdict.collision_detail)
+    assert severity(m, "ttc") > severity(ref, "ttc")
+    assert fitness(ctx, run.verdict, m, "any") == pytest.approx(feedback(run.verdict) + severity_growth(ctx, m))
+    assert severity_growth(ctx, m) > 0.0
