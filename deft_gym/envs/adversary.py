@@ -38,7 +38,7 @@ by its signature, and a run without one earns ``iou_shaping`` x its severity. ``
 for the decision oracle's failure and for each counted metric oracle's finding, each with its own
 novelty (the evaluation's "any oracle"); a run with none is rewarded as under ``default``.
 
-**info** (final step): ``metrics`` (docs/metrics.md), ``oracle_signature``, ``found_by_oracle`` (every
+**info** (final step): ``metrics`` (docs/metrics.md), ``oracle``, ``oracle_signature``, ``found_by_oracle`` (every
 counted metric oracle's finding, not re-checked), ``collision``, ``ego_at_fault``, ``nods``, ``failure``, ``iou``, ``f_p``, ``f_b``,
 ``valid``, ``invasive``, ``outcome``, ``signature``, ``scenario``, ``jitter_seed``, ``added``,
 ``env_steps`` (the env's steps so far, all episodes), and the log / extraction results when logging.
@@ -527,7 +527,7 @@ class AdversaryEnv(gym.Env):
                 r += rw.iou_shaping * (1.0 - verdict.iou)
         info = {**verdict.as_dict(), "metrics": metrics.as_dict(),
                 "oracle_signature": seed_finding(ctx, verdict.valid, metrics, cfg.oracle),
-                "found_by_oracle": found,
+                "oracle": cfg.oracle, "found_by_oracle": found,
                 "scenario": ctx.name, "jitter_seed": self.jitter_seed,
                 "pid": os.getpid(), "process_cpu": round(time.process_time() - self._cpu0, 3),
                 "added": len(self.layout.placed), "sim_time": round(o.sim_time, 3),

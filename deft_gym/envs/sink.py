@@ -179,12 +179,20 @@ class EpisodeSink:
 
 
 def _finding(record: dict[str, Any]) -> bool:
-    """A failure, or a finding on the env's metric oracle (``oracle_signature``, docs/metrics.md)."""
-    return bool(record.get("failure") or record.get("oracle_signature"))
+    """A failure, a finding on the env's metric oracle (``oracle_signature``, docs/metrics.md),
+    or under ``oracle: any`` any counted metric oracle's finding (``found_by_oracle``)."""
+    return bool(record.get("failure") or record.get("oracle_signature") or _union_findings(record))
+
+
+def _union_findings(record: dict[str, Any]) -> str:
+    """Under ``oracle: any``, the episode's metric signatures joined (``""``: none or another oracle)."""
+    found = record.get("found_by_oracle") if record.get("oracle") == "any" else None
+    return "+".join(sorted(found.values())) if found else ""
 
 
 def _failure_key(record: dict[str, Any]) -> tuple[str, str]:
-    return str(record.get("scenario")), str(record.get("oracle_signature") or record.get("signature"))
+    sig = record.get("oracle_signature") or (record.get("signature") if record.get("failure") else None)
+    return str(record.get("scenario")), str(sig or _union_findings(record) or record.get("signature"))
 
 
 def extract_log(episode_dir: Path, **kwargs: Any) -> dict[str, Any]:

@@ -102,6 +102,14 @@ def test_the_sink_keeps_a_metric_finding_once(tmp_path) -> None:
     assert done["kept"] and (d / "episode.json").exists()
     assert not sink.keeps(rec)  # distinct: the same finding again
     assert not sink.keeps({**rec, "oracle_signature": None})
+    # oracle any: every counted metric oracle's finding is kept, once per (scenario, signatures)
+    union = {"scenario": "left_turn", "failure": None, "signature": "", "oracle": "any", "oracle_signature": None,
+             "found_by_oracle": {"comfort": "metric:comfort:lon_accel", "ttc": "metric:ttc:cone"}}
+    assert sink.keeps(union)
+    sink.finish(sink.episode_dir("left_turn"), union, {})
+    assert not sink.keeps(union)
+    assert sink.keeps({**union, "found_by_oracle": {"ttc": "metric:ttc:parked"}})
+    assert not sink.keeps({**union, "oracle": "default"})  # counted, not aimed at: not kept
 
 
 def test_a_comfort_finding_needs_a_reference_that_is_comfortable() -> None:
