@@ -322,14 +322,16 @@ def quality_markdown(summary: dict[str, Any], group: str = "all") -> str:
 def oracles_markdown(summary: dict[str, Any], group: str = "all") -> str:
     """Findings per counted oracle (``count_oracles``) per method and placement on ``group``:
     distinct (scenario, signature) pairs of confirmed findings (mean ± sd over repeats), the
-    decision oracle's distinct failures beside them, every oracle together, and the scenarios
+    decision oracle's distinct failures beside them, every oracle together, the decision oracle
+    with the oracles whose findings were judged genuine (:data:`agents.stats.SAFETY_ORACLES`), and the scenarios
     where the method counted one in some repeat; empty without counted oracles."""
     counted = summary.get("config", {}).get("count_oracles") or []
     names = ((summary.get(group) or []) if group != "all"
              else [s for g in ("seeds", "held_out", "handwritten") for s in summary.get(g, [])])
     if not counted or not names:
         return ""
-    cols = ["method", "placement", "decision oracle"] + [f"`{o}`" for o in counted] + ["any oracle", "scenarios"]
+    cols = ["method", "placement", "decision oracle"] + [f"`{o}`" for o in counted] + [
+        "any oracle", "decision + `ttc` + `drivable_area`", "scenarios"]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for m, p in _rows(summary):
         c = summary["groups"].get(m, {}).get(p, {}).get(group)
@@ -337,7 +339,8 @@ def oracles_markdown(summary: dict[str, Any], group: str = "all") -> str:
             continue
         found = sum(_found_in(summary, m, p, s, "any_distinct") for s in names)
         row = [_label(m), p, fmt(c["distinct"])] + [fmt(c.get(f"found_{o}")) for o in counted]
-        lines.append("| " + " | ".join([*row, fmt(c["any_distinct"]), f"{found} of {len(names)}"]) + " |")
+        lines.append("| " + " | ".join([*row, fmt(c["any_distinct"]), fmt(c.get("safety_distinct")),
+                                        f"{found} of {len(names)}"]) + " |")
     return "\n".join(lines) + "\n"
 
 

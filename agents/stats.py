@@ -51,7 +51,10 @@ MEASURES = MEASURES + tuple(f"viol_{v}" for v in METRIC_VIOLATIONS)
 # the decision oracle's counted failures included
 FOUND_ORACLES = ("collision", "ttc", "drivable_area", "direction", "red_light", "progress", "comfort",
                  "speed_limit", "standstill")
-MEASURES = (*MEASURES, "any_distinct", *tuple(f"found_{o}" for o in FOUND_ORACLES))
+#: the metric oracles whose findings were judged genuine when drawn (near misses, leaving the road;
+#: docs/search.md v13-v14): safety_distinct is the decision oracle's distinct failures and theirs
+SAFETY_ORACLES = ("ttc", "drivable_area")
+MEASURES = (*MEASURES, "any_distinct", "safety_distinct", *tuple(f"found_{o}" for o in FOUND_ORACLES))
 # a root cause whose trigger stood inside the ego's own lane (< 0.75 m from the optimal path): the
 # headline leaves it out (docs/search.md, "What counts"), the in_lane column counts it too
 IN_LANE = "in_lane"
@@ -238,6 +241,7 @@ class Tally:
                 "oracle_findings": float(c["oracle_findings"]), "oracle_root_causes": float(len(self.oracle_causes)),
                 # a counted collision is the decision oracle's already (the same fault analysis)
                 "any_distinct": float(len(self.signatures.union(*(v for o, v in self.found.items() if o != "collision")))),
+                "safety_distinct": float(len(self.signatures.union(*(self.found.get(o, set()) for o in SAFETY_ORACLES)))),
                 **{f"found_{o}": float(len(self.found.get(o, ()))) for o in FOUND_ORACLES},
                 **{f"viol_{v}": c[f"viol_{v}"] / len(self.scores) if self.scores else None for v in METRIC_VIOLATIONS}}
 

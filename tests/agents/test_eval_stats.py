@@ -517,13 +517,14 @@ def test_counted_oracles_per_oracle_any_oracle_and_coverage(tmp_path):
     assert g["found_ttc"]["values"] == [1, 1] and g["found_standstill"]["values"] == [0, 1]
     assert g["found_collision"]["values"] == [1, 0] and g["found_comfort"]["values"] == [0, 0]
     assert g["any_distinct"]["values"] == [2, 3]
+    assert g["safety_distinct"]["values"] == [2, 2]  # the decision oracle's and TTC's; no standstill
     assert eval_report.coverage(summary, "rl") == (1, 3)
     assert eval_report.coverage(summary, "rl", measure="any_distinct") == (2, 3)
     t = eval_report.planner_targets(summary)
     assert t["coverage_any"] == {"found": 2, "scenarios": 3, "share": 2 / 3, "met": False}
     table = eval_report.write_report(recs, summary, tmp_path)
     assert "## Findings per oracle" in table
-    assert "| RL | closest | 1.0 ± 0.0 | 0.5 ± 0.7 | 1.0 ± 0.0 | 0.0 ± 0.0 | 0.5 ± 0.7 | 2.5 ± 0.7 | 2 of 3 |" in table
+    assert "| RL | closest | 1.0 ± 0.0 | 0.5 ± 0.7 | 1.0 ± 0.0 | 0.0 ± 0.0 | 0.5 ± 0.7 | 2.5 ± 0.7 | 2.0 ± 0.0 | 2 of 3 |" in table
     # without counted oracles the section is absent and the coverage by any oracle is not claimed
     plain = eval_report.build_summary(recs, {**cfg, "count_oracles": []}, hand, [])
     assert "Findings per oracle" not in eval_report.table_markdown(plain)
