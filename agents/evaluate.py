@@ -205,8 +205,6 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
 
         if cfg.oracle not in ORACLES:
             raise ConfigError(f"{where('oracle')}: unknown oracle {cfg.oracle!r}; expected one of {list(ORACLES)}")
-    if cfg.oracle == "any" and not cfg.count_oracles:  # the union is counted oracle by oracle
-        cfg.count_oracles = ["all"]
     if cfg.count_oracles:
         from deft_gym.metrics.oracle import COUNTED_ORACLES, DECISION_ORACLES, ORACLES
 
@@ -530,7 +528,8 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
         env["ads"] = cfg.ads
     if cfg.oracle is not None:  # what counts: the evaluation's, else the model's training objective
         env["oracle"] = cfg.oracle
-    if env.get("oracle") == "any" and not cfg.count_oracles:  # the union is counted oracle by oracle
+    if env.get("oracle") == "any" and not cfg.count_oracles:  # the union (the evaluation's or the
+        # model's training oracle) is counted oracle by oracle
         from deft_gym.metrics.oracle import COUNTED_ORACLES
 
         cfg.count_oracles = list(COUNTED_ORACLES)

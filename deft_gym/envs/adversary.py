@@ -505,6 +505,7 @@ class AdversaryEnv(gym.Env):
         self.last_verdict = verdict
         metrics = self.last_metrics = run_metrics(ctx, trace, o.collision.as_dict() if o.collision else None)
         found = findings_by_oracle(ctx, verdict.valid, metrics, COUNTED_ORACLES)  # every metric's, unchecked
+        aimed = seed_finding(ctx, verdict.valid, metrics, cfg.oracle)  # the aimed metric oracle's (None: default, any)
         rw = cfg.reward
         r = 0.0
         if not verdict.valid:
@@ -512,21 +513,19 @@ class AdversaryEnv(gym.Env):
         elif cfg.oracle == "any":  # the union: each decision and metric finding, novelty by signature
             r += self._union_bonus(verdict, found, o.outcome)
         elif cfg.oracle != "default":  # a metric oracle: its finding, novelty by its signature
-            sig = seed_finding(ctx, verdict.valid, metrics, cfg.oracle)
-            if sig is not None:
-                r += self._failure_bonus(verdict, sig)
+            if aimed is not None:
+                r += self._failure_bonus(verdict, aimed)
             else:
                 r += rw.iou_shaping * severity(metrics, cfg.oracle)
         else:
-            if (verdict.failure == "collision" and cfg.objective in ("collision", "both")) or \
-                    (verdict.nods and cfg.objective in ("nods", "both")):
+            if self._objective_failure(verdict):
                 r += self._failure_bonus(verdict)
             if o.outcome in ("timeout", "stuck") or (verdict.collision and not verdict.ego_at_fault):
                 r += rw.task_failure  # no failure of the ADS, and the scenario is spent
             if o.outcome == "completed" and not verdict.nods and cfg.objective in ("nods", "both"):
                 r += rw.iou_shaping * (1.0 - verdict.iou)
         info = {**verdict.as_dict(), "metrics": metrics.as_dict(),
-                "oracle_signature": seed_finding(ctx, verdict.valid, metrics, cfg.oracle),
+                "oracle_signature": aimed,
                 "oracle": cfg.oracle, "found_by_oracle": found,
                 "scenario": ctx.name, "jitter_seed": self.jitter_seed,
                 "pid": os.getpid(), "process_cpu": round(time.process_time() - self._cpu0, 3),
@@ -550,8 +549,7 @@ class AdversaryEnv(gym.Env):
         signature}``; an at-fault collision once), each with its own novelty; without any, the
         task-failure penalty or the objective's IoU shaping, as ``default``."""
         cfg, rw = self.cfg, self.cfg.reward
-        decision = (verdict.failure == "collision" and cfg.objective in ("collision", "both")) or \
-            (verdict.nods and cfg.objective in ("nods", "both"))
+        decision = self._objective_failure(verdict)
         if decision and verdict.failure == "collision":
             found = {o: sig for o, sig in found.items() if o != "collision"}
         r = (self._failure_bonus(verdict) if decision else 0.0) + sum(self._failure_bonus(verdict, sig)
@@ -563,6 +561,13 @@ class AdversaryEnv(gym.Env):
         if outcome == "completed" and cfg.objective in ("nods", "both"):
             return rw.iou_shaping * (1.0 - verdict.iou)
         return 0.0
+
+    def _objective_failure(self, verdict: Any) -> bool:
+        """Whether the run is a failure the ``objective`` rewards: an at-fault collision
+        (``collision``, ``both``) or a NoDS (``nods``, ``both``)."""
+        objective = self.cfg.objective
+        return bool((verdict.failure == "collision" and objective in ("collision", "both"))
+                    or (verdict.nods and objective in ("nods", "both")))
 
     def _failure_bonus(self, verdict: Any, sig: str | None = None) -> float:
         """``failure_bonus`` for a failure, less for a trigger inside the ego's lane and for a
