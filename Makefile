@@ -32,7 +32,8 @@ check-python:
 # rebuilds them (a stale kernel is not loaded: deft_gym.files.checked_kernel)
 KERNEL_SOURCES := deft_gym/planner/_lattice_c.c deft_gym/planner/lattice.py deft_gym/modules/_control_c.c \
                   deft_gym/modules/control.py deft_gym/record/_snapshot_c.c deft_gym/record/worker.py \
-                  deft_gym/record/_tap_c.c deft_gym/record/recorder.py
+                  deft_gym/record/_tap_c.c deft_gym/record/recorder.py deft_gym/record/_format_c.c \
+                  deft_gym/record/textformat.py
 
 $(STAMP): pyproject.toml setup.py $(KERNEL_SOURCES) | check-python
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)

@@ -5,8 +5,10 @@ predicted obstacles (and their relevance test) and its longitudinal profiles in 
 ``deft_gym.modules._control_c`` is the control module's conversion of a planned trajectory and
 its nearest-point search; ``deft_gym.record._snapshot_c`` is the recorder's payload snapshot (pickle
 is used without it); ``deft_gym.record._tap_c`` is the recorder's bus tap (JSON-encoding and framing
-each message as an MCAP record). All are bit-identical to the Python and numpy versions (which are
-used when an extension is missing: ``optional=True`` turns a failed build into a warning). IEEE
+each message as an MCAP record); ``deft_gym.record._format_c`` is ``template % args`` for the
+Foxglove scene's text (exact fixed-point numbers; Python's ``%`` formats what it does not take).
+All are bit-identical to the Python and numpy versions (which are used when an extension is
+missing: ``optional=True`` turns a failed build into a warning). IEEE
 semantics are kept: no fast-math, no FMA contraction. Each records the digests of its C source and
 of the Python file it stands in for (``BUILT_FROM``): a kernel older than an edit of either is not
 loaded (a warning says to rebuild: ``pip install -e .`` or ``make venv``).
@@ -54,5 +56,6 @@ setup(
         kernel("deft_gym.modules._control_c", "deft_gym/modules/_control_c.c", "deft_gym/modules/control.py"),
         kernel("deft_gym.record._snapshot_c", "deft_gym/record/_snapshot_c.c", "deft_gym/record/worker.py"),
         kernel("deft_gym.record._tap_c", "deft_gym/record/_tap_c.c", "deft_gym/record/recorder.py"),
+        kernel("deft_gym.record._format_c", "deft_gym/record/_format_c.c", "deft_gym/record/textformat.py"),
     ]
 )

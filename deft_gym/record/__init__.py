@@ -3,6 +3,8 @@
 - :mod:`.recorder` - :class:`~.recorder.McapRecorder` (in-process or in a recorder process), the
   truth file, the recorder mode of pool workers;
 - :mod:`.worker` - the recorder process and the batch framing it reads;
+- :mod:`.scene` - the Foxglove scene topics; :mod:`.textformat` - their JSON text's
+  ``template % args``, compiled in ``_format_c`` (Python's ``%`` without it);
 - ``_snapshot_c`` - optional compiled payload snapshots (pickle without it).
 
 Imports: :mod:`deft_gym.bus` (messages, codec), :mod:`deft_gym.config` and :mod:`deft_gym.files`.

@@ -25,11 +25,13 @@ import math
 import os
 from collections.abc import Callable
 from math import cos, isfinite, sin
+from operator import neg
 from typing import Any
 
 import numpy as np
 
 from deft_gym.bus.messages import NS_PER_S, SCENE_MAP_TOPIC, SCENE_TOPIC, TF_TOPIC, Message
+from deft_gym.record.textformat import format_bytes
 
 SCENE_HZ = 5.0
 MAP_EVERY_S = 10.0
@@ -222,10 +224,10 @@ def _vehicle_template(eid: str, kind: str, length: float, width: float) -> str:
     third of the cost; "" where the id or kind needs JSON escapes or the size is not finite."""
     if not (set(eid) <= _PLAIN_ID and set(kind) <= _PLAIN_ID and isfinite(length) and isfinite(width)):
         return ""
-    probe = vehicle_entity(1234567 * NS_PER_S + 7654321, eid if eid == "ego" else f"participant/{eid}", eid, kind,
-                           0.0, 0.0, 0.0, 0.0, length, width)
+    probe = vehicle_entity(_PROBE_NS, eid if eid == "ego" else f"participant/{eid}", eid, kind, 0.0, 0.0, 0.0, 0.0,
+                           length, width)
     # the fields of the probe, in order: time, position, orientation, label position, speed text
-    parts = probe.replace("%", "%%").split('"sec":1234567,"nsec":7654321', 1)
+    parts = probe.replace("%", "%%").split(_PROBE_TIME, 1)
     if len(parts) != 2:
         return ""
     head, rest = parts[0] + '"sec":%d,"nsec":%d', parts[1]
@@ -315,14 +317,35 @@ def expand(ns: int, seq: int, payload: Any, start_ns: int) -> list[tuple[str, in
     rows, xs, ys, stamp, collision = payload[COMPACT]
     t = start_ns + ns
     sec, nsec = t // NS_PER_S, t % NS_PER_S
+    texts = None if collision else _scene_texts(sec, nsec, rows, xs, ys, stamp)
+    if texts is None:  # a collision, a non-finite value, an id that needs escapes: entity by entity
+        ents = _entities(t, rows, xs, ys, stamp)
+        if collision:
+            ents.append(json.dumps(collision_entity(t, collision)))
+        # participants that left the world are deleted: every message replaces the whole scene
+        scene = (_SCENE_HEAD % (sec, nsec) + ",".join(ents) + "]}").encode()
+        _, _, x, y, h = rows[0][:5]
+        tf = (f'{{"timestamp":{{"sec":{sec},"nsec":{nsec}}},"parent_frame_id":"{FRAME}","child_frame_id":"ego",'
+              f'"translation":{_position_text(x, y, 0.0)},"rotation":{_orientation_text(h)}}}').encode()
+    else:
+        scene, tf = texts
+    return [(SCENE_TOPIC, ns, scene, seq), (TF_TOPIC, ns, tf, seq)]
+
+
+_SCENE_HEAD = '{"deletions":[{"timestamp":{"sec":%d,"nsec":%d},"type":1,"id":""}],"entities":['
+# the ego's transform of a finite pose, as expand writes it (sec, nsec, x, -y, sin and cos of -heading/2)
+_TF = ('{"timestamp":{"sec":%d,"nsec":%d},"parent_frame_id":"' + FRAME + '","child_frame_id":"ego",'
+       '"translation":{"x":%.3f,"y":%.3f,"z":0.000},"rotation":{"x":0,"y":0,"z":%.6f,"w":%.6f}}')
+
+
+def _entities(t: int, rows: list[tuple[Any, ...]], xs: list[Any], ys: list[Any], stamp: Any) -> list[str]:
+    """The entities' JSON texts of a compact state at log time ``t`` [ns], one by one: its
+    vehicles (:func:`vehicle_entity`, through their templates where they have one) and its plan
+    (:func:`plan_entity`)."""
+    sec, nsec = t // NS_PER_S, t % NS_PER_S
     ents = []
     for eid, kind, x, y, h, v, length, width in rows:
-        key = (eid, kind, length, width)
-        tmpl = _TEMPLATES.get(key)
-        if tmpl is None:
-            if len(_TEMPLATES) > 4096:  # ids of many generated scenarios: start afresh
-                _TEMPLATES.clear()
-            tmpl = _TEMPLATES[key] = _vehicle_template(eid, kind, length, width)
+        tmpl = _template_of(eid, kind, length, width)
         if tmpl and isfinite(x) and isfinite(y) and isfinite(h) and isfinite(v):
             half = -0.5 * h
             ents.append(tmpl % (sec, nsec, x, -y, sin(half), cos(half), x, -y, v))
@@ -332,15 +355,79 @@ def expand(ns: int, seq: int, payload: Any, start_ns: int) -> list[tuple[str, in
     plan = plan_entity(t, {"trajectory": {"x": xs, "y": ys}, "header": {"stamp": stamp}})
     if plan is not None:
         ents.append(plan)
-    if collision:
-        ents.append(json.dumps(collision_entity(t, collision)))
-    # participants that left the world are deleted: every message replaces the whole scene
-    when = f'{{"sec":{t // NS_PER_S},"nsec":{t % NS_PER_S}}}'
-    scene = f'{{"deletions":[{{"timestamp":{when},"type":1,"id":""}}],"entities":[' + ",".join(ents) + "]}"
-    _, _, x, y, h = rows[0][:5]
-    tf = (f'{{"timestamp":{when},"parent_frame_id":"{FRAME}","child_frame_id":"ego",'
-          f'"translation":{_position_text(x, y, 0.0)},"rotation":{_orientation_text(h)}}}')
-    return [(SCENE_TOPIC, ns, scene.encode(), seq), (TF_TOPIC, ns, tf.encode(), seq)]
+    return ents
+
+
+def _template_of(eid: str, kind: str, length: float, width: float) -> str:
+    """:func:`_vehicle_template`, made once per (id, kind, size)."""
+    key = (eid, kind, length, width)
+    tmpl = _TEMPLATES.get(key)
+    if tmpl is None:
+        if len(_TEMPLATES) > 4096:  # ids of many generated scenarios: start afresh
+            _TEMPLATES.clear()
+        tmpl = _TEMPLATES[key] = _vehicle_template(eid, kind, length, width)
+    return tmpl
+
+
+_SCENES: dict[tuple[Any, ...], str] = {}  # _scene_template's text per (vehicles, plan points)
+_PROBE_NS = 1234567 * NS_PER_S + 7654321
+_PROBE_TIME = '"sec":1234567,"nsec":7654321'
+
+
+def _scene_template(vehicles: tuple[tuple[str, str, float, float], ...], points: int) -> str:
+    """A scene without a collision as one ``%`` template (fields: sec and nsec of its deletion,
+    each vehicle's fields, with ``points`` >= 2 the plan line's: sec, nsec, x and -y of each
+    point, the stamp's JSON string): the vehicles' templates (``(id, kind, length, width)`` in
+    order) and the plan's; "" when a vehicle has none."""
+    parts = [_template_of(*key) for key in vehicles]
+    if not all(parts):
+        return ""
+    if points >= 2:
+        probe = plan_entity(_PROBE_NS, {"trajectory": {"x": [0.0] * points, "y": [0.0] * points},
+                                        "header": {"stamp": "S"}})
+        zeros = ",".join([_PLAN_POINT % (0.0, -0.0)] * points)
+        head, rest = probe.replace("%", "%%").split(_PROBE_TIME, 1)
+        line, meta = rest.split(zeros, 1)
+        before, after = meta.split('"value":"S"', 1)
+        parts.append(head + '"sec":%d,"nsec":%d' + line + ",".join([_PLAN_POINT] * points) + before + '"value":%s'
+                     + after)
+    return _SCENE_HEAD + ",".join(parts) + "]}"
+
+
+def _scene_texts(sec: int, nsec: int, rows: list[tuple[Any, ...]], xs: list[Any], ys: list[Any],
+                 stamp: Any) -> tuple[bytes, bytes] | None:
+    """The scene's and the ego transform's JSON as :func:`expand` writes them, for a state whose
+    values are all finite and whose ids need no escapes, with one format operation each
+    (:func:`~deft_gym.record.textformat.format_bytes`: the scene's ~90 numbers at a fraction of
+    ``%``'s cost); None for any other state."""
+    points = len(xs)
+    if points != len(ys) or points > PLAN_POINTS:
+        return None
+    key = (tuple([(r[0], r[1], r[6], r[7]) for r in rows]), points if points >= 2 else 0)
+    tmpl = _SCENES.get(key)
+    if tmpl is None:
+        if len(_SCENES) > 4096:
+            _SCENES.clear()
+        tmpl = _SCENES[key] = _scene_template(*key)
+    if not tmpl:
+        return None
+    args: list[Any] = [sec, nsec]
+    try:
+        for _, _, x, y, h, v, _, _ in rows:
+            half = -0.5 * h
+            args += (sec, nsec, x, -y, sin(half), cos(half), x, -y, v)
+        finite = sum(args[4::9]) + sum(args[5::9]) + sum(args[6::9]) + sum(args[10::9])
+        if key[1]:
+            plan = [0.0] * (2 * points)
+            plan[::2] = map(float, xs)  # as plan_entity reads them
+            plan[1::2] = map(neg, map(float, ys))
+            finite += sum(plan)
+            args += (sec, nsec, *plan, json.dumps(str(stamp)))
+        if not isfinite(finite):  # (or a sum beyond the floats: then entity by entity, as well)
+            return None
+    except (TypeError, ValueError, OverflowError):
+        return None
+    return format_bytes(tmpl, tuple(args)), format_bytes(_TF, tuple(args[2:8]))
 
 
 # -- the writer ---------------------------------------------------------------------------------------
@@ -382,9 +469,8 @@ class SceneWriter:
 
     def scene(self, ns: int, collision: dict[str, Any] | None = None) -> None:
         """Hand the world as it is now (sim time ``ns``), with ``collision`` if given, to the
-        log: a compact state of plain values (:data:`COMPACT`), which the log's writer - the
-        recorder process, where there is one - turns into the scene and frame-transform
-        messages (:func:`expand`), so the simulation pays for a few lists only."""
+        log: a compact state of plain values (:data:`COMPACT`), which the log's tap turns into
+        the scene and frame-transform messages (:func:`expand`: one format operation each)."""
         world = self.sim.world
         e = world.ego
         ex, ey = map(float, e.position.tolist())

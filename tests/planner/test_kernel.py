@@ -307,7 +307,8 @@ def test_near_matches_numpy() -> None:
 # -- a compiled kernel never overrides an edited source ---------------------------------------------
 KERNELS = [("deft_gym.planner._lattice_c", "deft_gym/planner/_lattice_c.c", "deft_gym/planner/lattice.py"),
            ("deft_gym.modules._control_c", "deft_gym/modules/_control_c.c", "deft_gym/modules/control.py"),
-           ("deft_gym.record._snapshot_c", "deft_gym/record/_snapshot_c.c", "deft_gym/record/worker.py")]
+           ("deft_gym.record._snapshot_c", "deft_gym/record/_snapshot_c.c", "deft_gym/record/worker.py"),
+           ("deft_gym.record._format_c", "deft_gym/record/_format_c.c", "deft_gym/record/textformat.py")]
 ROOT = Path(__file__).resolve().parents[2]
 
 
