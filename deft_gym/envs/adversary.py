@@ -520,10 +520,7 @@ class AdversaryEnv(gym.Env):
         else:
             if self._objective_failure(verdict):
                 r += self._failure_bonus(verdict)
-            if o.outcome in ("timeout", "stuck") or (verdict.collision and not verdict.ego_at_fault):
-                r += rw.task_failure  # no failure of the ADS, and the scenario is spent
-            if o.outcome == "completed" and not verdict.nods and cfg.objective in ("nods", "both"):
-                r += rw.iou_shaping * (1.0 - verdict.iou)
+            r += self._spent_or_shaping(verdict, o.outcome)
         info = {**verdict.as_dict(), "metrics": metrics.as_dict(),
                 "oracle_signature": aimed,
                 "oracle": cfg.oracle, "found_by_oracle": found,
@@ -548,19 +545,24 @@ class AdversaryEnv(gym.Env):
         failure (the objective's) and for each metric finding in ``found`` (``{oracle:
         signature}``; an at-fault collision once), each with its own novelty; without any, the
         task-failure penalty or the objective's IoU shaping, as ``default``."""
-        cfg, rw = self.cfg, self.cfg.reward
         decision = self._objective_failure(verdict)
         if decision and verdict.failure == "collision":
             found = {o: sig for o, sig in found.items() if o != "collision"}
         r = (self._failure_bonus(verdict) if decision else 0.0) + sum(self._failure_bonus(verdict, sig)
                                                                         for sig in found.values())
-        if decision or found:
-            return r
+        return r if decision or found else self._spent_or_shaping(verdict, outcome)
+
+    def _spent_or_shaping(self, verdict: Any, outcome: str) -> float:
+        """The end reward of the decision oracle besides its failure bonus: ``task_failure`` for a
+        run that failed without the ADS failing (timeout, standstill, a collision not the ego's
+        fault: the scenario is spent), the objective's IoU shaping for a completed run without NoDS."""
+        rw = self.cfg.reward
+        r = 0.0
         if outcome in ("timeout", "stuck") or (verdict.collision and not verdict.ego_at_fault):
-            return rw.task_failure
-        if outcome == "completed" and cfg.objective in ("nods", "both"):
-            return rw.iou_shaping * (1.0 - verdict.iou)
-        return 0.0
+            r += rw.task_failure
+        if outcome == "completed" and not verdict.nods and self.cfg.objective in ("nods", "both"):
+            r += rw.iou_shaping * (1.0 - verdict.iou)
+        return r
 
     def _objective_failure(self, verdict: Any) -> bool:
         """Whether the run is a failure the ``objective`` rewards: an at-fault collision
