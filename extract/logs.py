@@ -22,11 +22,14 @@ logs without CRCs (written unchunked by earlier versions) are read as before, un
 
 Payloads are kept as the raw JSON bytes of the log and decoded on demand
 (:meth:`TopicMessages.payload`); the raw bytes are what the frames file stores, so frames
-round-trip bit-exactly.
+round-trip bit-exactly. A message of a binary channel (ROS 1 bytes, :mod:`deft_gym.bus.ros1`) is
+kept as the JSON a JSON channel would have held for it: the same bytes, whichever encoding a log
+was written with.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import itertools
@@ -40,8 +43,9 @@ from typing import Any
 
 import numpy as np
 from mcap.data_stream import ReadDataStream
-from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Statistics
+from mcap.records import Channel, Chunk, ChunkIndex, Metadata, Schema, Statistics
 
+from deft_gym.bus import ros1
 from deft_gym.bus.codec import decode
 from deft_gym.bus.messages import NS_PER_S, VIEWER_TOPICS, log_start_ns
 from extract.mapping import get_field
@@ -230,6 +234,9 @@ class _Scan:
         self.wanted = wanted
         self.summary = summary
         self.chan_topic: dict[int, str] = dict(summary.channels) if summary else {}
+        self.schemas: dict[int, tuple[str, bytes]] = {}
+        # a binary channel's decoder (its messages are kept as the JSON a JSON channel holds)
+        self.chan_decode: dict[int, Any] = dict(summary.decoders) if summary else {}
         self.roles: dict[str, str] = dict(summary.roles) if summary else {}
         self.rows: dict[str, tuple[list[int], list[int], list[bytes]]] = {t: ([], [], []) for t in wanted}
         self.metadata: dict[str, dict[str, Any]] = {}
@@ -300,6 +307,8 @@ class _Scan:
                 self.top_messages += 1
             elif op == _CHANNEL:
                 self._channel(buf, body, stop)
+            elif op == _SCHEMA:
+                self._schema(buf, body, stop)
             elif op == _METADATA:
                 try:
                     md = Metadata.read(ReadDataStream(io.BytesIO(buf[body:stop])))
@@ -323,12 +332,26 @@ class _Scan:
             r = self.rows[topic]
             r[0].append(pub)
             r[1].append(seq)
-            r[2].append(buf[body + 22:stop])
+            data = buf[body + 22:stop]
+            if (binary := self.chan_decode.get(cid)) is not None:
+                with contextlib.suppress(ValueError):  # else kept as it is: it then reads as a bad payload
+                    data = ros1.json_bytes(binary, data)
+            r[2].append(data)
 
     def _channel(self, buf: bytes, body: int, stop: int) -> None:
         ch = Channel.read(ReadDataStream(io.BytesIO(buf[body:stop])))
         self.roles[ch.topic] = ch.metadata.get("role", "")
         self.chan_topic[ch.id] = ch.topic
+        self.chan_decode[ch.id] = _binary_decoder(ch, self.schemas)
+
+    def _schema(self, buf: bytes, body: int, stop: int) -> None:
+        """A schema record (the first of each id counts: the summary's repeat them). One that does
+        not parse is passed over: a binary channel without its schema reads as bad payloads."""
+        try:
+            sc = Schema.read(ReadDataStream(io.BytesIO(buf[body:stop])))
+        except Exception:  # any damage of the record's fields
+            return
+        self.schemas.setdefault(sc.id, (sc.encoding, sc.data))
 
     def _chunk(self, buf: bytes, body: int, stop: int, pos: int, quiet: bool = False) -> bool:
         """Verify one chunk and take its messages; whether it was intact. A damaged one is noted
@@ -374,6 +397,8 @@ class _Scan:
                 self._message(data, body, stop)
             elif op == _CHANNEL:
                 self._channel(data, body, stop)
+            elif op == _SCHEMA:
+                self._schema(data, body, stop)
             self.records += 1
             pos = stop
         return None
@@ -497,7 +522,7 @@ class _Scan:
         return end
 
 
-_MESSAGE, _CHANNEL, _METADATA, _CHUNK, _FOOTER, _DATA_END = 0x05, 0x04, 0x0C, 0x06, 0x02, 0x0F
+_MESSAGE, _CHANNEL, _METADATA, _CHUNK, _FOOTER, _DATA_END, _SCHEMA = 0x05, 0x04, 0x0C, 0x06, 0x02, 0x0F, 0x03
 _KNOWN = set(range(0x01, 0x11))  # the record types of MCAP v0 (header .. data end)
 
 
@@ -555,6 +580,7 @@ class _Summary:
     chunk_at: dict[int, ChunkIndex]
     statistics: Statistics | None
     data_end: int
+    decoders: dict[int, Any] = field(default_factory=dict)  # per channel: :func:`_binary_decoder`
 
 
 def read_summary(buf: bytes) -> tuple[_Summary | None, Damage | None]:
@@ -574,6 +600,8 @@ def read_summary(buf: bytes) -> tuple[_Summary | None, Damage | None]:
                             "by their own CRCs, message counts cannot be checked)")
     channels: dict[int, str] = {}
     roles: dict[str, str] = {}
+    schemas: dict[int, tuple[str, bytes]] = {}
+    decoders: dict[int, Any] = {}
     chunk_at: dict[int, ChunkIndex] = {}
     stats = None
     pos = start
@@ -581,17 +609,33 @@ def read_summary(buf: bytes) -> tuple[_Summary | None, Damage | None]:
         op = buf[pos]
         (length,) = struct.unpack_from("<Q", buf, pos + 1)
         body = ReadDataStream(io.BytesIO(buf[pos + 9:pos + 9 + length]))
-        if op == _CHANNEL:
+        if op == _SCHEMA:
+            sc = Schema.read(body)
+            schemas[sc.id] = (sc.encoding, sc.data)
+        elif op == _CHANNEL:
             ch = Channel.read(body)
             channels[ch.id] = ch.topic
             roles[ch.topic] = ch.metadata.get("role", "")
+            decoders[ch.id] = _binary_decoder(ch, schemas)
         elif op == 0x0B:
             stats = Statistics.read(body)
         elif op == 0x08:
             ci = ChunkIndex.read(body)
             chunk_at[ci.chunk_start_offset] = ci
         pos += 9 + length
-    return _Summary(channels, roles, chunk_at, stats, _data_end_offset(buf, start)), None
+    return _Summary(channels, roles, chunk_at, stats, _data_end_offset(buf, start), decoders), None
+
+
+def _binary_decoder(channel: Channel, schemas: dict[int, tuple[str, bytes]]) -> Any:
+    """The decoder of a channel whose messages are ROS 1 bytes (:mod:`deft_gym.bus.ros1`), None
+    for JSON (and for a binary channel without a schema it can read: its messages read as bad)."""
+    if channel.message_encoding != ros1.MESSAGE_ENCODING:
+        return None
+    encoding, data = schemas.get(channel.schema_id, ("", b""))
+    try:
+        return ros1.payload_decoder(channel.message_encoding, encoding, data)
+    except ValueError:
+        return None
 
 
 def _data_end_offset(buf: bytes, summary_start: int) -> int:

@@ -1391,7 +1391,9 @@ def test_render_of_an_infinite_heading_draws_and_of_a_damaged_log_says_so(lane_f
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
-    from deft_gym.bus.codec import decode, encode
+    from deft_gym.bus import ros1
+    from deft_gym.bus.codec import encode
+    from deft_gym.bus.ros1 import ChannelDecoders
     from deft_gym.cli import render
 
     d = tmp_path / "inf"
@@ -1405,10 +1407,13 @@ def test_render_of_an_infinite_heading_draws_and_of_a_damaged_log_says_so(lane_f
               for i, c in summ.channels.items()}
         for m in r.iter_metadata():
             w.add_metadata(m.name, m.metadata)
-        for _, c, m in r.iter_messages():
+        decoders = ChannelDecoders()
+        for s, c, m in r.iter_messages():
             data = m.data
             if c.topic == "/apollo/localization/pose" and m.sequence % 5 == 2:
-                data = encode({**decode(data), "heading": float("inf")})
+                p = {**decoders(s, c, data), "heading": float("inf")}  # the log's encoding, either
+                data = encode(p) if c.message_encoding == "json" else ros1.encode(
+                    ros1.parse_definition(s.data).program, p)
             w.add_message(ch[c.id], m.log_time, data, m.publish_time, m.sequence)
         w.finish()
     assert render.main([str(d / "episode.mcap"), "--quiet"]) == 0

@@ -41,7 +41,7 @@ LAYERS: list[tuple[str, ...]] = [
 ]
 # what extract may import of deft_gym: the log (bus messages and their codec), the planner
 # interface (and trajectory measures), configuration, file helpers and the execution layer
-EXTRACT_MAY_IMPORT = ("deft_gym.bus.codec", "deft_gym.bus.messages", "deft_gym.planner.base",
+EXTRACT_MAY_IMPORT = ("deft_gym.bus.codec", "deft_gym.bus.ros1", "deft_gym.bus.messages", "deft_gym.planner.base",
                       "deft_gym.planner.trajectory", "deft_gym.config", "deft_gym.files", "deft_gym.execution",
                       "deft_gym.cli.common")
 # the cross-cutting layer 0 imports nothing of deft_gym above it

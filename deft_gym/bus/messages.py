@@ -371,20 +371,22 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                 "items": {
                     "type": "object",
                     "description": "one obstacle and its predicted path",
-                    "properties": {
+                    "properties": {  # in the order the prediction module writes them (the binary layout's)
                         "id": _int("obstacle id (as in perception)"),
                         "type": _str("obstacle type", enum=OBSTACLE_TYPES),
                         **_box("obstacle"),
-                        "is_static": {"type": "boolean", "description": "predicted not to move (one point)"},
                         "t0": _num("s", "time of the first predicted point, absolute (the perception stamp)",
                                    "sim_time"),
                         "dt": _num("s", "time between predicted points", "relative"),
+                        "v": _num("m/s", "current speed (>= 0)"),
+                        "is_static": {"type": "boolean", "description": "predicted not to move (one point)"},
                         "x": _series("m", "predicted position at t0 + k dt, x (held at the last point after the "
                                      "end)", "vehicle_centre"),
                         "y": _series("m", "predicted position at t0 + k dt, y", "vehicle_centre"),
                         "heading": _series("rad", "predicted heading at t0 + k dt", "world"),
-                        "v": _num("m/s", "current speed (>= 0)"),
+                        "intent": _str("optional: the lane change predicted for it (left, right); absent for none"),
                     },
+                    "required": ["id", "type", "length", "width", "t0", "dt", "v", "is_static", "x", "y", "heading"],
                 },
             },
         },

@@ -42,15 +42,17 @@ from typing import Any
 
 from deft_gym.cli import common
 from deft_gym.files import write_atomic
+from deft_gym.record.recorder import LOG_ENCODING_ENV
 
 
 def stack_speed(scenario: Any, recorder: str | None, seed: int, breakdown: bool = False,
-                scene: bool = True) -> dict[str, Any]:
+                scene: bool = True, encoding: str | None = None) -> dict[str, Any]:
     """One full-stack run: sim seconds, wall and CPU seconds of this process and (optionally)
     per-node wall time. ``recorder``: None (no log), ``"process"`` (the recorder process),
     ``"inline"`` (the MCAP writer in this process) or ``"json"`` (no log: every payload only
-    JSON-encoded as the log encodes it - the floor of a JSON log); ``scene``: with the Foxglove
-    scene topics.
+    JSON-encoded - the floor of a JSON log); ``scene``: with the Foxglove scene topics;
+    ``encoding``: the log's message encoding (default: binary where a topic has a layout;
+    ``"json"``: every topic JSON, as logs were before).
     Wall time runs until the log is complete and in place, so a recorder process that lags is
     charged for it."""
     from deft_gym.bus.ads import load_ads_config
@@ -59,6 +61,9 @@ def stack_speed(scenario: Any, recorder: str | None, seed: int, breakdown: bool 
 
     ads = load_ads_config()
     saved = os.environ.get("DEFT_GYM_SCENE_HZ")
+    saved_encoding = os.environ.pop(LOG_ENCODING_ENV, None)
+    if encoding:
+        os.environ[LOG_ENCODING_ENV] = encoding
     if not scene:
         os.environ["DEFT_GYM_SCENE_HZ"] = "0"
     with tempfile.TemporaryDirectory() as tmp:
@@ -79,6 +84,9 @@ def stack_speed(scenario: Any, recorder: str | None, seed: int, breakdown: bool 
         os.environ.pop("DEFT_GYM_SCENE_HZ", None)
     else:
         os.environ["DEFT_GYM_SCENE_HZ"] = saved
+    os.environ.pop(LOG_ENCODING_ENV, None)
+    if saved_encoding is not None:
+        os.environ[LOG_ENCODING_ENV] = saved_encoding
     out = {"sim": r.sim_time, "wall": wall, "cpu": cpu, "speed": r.sim_time / wall, "messages": r.messages,
            "recorder_cpu": sim.recorder.process_seconds if sim.recorder is not None else 0.0}
     if sup is not None:
@@ -232,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
     # its own (also warming up caches), not one of the timed runs
     first = stack_speed(sc, "process", seed=0, breakdown=True)
     # interleaved (one of each per repeat), so drifting machine load biases no measurement
-    rec, inline, noscene, norec, hw, json_only = [], [], [], [], [], []
+    rec, inline, noscene, norec, hw, json_only, json_log = [], [], [], [], [], [], []
     with common.bar(args, args.repeats, "benchmark") as bar:
         for i in range(args.repeats):
             rec.append(stack_speed(sc, "process", seed=i))
@@ -240,10 +248,12 @@ def main(argv: list[str] | None = None) -> int:
             noscene.append(stack_speed(sc, "process", seed=i, scene=False))
             norec.append(stack_speed(sc, None, seed=i))
             json_only.append(stack_speed(sc, "json", seed=i))
+            json_log.append(stack_speed(sc, "process", seed=i, encoding="json"))
             hw.append(highway_speed(n_part, ads.world_hz, sc.duration, seed=i))
             bar.update()
     runs = {"stack_recording": rec, "stack_recording_inline": inline, "stack_recording_no_scene": noscene,
-            "stack_no_recording": norec, "stack_json_only": json_only, "highway_v0": hw}
+            "stack_no_recording": norec, "stack_json_only": json_only, "stack_recording_json_log": json_log,
+            "highway_v0": hw}
     med = {name: statistics.median(r["speed"] for r in rs) for name, rs in runs.items()}
     # recording on and off of one repeat share the jitter seed (the same messages): the median
     # of their wall-time ratios is robust to load that drifts between repeats
@@ -259,6 +269,9 @@ def main(argv: list[str] | None = None) -> int:
         # CPU of both processes: what recording costs (the headline)
         "cpu_both": statistics.median((r["cpu"] + r["recorder_cpu"]) / n["cpu"]
                                       for r, n in zip(rec, norec, strict=True)) - 1.0,
+        # the same with every topic JSON (logs before the binary payloads)
+        "cpu_both_json_log": statistics.median((r["cpu"] + r["recorder_cpu"]) / n["cpu"]
+                                               for r, n in zip(json_log, norec, strict=True)) - 1.0,
     }
     recorder_ms = statistics.median(1e3 * r["recorder_cpu"] / r["sim"] for r in rec)
     ratio = med["stack_recording"] / med["highway_v0"]
@@ -278,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     if proc is not None and proc.pid == os.getpid():
         proc.stop()
         RecorderProcess._current = None
-        logs_s = sum(r["recorder_cpu"] for r in (first, *rec, *noscene))
+        logs_s = sum(r["recorder_cpu"] for r in (first, *rec, *noscene, *json_log))
         children = resource.getrusage(resource.RUSAGE_CHILDREN)
         startup_s = children.ru_utime + children.ru_stime - logs_s
     sim_ms = statistics.median(1e3 * n["cpu"] / n["sim"] for n in norec)
@@ -294,8 +307,9 @@ def main(argv: list[str] | None = None) -> int:
     console.print(f"the Foxglove scene topics: overhead {100 * overhead['wall_no_scene']:.1f} % without them "
                   f"(wall); the simulation process's CPU {100 * overhead['cpu_sim_process']:.1f} % over an unrecorded "
                   f"run with them, {100 * overhead['cpu_sim_process_no_scene']:.1f} % without")
-    console.print(f"JSON encoding alone (every payload as the log encodes it, nothing written: the floor of a "
-                  f"JSON log): CPU {100 * overhead['cpu_json_only']:+.1f} %")
+    console.print(f"every topic JSON (logs before the binary payloads, DEFT_GYM_LOG_ENCODING=json): CPU "
+                  f"{100 * overhead['cpu_both_json_log']:+.1f} % (both processes); JSON encoding alone (every payload "
+                  f"JSON-encoded, nothing written: the floor of a JSON log): CPU {100 * overhead['cpu_json_only']:+.1f} %")
     nodes = first["nodes"]
     wall0, sim0 = first["wall"], first["sim"]
     bt = Table(title="where the time goes (a recorded run with per-module timing)", title_justify="left")

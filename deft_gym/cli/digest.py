@@ -5,7 +5,8 @@
 
 Each scenario runs once per jitter seed with recording on; the digest of a topic is the SHA-256
 of its messages' JSON payloads and log times, read back from the MCAP file with the ``mcap``
-reader. Two versions of the code whose digests agree published byte-identical logs - the
+reader (a binary message as the JSON a JSON channel holds: digests do not depend on the log's
+encoding). Two versions of the code whose digests agree published byte-identical logs - the
 check used to keep speed-ups from changing a single float. ``--check`` exits 1 and names every
 run and topic that differs.
 """
@@ -38,6 +39,7 @@ def run_digest(scenario: Scenario | str | Path, jitter_seed: int) -> dict[str, s
         from mcap.reader import make_reader
 
         from deft_gym.bus.messages import VIEWER_TOPICS, log_start_ns
+        from deft_gym.bus.ros1 import ChannelDecoders
         from deft_gym.record.recorder import EPISODE_METADATA
 
         with open(Path(tmp) / "episode.mcap", "rb") as f:
@@ -45,11 +47,12 @@ def run_digest(scenario: Scenario | str | Path, jitter_seed: int) -> dict[str, s
             episode = next((m.metadata for m in reader.iter_metadata() if m.name == EPISODE_METADATA), {})
         start = log_start_ns(episode)  # log_time = epoch start + sim time: the sim time is hashed
         with open(Path(tmp) / "episode.mcap", "rb") as f:
-            for _, channel, msg in make_reader(f).iter_messages():
+            decoders = ChannelDecoders()
+            for schema, channel, msg in make_reader(f).iter_messages():
                 if channel.topic in VIEWER_TOPICS:  # pictures of the world state, not bus messages
                     continue
                 h = hashes.setdefault(channel.topic, hashlib.sha256())
-                h.update(msg.data)
+                h.update(decoders.json(schema, channel, msg.data))  # binary messages as their JSON
                 h.update((msg.log_time - start).to_bytes(8, "little"))
     out = {topic: h.hexdigest()[:16] for topic, h in sorted(hashes.items())}
     out["outcome"] = f"{r.outcome.outcome} at {r.sim_time:.2f} s"

@@ -16,7 +16,7 @@ one damage of each kind to a copy, reads the copy with :func:`extract.verify.ver
   truncation: the time from which everything is missing is stated).
 
 Damage kinds: ``record_type`` (the chunk's type byte flipped to an unknown type),
-``payload_digit`` (one digit of one message payload in the chunk changed), ``record_length``
+``payload_digit`` (one digit of one message payload in the chunk changed; one bit of a binary one), ``record_length``
 (the chunk's record length wrong), ``message_header`` (the length of one message record inside
 the chunk wrong: the chunk's content no longer parses after it), each also in a copy cut just
 before its summary section (``..._no_summary``: no chunk index, no statistics - the reader has
@@ -87,8 +87,11 @@ def damage(buf: bytes, kind: str, chunk: dict[str, Any]) -> bytes:
             raise ValueError("payload damage needs uncompressed chunks")
         _, _, _, at, n = chunk["messages"][len(chunk["messages"]) // 2]
         payload = bytes(b[at:at + n])
-        k = next(i for i, c in enumerate(payload) if 0x31 <= c <= 0x38 and i > n // 3)
-        b[at + k] += 1  # one digit changed: still valid JSON, another number
+        if payload[:1] == b"{":
+            k = next(i for i, c in enumerate(payload) if 0x31 <= c <= 0x38 and i > n // 3)
+            b[at + k] += 1  # one digit changed: still valid JSON, another number
+        else:  # ROS 1 bytes: one bit flipped in the middle
+            b[at + n // 2] ^= 1
     elif kind == "message_header":
         if chunk["compressed"]:
             raise ValueError("message header damage needs uncompressed chunks")

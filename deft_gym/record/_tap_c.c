@@ -1,6 +1,7 @@
 /* The recorder's bus tap, compiled (deft_gym/record/recorder.py: `RecordTap`'s `tap`, the common
- * path). Called with a message whose topic has a channel in `fast`, it JSON-encodes the payload
- * with `dumps(payload, **kwargs)` (orjson) and appends the MCAP Message record's head (opcode 5,
+ * path). Called with a message whose topic has a channel in `fast`, it encodes the payload - where
+ * the entry is (channel id, program) with `bencode(program, payload)` (ROS 1 bytes, None when it
+ * does not fit: then `general`), else as JSON with `dumps(payload, **kwargs)` (orjson) - and appends the MCAP Message record's head (opcode 5,
  * record length, channel id, sequence, log time, publish time: struct "<BQHIQQ") and the JSON to
  * `pieces`, the log time (`start_ns` + publish time) to `times` and the channel id to `cids`;
  * once `cids` holds `limit` messages it calls `flush()`. Everything else - a topic without a
@@ -18,7 +19,7 @@
 
 typedef struct {
     PyObject_HEAD
-    PyObject *fast, *dumps, *kwargs, *general, *flush, *pieces, *times, *cids;
+    PyObject *fast, *dumps, *kwargs, *bencode, *general, *flush, *pieces, *times, *cids;
     long long start_ns;
     Py_ssize_t limit;
 } Tap;
@@ -43,6 +44,11 @@ static PyObject *Tap_call(Tap *self, PyObject *args, PyObject *kw) {
     if (!cid) {
         if (PyErr_Occurred()) return NULL;
         return general(self, msg);
+    }
+    PyObject *program = NULL; /* borrowed from the entry */
+    if (PyTuple_Check(cid) && PyTuple_GET_SIZE(cid) == 2) {
+        program = PyTuple_GET_ITEM(cid, 1);
+        cid = PyTuple_GET_ITEM(cid, 0);
     }
     Py_INCREF(cid);
     long c = PyLong_Check(cid) ? PyLong_AsLong(cid) : -1;
@@ -75,13 +81,29 @@ static PyObject *Tap_call(Tap *self, PyObject *args, PyObject *kw) {
         Py_DECREF(cid);
         return NULL;
     }
+    PyObject *data;
+    if (program) { /* ROS 1 bytes, or None: the payload does not fit its layout */
+        PyObject *bargs[2] = {program, payload};
+        data = PyObject_Vectorcall(self->bencode, bargs, 2, NULL);
+        Py_DECREF(payload);
+        if (!data) {
+            Py_DECREF(cid);
+            return NULL;
+        }
+        if (data == Py_None || !PyBytes_Check(data)) {
+            Py_DECREF(data);
+            Py_DECREF(cid);
+            return general(self, msg);
+        }
+        goto framed;
+    }
     PyObject *pargs = PyTuple_Pack(1, payload);
     Py_DECREF(payload);
     if (!pargs) {
         Py_DECREF(cid);
         return NULL;
     }
-    PyObject *data = PyObject_Call(self->dumps, pargs, self->kwargs);
+    data = PyObject_Call(self->dumps, pargs, self->kwargs);
     Py_DECREF(pargs);
     if (!data) {
         if (!PyErr_ExceptionMatches(PyExc_TypeError)) {
@@ -106,6 +128,8 @@ static PyObject *Tap_call(Tap *self, PyObject *args, PyObject *kw) {
             return general(self, msg);
         }
     }
+framed:;
+    Py_ssize_t size = PyBytes_GET_SIZE(data);
     PyObject *head = PyBytes_FromStringAndSize(NULL, HEAD);
     PyObject *t_o = head ? PyLong_FromLongLong(t) : NULL;
     if (!t_o) {
@@ -116,7 +140,7 @@ static PyObject *Tap_call(Tap *self, PyObject *args, PyObject *kw) {
     }
     unsigned char *h = (unsigned char *)PyBytes_AS_STRING(head);
     h[0] = 5;
-    put_le(h + 1, (uint64_t)(HEAD - 9 + n), 8);
+    put_le(h + 1, (uint64_t)(HEAD - 9 + size), 8);
     put_le(h + 9, (uint64_t)c, 2);
     put_le(h + 11, (uint64_t)seq, 4);
     put_le(h + 15, (uint64_t)t, 8);
@@ -133,24 +157,26 @@ static PyObject *Tap_call(Tap *self, PyObject *args, PyObject *kw) {
 }
 
 static int Tap_init(Tap *self, PyObject *args, PyObject *kw) {
-    static char *names[] = {"fast", "start_ns", "dumps", "kwargs", "general", "flush", "pieces", "times", "cids",
-                            "limit", NULL};
-    PyObject *fast, *dumps, *kwargs, *gen, *flush, *pieces, *times, *cids;
+    static char *names[] = {"fast", "start_ns", "dumps", "kwargs", "bencode", "general", "flush", "pieces", "times",
+                            "cids", "limit", NULL};
+    PyObject *fast, *dumps, *kwargs, *bencode, *gen, *flush, *pieces, *times, *cids;
     long long start_ns;
     Py_ssize_t limit;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!LOO!OOO!O!O!n", names, &PyDict_Type, &fast, &start_ns, &dumps,
-                                     &PyDict_Type, &kwargs, &gen, &flush, &PyList_Type, &pieces, &PyList_Type,
-                                     &times, &PyList_Type, &cids, &limit))
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!LOO!OOOO!O!O!n", names, &PyDict_Type, &fast, &start_ns, &dumps,
+                                     &PyDict_Type, &kwargs, &bencode, &gen, &flush, &PyList_Type, &pieces,
+                                     &PyList_Type, &times, &PyList_Type, &cids, &limit))
         return -1;
-    if (limit < 1 || !PyCallable_Check(dumps) || !PyCallable_Check(gen) || !PyCallable_Check(flush)) {
-        PyErr_SetString(PyExc_ValueError, "Tap: limit >= 1 and callables dumps, general, flush");
+    if (limit < 1 || !PyCallable_Check(dumps) || !PyCallable_Check(bencode) || !PyCallable_Check(gen) ||
+        !PyCallable_Check(flush)) {
+        PyErr_SetString(PyExc_ValueError, "Tap: limit >= 1 and callables dumps, bencode, general, flush");
         return -1;
     }
-    PyObject *old[] = {self->fast, self->dumps, self->kwargs, self->general, self->flush, self->pieces, self->times,
-                       self->cids};
+    PyObject *old[] = {self->fast, self->dumps, self->kwargs, self->bencode, self->general, self->flush,
+                       self->pieces, self->times, self->cids};
     Py_INCREF(fast);
     Py_INCREF(dumps);
     Py_INCREF(kwargs);
+    Py_INCREF(bencode);
     Py_INCREF(gen);
     Py_INCREF(flush);
     Py_INCREF(pieces);
@@ -159,6 +185,7 @@ static int Tap_init(Tap *self, PyObject *args, PyObject *kw) {
     self->fast = fast;
     self->dumps = dumps;
     self->kwargs = kwargs;
+    self->bencode = bencode;
     self->general = gen;
     self->flush = flush;
     self->pieces = pieces;
@@ -166,7 +193,7 @@ static int Tap_init(Tap *self, PyObject *args, PyObject *kw) {
     self->cids = cids;
     self->start_ns = start_ns;
     self->limit = limit;
-    for (int i = 0; i < 8; i++) Py_XDECREF(old[i]);
+    for (int i = 0; i < 9; i++) Py_XDECREF(old[i]);
     return 0;
 }
 
@@ -174,6 +201,7 @@ static int Tap_traverse(Tap *self, visitproc visit, void *arg) {
     Py_VISIT(self->fast);
     Py_VISIT(self->dumps);
     Py_VISIT(self->kwargs);
+    Py_VISIT(self->bencode);
     Py_VISIT(self->general);
     Py_VISIT(self->flush);
     Py_VISIT(self->pieces);
@@ -186,6 +214,7 @@ static int Tap_clear(Tap *self) {
     Py_CLEAR(self->fast);
     Py_CLEAR(self->dumps);
     Py_CLEAR(self->kwargs);
+    Py_CLEAR(self->bencode);
     Py_CLEAR(self->general);
     Py_CLEAR(self->flush);
     Py_CLEAR(self->pieces);
@@ -204,7 +233,7 @@ static PyTypeObject TapType = {
     PyVarObject_HEAD_INIT(NULL, 0).tp_name = "deft_gym.record._tap_c.Tap",
     .tp_basicsize = sizeof(Tap),
     .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
-    .tp_doc = "Tap(fast, start_ns, dumps, kwargs, general, flush, pieces, times, cids, limit): the recorder's tap",
+    .tp_doc = "Tap(fast, start_ns, dumps, kwargs, bencode, general, flush, pieces, times, cids, limit): the recorder's tap",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)Tap_init,
     .tp_call = (ternaryfunc)Tap_call,

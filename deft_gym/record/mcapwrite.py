@@ -40,6 +40,9 @@ MAGIC = struct.pack("<8B", 137, 77, 67, 65, 80, 48, 13, 10)
 # a Message record's head: opcode, record length [bytes], channel id, sequence, log and publish time [ns]
 MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 MESSAGE_FIELDS = MESSAGE_HEAD.size - 9
+#: a channel of a log: (topic, role ("" for a viewer-only topic), schema name, schema data, schema
+#: encoding, message encoding); the last two may be left out: ``jsonschema`` and ``json``
+ChannelSpec = tuple
 # a Chunk record's head up to its compression name: opcode, record length, message time range
 # [ns], uncompressed size, its CRC-32, the name's length
 _CHUNK_HEAD = struct.Struct("<BQQQQII")  # the record length counts the fields after opcode and length

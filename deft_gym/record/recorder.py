@@ -2,12 +2,14 @@
 
 The MCAP file (chunks with CRCs and a summary section with message counts and a chunk index,
 see :class:`deft_gym.record.worker.EpisodeLog`; zstd chunks with ``compress``) has one channel
-per topic (JSON encoding, a JSON schema per topic) and metadata
+per topic (ROS 1 bytes with a ``ros1msg`` schema for the roles with a binary layout - plus a JSON
+channel for any message that does not fit it -, JSON with a JSON schema for the others; see
+:func:`log_channels` and docs/logs.md) and metadata
 records ``deft_gym.episode`` (scenario, seeds, configuration; written first) and
 ``deft_gym.outcome`` (written last). It is written to ``<name>.tmp`` and renamed when complete,
 so a finished log is never partial; a crashed run leaves the ``.tmp`` for inspection.
 
-Messages are JSON-encoded and framed as MCAP records when published (:class:`RecordTap`) and
+Messages are encoded and framed as MCAP records when published (:class:`RecordTap`) and
 written by a recorder process of their own (:mod:`deft_gym.record.worker`), as Apollo's
 ``cyber_recorder`` is a process of its own: chunks, CRCs, indexes and the file then run beside
 the simulation instead of inside it. Set ``DEFT_GYM_RECORDER=inline`` (or pass ``background=False``) to encode and write
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import functools
 import itertools
 import json
 import os
@@ -38,10 +41,12 @@ from typing import Any
 import orjson
 from mcap.opcode import Opcode
 
+from deft_gym.bus import ros1
 from deft_gym.bus.codec import _default, encode
 from deft_gym.bus.messages import SCENE_TOPIC, SCHEMAS, Message, log_start_ns
+from deft_gym.bus.ros1 import Program
 from deft_gym.files import checked_kernel, write_atomic
-from deft_gym.record.mcapwrite import MESSAGE_FIELDS, MESSAGE_HEAD, RecordBatch
+from deft_gym.record.mcapwrite import MESSAGE_FIELDS, MESSAGE_HEAD, ChannelSpec, RecordBatch
 from deft_gym.record.scene import expand
 from deft_gym.record.worker import EpisodeLog, read_frame, write_frame
 
@@ -171,30 +176,36 @@ class RecorderProcess:
 
 
 class RecordTap:
-    """The bus tap of an episode log (:attr:`tap`): each message JSON-encoded and framed as an
-    MCAP ``Message`` record when it is published (log time = ``start_ns`` + publish time), handed
-    to ``flush`` in batches (:data:`RecordBatch`, the records as two pieces per message: nothing
-    is copied here). A compact scene state (:func:`deft_gym.record.scene.expand`) becomes the
-    scene and frame-transform messages; a topic outside ``channels`` gets a schemaless channel
-    through ``new_channel(topic) -> id`` just before its first message. A payload that cannot be
+    """The bus tap of an episode log (:attr:`tap`): each message encoded - ROS 1 bytes for a topic
+    in ``binary`` (topic -> (channel id, layout program)), else JSON - and framed as an MCAP
+    ``Message`` record when it is published (log time = ``start_ns`` + publish time), handed to
+    ``flush`` in batches (:data:`RecordBatch`, the records as two pieces per message: nothing is
+    copied here). A compact scene state (:func:`deft_gym.record.scene.expand`) becomes the scene
+    and frame-transform messages; a topic outside ``channels`` (the JSON channels), or a binary
+    topic's message that does not fit its layout, gets a JSON channel through
+    ``new_channel(topic) -> id`` just before its first such message. A payload that cannot be
     encoded is held in :attr:`error` (``"<topic> message <seq>: <reason>"``) and left out; the
     log is then not finished."""
 
     BATCH = 256
 
     def __init__(self, channels: dict[str, int], start_ns: int, flush: Callable[[RecordBatch], None],
-                 new_channel: Callable[[str], int]) -> None:
-        self.channels = dict(channels)
+                 new_channel: Callable[[str], int], binary: dict[str, tuple[int, Program]] | None = None) -> None:
+        self.channels = dict(channels)  # the JSON channels
+        self.binary = dict(binary or {})  # topic -> (its ros1 channel, the layout program)
         self.start_ns = start_ns
         self.error: str | None = None
         self.count = 0  # messages handed on so far
-        # the common path, without attribute look-ups: topics with a channel, scenes aside
-        fast = {t: c for t, c in channels.items() if t != SCENE_TOPIC}
-        pieces: list[bytes] = []  # two per message: its record's head and its JSON
+        # the common path, without attribute look-ups: topics with a channel, scenes aside; a
+        # binary topic's entry is (channel id, program)
+        fast: dict[str, Any] = {t: c for t, c in channels.items() if t != SCENE_TOPIC}
+        fast.update(self.binary)
+        pieces: list[bytes] = []  # two per message: its record's head and its data
         times: list[int] = []
         cids: list[int] = []
         pack, head, limit = MESSAGE_HEAD.pack, Opcode.MESSAGE, self.BATCH
         dumps, default, opts = orjson.dumps, _default, orjson.OPT_SERIALIZE_NUMPY
+        bencode, binary_topics = ros1.encode_fast, self.binary
 
         def add(cid: int, publish_ns: int, data: bytes, seq: int) -> None:
             t = start_ns + publish_ns
@@ -208,14 +219,21 @@ class RecordTap:
             if cid is None:
                 general(msg)
                 return
-            try:
-                data = dumps(msg.payload, default=default, option=opts)  # encode(), inlined
-            except TypeError:  # bytes (JSON already), or no JSON form: general decides
-                general(msg)
-                return
-            if b"null" in data:  # a non-finite float, tagged (or a None): general decides
-                general(msg)
-                return
+            if type(cid) is tuple:  # ROS 1 bytes; a payload that does not fit its layout: JSON
+                cid, program = cid
+                data = bencode(program, msg.payload)
+                if data is None:
+                    general(msg)
+                    return
+            else:
+                try:
+                    data = dumps(msg.payload, default=default, option=opts)  # encode(), inlined
+                except TypeError:  # bytes (JSON already), or no JSON form: general decides
+                    general(msg)
+                    return
+                if b"null" in data:  # a non-finite float, tagged (or a None): general decides
+                    general(msg)
+                    return
             t = start_ns + msg.publish_ns
             pieces.append(pack(head, MESSAGE_FIELDS + len(data), cid, msg.seq, t, t))
             pieces.append(data)
@@ -226,7 +244,8 @@ class RecordTap:
 
         def general(msg: Any) -> None:
             """Any message: a scene state, a topic's first message without a channel yet, a
-            payload that orjson alone does not encode as the log needs."""
+            payload that orjson alone does not encode as the log needs, one that does not fit
+            its topic's binary layout (JSON on a JSON channel of the topic)."""
             topic, payload = msg.topic, msg.payload
             if topic == SCENE_TOPIC and (scene := expand(msg.publish_ns, msg.seq, payload, start_ns)) is not None:
                 entries = scene
@@ -241,7 +260,7 @@ class RecordTap:
                 if cid is None:  # its channel record goes into the log just before its first message
                     flush_all()
                     cid = self.channels[topic] = new_channel(topic)
-                    if topic != SCENE_TOPIC:
+                    if topic != SCENE_TOPIC and topic not in binary_topics:
                         fast[topic] = cid
                 add(cid, ns, data, seq)
             if len(cids) >= limit:
@@ -260,8 +279,8 @@ class RecordTap:
                 flush(batch)
 
         if _tap_c is not None and not os.environ.get("DEFT_GYM_PURE_PYTHON"):
-            tap = _tap_c.Tap(fast, start_ns, dumps, {"default": default, "option": opts}, general, flush_all,
-                             pieces, times, cids, limit)
+            tap = _tap_c.Tap(fast, start_ns, dumps, {"default": default, "option": opts}, bencode, general,
+                             flush_all, pieces, times, cids, limit)
         self.tap: Callable[[Any], None] = tap
         self.flush: Callable[[], None] = flush_all
         self.pending: Callable[[], int] = cids.__len__
@@ -274,12 +293,15 @@ class McapRecorder:
     """A bus tap writing every message to an MCAP episode log (:attr:`tap` is the tap itself,
     without the method call of calling the recorder).
 
-    Each message's payload is JSON-encoded and framed as an MCAP record when it is published
-    (:class:`RecordTap`), so the log holds the payload as it was then; the records are handed in
-    batches to the log's writer, in the recorder process (``background``, by default unless
-    :func:`recorder_in_process`) or in this one: the same bytes either way. :meth:`close` returns
-    once the log is complete and in place, and raises :class:`RecorderError` if it could not be
-    written.
+    Each message's payload is encoded and framed as an MCAP record when it is published
+    (:class:`RecordTap`), so the log holds the payload as it was then: in ROS 1's binary form for
+    the roles that have a layout (:mod:`deft_gym.bus.ros1`; a message that does not fit it goes
+    as JSON on a second, JSON channel of its topic), as JSON for the others (``routing``,
+    ``map``) and for every role with ``encoding="json"`` (or ``DEFT_GYM_LOG_ENCODING=json``).
+    The records are handed in batches to the log's writer, in the recorder process
+    (``background``, by default unless :func:`recorder_in_process`) or in this one: the same
+    bytes either way. :meth:`close` returns once the log is complete and in place, and raises
+    :class:`RecorderError` if it could not be written.
 
     ``log_time`` is ``metadata["log_start_ns"]`` (an epoch time, 0 when absent) plus the
     publish time; ``extra_channels`` are ``(topic, "", schema title, JSON schema)`` of
@@ -290,13 +312,17 @@ class McapRecorder:
 
     def __init__(self, path: Path | str, topics: dict[str, str], metadata: dict[str, Any],
                  compress: bool = False, background: bool | None = None,
-                 extra_channels: list[tuple[str, str, str, bytes]] = ()) -> None:
+                 extra_channels: list[tuple[str, str, str, bytes]] = (), encoding: str | None = None) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if background is None:
             background = not recorder_in_process()
-        channels = [(topic, role, SCHEMAS[role]["title"], json.dumps(SCHEMAS[role]).encode())
-                    for role, topic in topics.items()] + list(extra_channels)
+        channels, self._json_specs, programs = log_channels(topics, encoding)
+        channels += list(extra_channels)
+        # the ids the log gives its channels: in order, from 1 (LogWriter.register_channel)
+        self._n_channels = len(channels)
+        json_ids = {spec[0]: k for k, spec in enumerate(channels, 1) if len(spec) == 4 or spec[5] == "json"}
+        binary = {spec[0]: (k, programs[spec[0]]) for k, spec in enumerate(channels, 1) if spec[0] in programs}
         self.start_ns = log_start_ns(metadata)
         args = (str(self.path), channels, EPISODE_METADATA, _meta(metadata), compress, self.start_ns)
         self._log: EpisodeLog | None = None
@@ -305,12 +331,10 @@ class McapRecorder:
             self._proc = RecorderProcess.get()
             self._id = self._proc.new_id()
             self._request("open", *args)
-            # the ids the log gives its channels: in order, from 1 (LogWriter.register_channel)
-            ids = {topic: k for k, (topic, *_) in enumerate(channels, 1)}
-            self._tap = RecordTap(ids, self.start_ns, self._send_batch, self._send_channel)
         else:
             self._log = EpisodeLog(*args)
-            self._tap = RecordTap(self._log.channels, self.start_ns, self._log.write, self._log.add_channel)
+        self._tap = RecordTap(json_ids, self.start_ns, self._send_batch if background else self._log.write,
+                              self._new_channel, binary)
         self.tap: Callable[[Message], None] = self._tap.tap
         self.closed = False
         self.process_seconds = 0.0  # CPU time the recorder process spent on this log (after close)
@@ -332,9 +356,17 @@ class McapRecorder:
         except RecorderError as exc:
             raise RecorderError(f"MCAP log {self.path}: {exc}") from None
 
-    def _send_channel(self, topic: str) -> int:
-        self._request("channel", topic, wait=False)
-        return len(self._tap.channels) + 1  # the recorder process's writer numbers them alike
+    def _new_channel(self, topic: str) -> int:
+        """The next channel, for ``topic``: its role's JSON channel when its messages are binary,
+        else schemaless JSON; the writer numbers channels in order, as here."""
+        spec = self._json_specs.get(topic)
+        if self._proc is not None:
+            with contextlib.suppress(RecorderError):  # the process is gone: the next batch or close says so
+                self._request("channel", topic, spec, wait=False)
+        else:
+            self._log.add_channel(topic, spec)
+        self._n_channels += 1
+        return self._n_channels
 
     def __call__(self, msg: Message) -> None:
         self.tap(msg)
@@ -374,6 +406,49 @@ class McapRecorder:
         else:
             self._log.close(*args)
         return self.path
+
+
+LOG_ENCODING_ENV = "DEFT_GYM_LOG_ENCODING"
+
+
+def log_channels(topics: dict[str, str], encoding: str | None = None
+                 ) -> tuple[list[ChannelSpec], dict[str, ChannelSpec], dict[str, Program]]:
+    """The channels of a log of the bus topics ``topics`` (role -> topic): a ROS 1 channel for
+    each role with a binary layout (``encoding`` ``"ros1"``, the default, or
+    ``DEFT_GYM_LOG_ENCODING``), a JSON one for the others and for every role with ``"json"``;
+    the JSON channel of each binary topic (registered on its first message that does not fit);
+    and each binary topic's layout program."""
+    encoding = encoding or os.environ.get(LOG_ENCODING_ENV) or "ros1"
+    if encoding not in ("ros1", "json"):
+        raise ValueError(f"{LOG_ENCODING_ENV}={encoding!r}: expected 'ros1' (binary where a topic has a layout) or "
+                         "'json'")
+    layouts = _role_layouts() if encoding == "ros1" else {}
+    channels, json_specs, programs = [], {}, {}
+    for role, topic in topics.items():
+        spec = (topic, role, SCHEMAS[role]["title"], _json_schema(role), "jsonschema", "json")
+        layout = layouts.get(role)
+        if layout is None:
+            channels.append(spec)
+            continue
+        channels.append((topic, role, layout.name, _definition(layout), ros1.SCHEMA_ENCODING, ros1.MESSAGE_ENCODING))
+        json_specs[topic] = spec
+        programs[topic] = layout.program
+    return channels, json_specs, programs
+
+
+@functools.cache
+def _role_layouts() -> dict[str, ros1.Layout]:
+    return ros1.role_layouts(SCHEMAS)
+
+
+@functools.cache
+def _json_schema(role: str) -> bytes:
+    return json.dumps(SCHEMAS[role]).encode()
+
+
+@functools.cache
+def _definition(layout: ros1.Layout) -> bytes:
+    return layout.definition()
 
 
 def write_truth(path: Path | str, records: list[dict[str, Any]], topics: dict[str, str]) -> Path:

@@ -1,7 +1,7 @@
 """The MCAP episode log, and the recorder process that writes it beside the simulation.
 
 The recorder process (``python -m deft_gym.record.worker``) is fed batches of messages that the
-simulation's process JSON-encoded (:func:`deft_gym.bus.codec.encode`) and framed as MCAP
+simulation's process encoded (ROS 1 bytes, :mod:`deft_gym.bus.ros1`, or JSON) and framed as MCAP
 ``Message`` records when they were published (:class:`deft_gym.record.mcapwrite.RecordTap`,
 a few microseconds per message), and does the rest: chunks, CRCs, indexes, the summary and the
 file (:class:`deft_gym.record.mcapwrite.LogWriter`, per chunk rather than per message). Apollo
@@ -13,7 +13,8 @@ little-endian length and a pickled tuple ``(op, log_id, *args)``:
 - ``("open", id, path, channels, metadata name, metadata, compress, start_ns)`` -> ``("ok",)`` or ``("error", text)``
 - ``("write", id, ends, times, cids, n)`` followed by ``n`` raw bytes, the message records: a
   :data:`deft_gym.record.mcapwrite.RecordBatch` (not pickled: no copy)
-- ``("channel", id, topic)``: a schemaless channel for a topic outside the open's channels
+- ``("channel", id, topic, spec)``: a channel for a topic: ``spec``'s (a :data:`ChannelSpec`), or
+  schemaless JSON for ``None`` (a topic outside the open's channels)
 - ``("fail", id, text)``: a message could not be encoded; the log is not finished
 - ``("meta", id, name, values)``
 - ``("close", id, outcome)`` -> ``("ok", path, cpu_seconds)`` or ``("error", text)``
@@ -40,7 +41,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from deft_gym.files import checked_kernel
-from deft_gym.record.mcapwrite import CHUNK_BYTES, LogWriter, RecordBatch
+from deft_gym.record.mcapwrite import CHUNK_BYTES, ChannelSpec, LogWriter, RecordBatch
 
 try:  # the payload snapshot compiled (setup.py), 3x faster than pickle for plain payloads
     from deft_gym.record import _snapshot_c
@@ -114,8 +115,8 @@ read_batch = py_read_batch if _snapshot_c is None else _snapshot_c.read_batch
 class EpisodeLog:
     """One MCAP episode log being written to ``<path>.tmp``, renamed to ``path`` by :meth:`close`.
 
-    ``channels`` are ``(topic, role, schema title, JSON schema bytes)``; a topic outside them
-    gets a schemaless channel (:meth:`add_channel`) just before its first message. ``metadata``
+    ``channels`` are :data:`ChannelSpec` (numbered from 1 in their order); a topic outside them
+    gets a schemaless JSON channel (:meth:`add_channel`) just before its first message. ``metadata``
     is the episode record (string values), written first.
 
     Integrity: messages go into chunks of about :attr:`CHUNK_BYTES`, each with the CRC-32 of its
@@ -132,7 +133,7 @@ class EpisodeLog:
 
     CHUNK_BYTES = CHUNK_BYTES
 
-    def __init__(self, path: Path | str, channels: list[tuple[str, str, str, bytes]], metadata_name: str,
+    def __init__(self, path: Path | str, channels: list[ChannelSpec], metadata_name: str,
                  metadata: dict[str, str], compress: bool = False, start_ns: int = 0) -> None:
         self.path = Path(path)
         self.start_ns = start_ns  # added to every publish time: log_time is an epoch time
@@ -141,15 +142,26 @@ class EpisodeLog:
         self._file = open(self.tmp, "wb", buffering=1 << 20)  # noqa: SIM115 - closed in close()
         self.writer = LogWriter(self._file, self.CHUNK_BYTES, compress)
         self.writer.start(profile="", library="deft_gym")
-        self.channels: dict[str, int] = {}
-        for topic, role, title, schema in channels:
-            sid = self.writer.register_schema(title, "jsonschema", schema)
-            # a viewer-only topic (role "") carries no role: readers of bus messages skip it
-            self.channels[topic] = self.writer.register_channel(topic, "json", sid, {"role": role} if role else {})
+        self.channels: dict[str, int] = {}  # the last channel of each topic
+        for spec in channels:
+            self._register(spec)
         self.writer.add_metadata(metadata_name, metadata)
 
-    def add_channel(self, topic: str) -> int:
-        """A schemaless channel for ``topic``, in the log before the messages that follow; its id."""
+    def _register(self, spec: ChannelSpec) -> int:
+        topic, role, title, schema, *encodings = spec
+        schema_encoding, message_encoding = encodings or ("jsonschema", "json")
+        sid = self.writer.register_schema(title, schema_encoding, schema)
+        # a viewer-only topic (role "") carries no role: readers of bus messages skip it
+        cid = self.channels[topic] = self.writer.register_channel(topic, message_encoding, sid,
+                                                                  {"role": role} if role else {})
+        return cid
+
+    def add_channel(self, topic: str, spec: ChannelSpec | None = None) -> int:
+        """A channel for ``topic`` (``spec``'s: the JSON channel of a topic whose messages are
+        binary, for one that is not; else schemaless JSON), in the log before the messages that
+        follow; its id."""
+        if spec is not None:
+            return self._register(spec)
         cid = self.channels[topic] = self.writer.register_channel(topic, "json", 0, {})
         return cid
 
@@ -223,7 +235,7 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
                 data = inp.read(args[3])
                 logs[lid].write((data, *args[:3]))
             elif op == "channel":
-                logs[lid].add_channel(args[0])
+                logs[lid].add_channel(*args)
             elif op == "fail":  # the simulation could not encode a message: the log is not finished
                 raise TypeError(args[0])
             elif op == "meta":

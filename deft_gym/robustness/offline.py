@@ -19,8 +19,8 @@ from typing import Any
 
 from mcap.reader import make_reader
 
-from deft_gym.bus.codec import decode
 from deft_gym.bus.messages import NS_PER_S, log_start_ns
+from deft_gym.bus.ros1 import ChannelDecoders
 from deft_gym.record.recorder import EPISODE_METADATA, OUTCOME_METADATA
 from deft_gym.robustness.interception import EVENTS_TOPIC, ORIGINAL_PREFIX
 from deft_gym.robustness.invariants import (
@@ -78,13 +78,14 @@ def check_log(path: Path | str, invariants: InvariantSet | Path | str | None = N
     injected: set[tuple[str, int]] = set()
     roles: dict[str, str] = {}
     last_ns = 0
+    decode = ChannelDecoders()
     with open(path, "rb") as f:
-        for _, channel, message in make_reader(f).iter_messages():
+        for schema, channel, message in make_reader(f).iter_messages():
             topic = channel.topic
             if topic.startswith(ORIGINAL_PREFIX):
-                originals[(topic[len(ORIGINAL_PREFIX):], message.sequence)] = decode(message.data)
+                originals[(topic[len(ORIGINAL_PREFIX):], message.sequence)] = decode(schema, channel, message.data)
             elif topic == EVENTS_TOPIC:
-                ev = decode(message.data)
+                ev = decode(schema, channel, message.data)
                 if ev.get("mode") == "inject":
                     injected.add((ev["bus_topic"], ev["bus_seq"]))
             elif "role" in channel.metadata:
@@ -92,7 +93,7 @@ def check_log(path: Path | str, invariants: InvariantSet | Path | str | None = N
     monitor = InvariantMonitor(inv, episode["map"])
     start = log_start_ns(episode)  # log_time = epoch start + sim time
     with open(path, "rb") as f:
-        for _, channel, message in make_reader(f).iter_messages():
+        for schema, channel, message in make_reader(f).iter_messages():
             role = roles.get(channel.topic)
             if role is None:
                 continue
@@ -101,7 +102,7 @@ def check_log(path: Path | str, invariants: InvariantSet | Path | str | None = N
                 continue
             payload = originals.get(key)
             if payload is None:
-                payload = decode(message.data)
+                payload = decode(schema, channel, message.data)
             last_ns = max(last_ns, message.log_time - start)
             monitor.observe(role, payload, (message.log_time - start) / NS_PER_S)
     outcome = meta.get(OUTCOME_METADATA)

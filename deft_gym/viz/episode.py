@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from deft_gym.bus.codec import decode
 from deft_gym.bus.messages import NS_PER_S, SCENE_TOPIC, log_start_ns
+from deft_gym.bus.ros1 import ChannelDecoders
 from deft_gym.files import atomic_path
 
 EPISODE_META, OUTCOME_META = "deft_gym.episode", "deft_gym.outcome"
@@ -131,13 +131,14 @@ def load_episode(log: Path | str) -> Episode:
 
     with open(log, "rb") as f:
         messages = make_reader(f, validate_crcs=True).iter_messages()  # a flipped bit is not drawn as good
-        for _, channel, msg in _crc_checked(messages, log, CRCValidationError):
+        decode = ChannelDecoders()
+        for schema, channel, msg in _crc_checked(messages, log, CRCValidationError):
             topic = channel.topic
             if topic not in (SCENE_TOPIC, t_loc, t_obs, t_plan, t_map):
                 continue
             t = (msg.log_time - start) / NS_PER_S
             try:
-                p = decode(msg.data)
+                p = decode(schema, channel, msg.data)
             except ValueError:
                 continue
             if topic == SCENE_TOPIC:

@@ -156,10 +156,13 @@ def test_truncated_log_extracts_what_is_intact(logs, heuristic, tmp_path) -> Non
 def test_corrupt_payload_is_detected_and_the_rest_extracted(logs, tmp_path) -> None:
     """A prediction message whose JSON is damaged: its chunk fails its CRC and is dropped, the
     summary says exactly which messages were lost, and extraction goes on with the rest."""
+    from deft_gym.bus import ros1
+    from deft_gym.bus.messages import SCHEMAS
     from extract.logs import read_log
 
     tm = read_log(logs["plain"], ["/apollo/prediction"]).topics["/apollo/prediction"]
-    victim = tm.raw[len(tm.raw) // 2]
+    # the reader hands out JSON; the log holds the message in its binary form
+    victim = ros1.encode(ros1.role_layouts(SCHEMAS)["prediction"].program, tm.payload(len(tm.raw) // 2))
     data = logs["plain"].read_bytes()
     at = data.index(victim)
     bad = tmp_path / "bad.mcap"

@@ -8,6 +8,7 @@ import numpy as np
 from mcap.reader import make_reader
 
 from deft_gym.bus.codec import decode, encode
+from deft_gym.bus.ros1 import ChannelDecoders
 from deft_gym.planner.base import Frame, load_planner
 from deft_gym.sim.simulation import Simulation
 
@@ -73,5 +74,6 @@ def test_different_parameters_give_a_different_plan() -> None:
 def test_live_planning_messages_match_the_log(lane_follow_log) -> None:
     """What the recorder wrote is exactly what the planner published."""
     with open(lane_follow_log.log_path, "rb") as fh:
-        logged = [decode(m.data) for _, ch, m in make_reader(fh).iter_messages() if ch.topic == "/apollo/planning"]
+        decode = ChannelDecoders()
+        logged = [decode(sc, ch, m.data) for sc, ch, m in make_reader(fh).iter_messages() if ch.topic == "/apollo/planning"]
     assert [encode(p) for p in logged] == [encode(p) for p in lane_follow_log.planning]

@@ -16,7 +16,7 @@ from deft_gym.bus.codec import encode
 from deft_gym.bus.messages import Message
 from deft_gym.record.worker import PyBatch, py_read_batch
 from deft_gym.sim.simulation import Simulation
-from tests.support.fixtures import SCENARIOS
+from tests.support.fixtures import SCENARIOS, same_values
 
 _snapshot_c = pytest.importorskip("deft_gym.record._snapshot_c")
 dumps, loads = _snapshot_c.dumps, _snapshot_c.loads
@@ -24,25 +24,14 @@ dumps, loads = _snapshot_c.dumps, _snapshot_c.loads
 SCENARIO = SCENARIOS / "lane_follow_static.yaml"
 
 
-def _same(a, b) -> bool:
-    """Equal types all the way down, dict keys in the same order, floats with the same bits."""
-    if type(a) is not type(b):
-        return False
-    if isinstance(a, float):
-        return struct.pack("<d", a) == struct.pack("<d", b)
-    if isinstance(a, dict):
-        return list(a) == list(b) and all(_same(k, j) and _same(a[k], b[j]) for k, j in zip(a, b, strict=True))
-    if isinstance(a, list | tuple):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
-    return a == b
 
 
 def _round_trip(obj) -> bytes:
     data = dumps(obj)
     assert data[:1] == b"S", "a plain payload is written in the snapshot format"
     back = loads(data)
-    assert _same(obj, back)
-    assert _same(loads(bytearray(data)), back) and _same(loads(memoryview(data)), back)
+    assert same_values(obj, back)
+    assert same_values(loads(bytearray(data)), back) and same_values(loads(memoryview(data)), back)
     return data
 
 
@@ -57,7 +46,7 @@ def test_every_message_of_a_run_round_trips() -> None:
 
     def check(m) -> None:
         data = dumps(m.payload)
-        assert data[:1] == b"S" and _same(loads(data), m.payload)
+        assert data[:1] == b"S" and same_values(loads(data), m.payload)
         assert encode(loads(data)) == encode(m.payload)  # what the recorder process writes
         topics[m.topic] = topics.get(m.topic, 0) + 1
 
@@ -172,7 +161,7 @@ def test_batch_entries_read_back_in_order() -> None:
     entries = [e for data in flushed for e in _snapshot_c.read_batch(data)]
     assert len(entries) == 10
     for (topic, ns, payload, seq), m in zip(entries, msgs, strict=True):
-        assert (topic, ns, seq) == (m.topic, m.publish_ns, m.seq) and _same(payload, m.payload)
+        assert (topic, ns, seq) == (m.topic, m.publish_ns, m.seq) and same_values(payload, m.payload)
 
 
 def test_python_batch_writes_the_same_entries() -> None:

@@ -22,6 +22,22 @@ def float_bits(values: object) -> bytes:
     return np.asarray(values, dtype=float).tobytes()
 
 
+def same_values(a: object, b: object) -> bool:
+    """Equal types all the way down, dict keys in the same order, floats with the same bits."""
+    import struct
+
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, float):
+        return struct.pack("<d", a) == struct.pack("<d", b)
+    if isinstance(a, dict):
+        return list(a) == list(b) and all(same_values(k, j) and same_values(a[k], b[j])
+                                          for k, j in zip(a, b, strict=True))
+    if isinstance(a, list | tuple):
+        return len(a) == len(b) and all(same_values(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
 @pytest.fixture(scope="session")
 def lane_follow_log(tmp_path_factory: pytest.TempPathFactory):
     """One recorded episode of the lane-following seed (jitter seed 7)."""
