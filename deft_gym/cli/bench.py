@@ -16,8 +16,11 @@ Measures simulated seconds per wall second (one simulation process) of
 and prints both, their ratio, the recording overhead and where the stack's time goes.
 
 The headline of the recording overhead is CPU time: the simulation process's and the recorder
-process's together over the unrecorded run's (median of the paired ratios; a loaded machine
-stretches wall time but hardly CPU time), wall time beside it. The recorder process's start-up
+process's together over the unrecorded run's (median of the paired ratios, with a bootstrap 95 %
+interval: single runs on a shared machine drift by several per cent, so use ``--repeats 15`` or
+more to resolve a few points; a loaded machine stretches wall time more than CPU time), wall
+time beside it, and the same with every topic JSON (``DEFT_GYM_LOG_ENCODING=json``, logs before
+the binary payloads). The recorder process's start-up
 (once per simulation process, not per episode) is measured at the end from the children's CPU
 time and printed apart.
 Each figure is the median over ``--repeats`` runs; the runs of the three kinds are interleaved.
@@ -92,6 +95,23 @@ def stack_speed(scenario: Any, recorder: str | None, seed: int, breakdown: bool 
     if sup is not None:
         out["nodes"] = {k: v for k, v in sup.seconds.items()}
     return out
+
+
+def median_interval(values: list[float], confidence: float = 0.95) -> tuple[float, float] | None:
+    """A bootstrap confidence interval of the median of ``values`` (scipy.stats.bootstrap,
+    percentile method, seeded); None for fewer than 3 values."""
+    if len(values) < 3:
+        return None
+    from scipy.stats import bootstrap
+
+    ci = bootstrap((values,), statistics.median, confidence_level=confidence, method="percentile",
+                   random_state=0, vectorized=False).confidence_interval
+    return float(ci.low), float(ci.high)
+
+
+def _interval_text(ci: tuple[float, float] | None, n: int) -> str:
+    return f"(95 % CI of the median of {n} paired runs: n/a)" if ci is None else \
+        f"(95 % CI {100 * ci[0]:+.1f} to {100 * ci[1]:+.1f} %, {n} paired runs)"
 
 
 def highway_speed(vehicles: int, frequency: float, sim_seconds: float, seed: int) -> dict[str, Any]:
@@ -273,6 +293,10 @@ def main(argv: list[str] | None = None) -> int:
         "cpu_both_json_log": statistics.median((r["cpu"] + r["recorder_cpu"]) / n["cpu"]
                                                for r, n in zip(json_log, norec, strict=True)) - 1.0,
     }
+    # how sure the headline is: a bootstrap interval of the median paired ratio (single runs on a
+    # shared machine drift by several per cent; more --repeats narrow it)
+    ci = {name: median_interval([(r["cpu"] + r["recorder_cpu"]) / n["cpu"] - 1.0 for r, n in zip(rs, norec, strict=True)])
+          for name, rs in (("cpu_both", rec), ("cpu_both_json_log", json_log))}
     recorder_ms = statistics.median(1e3 * r["recorder_cpu"] / r["sim"] for r in rec)
     ratio = med["stack_recording"] / med["highway_v0"]
     t = Table(title="simulated seconds per wall second (median)", title_justify="left")
@@ -296,7 +320,8 @@ def main(argv: list[str] | None = None) -> int:
         startup_s = children.ru_utime + children.ru_stime - logs_s
     sim_ms = statistics.median(1e3 * n["cpu"] / n["sim"] for n in norec)
     common.print_table(console, t)
-    console.print(f"[bold]recording overhead: CPU {100 * overhead['cpu_both']:+.1f} %[/bold] (simulation process "
+    console.print(f"[bold]recording overhead: CPU {100 * overhead['cpu_both']:+.1f} %[/bold] "
+                  f"{_interval_text(ci['cpu_both'], args.repeats)} (simulation process "
                   f"{100 * overhead['cpu_sim_process']:+.1f} %, recorder process {recorder_ms:.2f} ms CPU per sim s "
                   f"against {sim_ms:.2f} ms unrecorded); wall {100 * overhead['wall']:+.1f} %   "
                   f"targets: <= 10 % CPU; the stack recorded >= 3.0x highway-v0")
@@ -308,7 +333,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"(wall); the simulation process's CPU {100 * overhead['cpu_sim_process']:.1f} % over an unrecorded "
                   f"run with them, {100 * overhead['cpu_sim_process_no_scene']:.1f} % without")
     console.print(f"every topic JSON (logs before the binary payloads, DEFT_GYM_LOG_ENCODING=json): CPU "
-                  f"{100 * overhead['cpu_both_json_log']:+.1f} % (both processes); JSON encoding alone (every payload "
+                  f"{100 * overhead['cpu_both_json_log']:+.1f} % {_interval_text(ci['cpu_both_json_log'], args.repeats)} "
+                  f"(both processes); JSON encoding alone (every payload "
                   f"JSON-encoded, nothing written: the floor of a JSON log): CPU {100 * overhead['cpu_json_only']:+.1f} %")
     nodes = first["nodes"]
     wall0, sim0 = first["wall"], first["sim"]
@@ -324,6 +350,7 @@ def main(argv: list[str] | None = None) -> int:
         console.print(f"wrote {args.out}")
         write_atomic(Path(args.out), json.dumps({"median_speed": med, "ratio_vs_highway": ratio,
                                                  "recording_overhead": overhead,
+                                                 "recording_overhead_95ci": ci,
                                                  "recorder_process_ms_per_sim_s": recorder_ms,
                                                  "unrecorded_ms_per_sim_s": sim_ms,
                                                  "recorder_process_startup_cpu_s": startup_s,
