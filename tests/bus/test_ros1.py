@@ -216,3 +216,49 @@ def test_a_recorded_log_reads_the_same_with_genpy(tmp_path: Path) -> None:
             assert same_values(plain(factory.decoder_for("ros1", sc)(m.data)), ours(sc, ch, m.data)), ch.topic
             n += 1
     assert n > 1000
+
+
+def test_the_foxglove_layout_reads_fields_the_log_has(tmp_path: Path) -> None:
+    """Every topic path of configs/foxglove/layout.json names a topic of a recorded log and a field
+    its messages have as Foxglove sees them (ROS 1 fields by genpy; the planner's decision is in
+    the planning message's json_rest since the payloads are binary)."""
+    import json
+    import re
+
+    from mcap_ros1.decoder import DecoderFactory
+
+    from deft_gym.config import CONFIG_DIR
+    from deft_gym.sim.simulation import run_episode
+
+    layout = json.loads((CONFIG_DIR / "foxglove" / "layout.json").read_text())
+    paths: set[str] = set()
+
+    def walk(o):
+        if isinstance(o, dict):
+            for k, v in o.items():
+                if k in ("topicPath", "value") and isinstance(v, str) and v.startswith("/apollo"):
+                    paths.add(v)
+                walk(v)
+        elif isinstance(o, list):
+            for v in o:
+                walk(v)
+
+    walk(layout)
+    assert "/apollo/planning.json_rest" in paths and len(paths) >= 3
+    run_episode("lane_follow_static", jitter_seed=7, out_dir=tmp_path, keep_planning=False)
+    first: dict[str, object] = {}
+    factory = DecoderFactory()
+    with open(tmp_path / "episode.mcap", "rb") as f:
+        for sc, ch, m in make_reader(f).iter_messages():
+            if ch.topic not in first:
+                first[ch.topic] = (factory.decoder_for("ros1", sc)(m.data) if ch.message_encoding == "ros1"
+                                   else orjson.loads(m.data))
+    for path in paths:
+        topic, *fields = path.split(".")
+        value = first[topic]
+        for f in fields:
+            name, index = re.fullmatch(r"(\w+)(?:\[(\d+)\])?", f).groups()
+            value = value[name] if isinstance(value, dict) else getattr(value, name)
+            if index is not None:
+                value = value[int(index)]
+        assert value is not None, path
