@@ -1,4 +1,5 @@
-/* A payload's ROS 1 bytes, compiled (deft_gym/bus/ros1.py: `encode` and `_put`, the same bytes).
+/* A payload's ROS 1 bytes and back, compiled (deft_gym/bus/ros1.py: `encode` and `_put`, the same
+ * bytes; `decoder`'s `decode` and `_reader`, the same values).
  *
  * encode(program, payload) walks `program` - (fields, rest): fields a tuple of (key, kind, sub-program)
  * with kind 0 float64, 1 int64, 2 bool, 3 string, 4 float64[], 5 object, 6 object[] - over the dict
@@ -220,7 +221,7 @@ static PyObject *encode(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) 
         return NULL;
     }
     if (!g_dumps) {
-        PyErr_SetString(PyExc_RuntimeError, "encode: configure(dumps, kwargs) first");
+        PyErr_SetString(PyExc_RuntimeError, "encode: configure(dumps, kwargs, loads) first");
         return NULL;
     }
     Buf b = {NULL, 0, 0};
@@ -239,22 +240,228 @@ static PyObject *encode(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) 
     return out;
 }
 
+/* ---- reading: decode(program, data) -> dict (ros1.py's _reader and decoder's decode, the same values) ---- */
+
+static PyObject *g_loads = NULL;
+
+static PyObject *bad(const char *what) {
+    PyErr_Format(PyExc_ValueError, "not a message of its ros1 schema: %s", what);
+    return NULL;
+}
+
+static int take_u32(const unsigned char *p, Py_ssize_t n, Py_ssize_t *off, Py_ssize_t *out) {
+    if (*off > n - 4) {
+        bad("a count runs past the end of the message");
+        return -1;
+    }
+    uint32_t v;
+    memcpy(&v, p + *off, 4);
+#if !(defined(__BYTE_ORDER__) && __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__)
+    v = (uint32_t)p[*off] | (uint32_t)p[*off + 1] << 8 | (uint32_t)p[*off + 2] << 16 | (uint32_t)p[*off + 3] << 24;
+#endif
+    *off += 4;
+    *out = (Py_ssize_t)v;
+    return 0;
+}
+
+static inline uint64_t from_le(const unsigned char *q) {
+    uint64_t u;
+#if defined(__BYTE_ORDER__) && __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__
+    memcpy(&u, q, 8);
+#else
+    u = 0;
+    for (int i = 7; i >= 0; i--) u = u << 8 | q[i];
+#endif
+    return u;
+}
+
+static PyObject *get(const unsigned char *p, Py_ssize_t n, Py_ssize_t *off, PyObject *program) {
+    if (!PyTuple_Check(program) || PyTuple_GET_SIZE(program) != 2 || !PyTuple_Check(PyTuple_GET_ITEM(program, 0))) {
+        PyErr_SetString(PyExc_TypeError, "decode: a program is (fields, rest)");
+        return NULL;
+    }
+    PyObject *fields = PyTuple_GET_ITEM(program, 0);
+    int rest = PyObject_IsTrue(PyTuple_GET_ITEM(program, 1));
+    if (rest < 0) return NULL;
+    PyObject *out = PyDict_New();
+    if (!out) return NULL;
+    Py_ssize_t nf = PyTuple_GET_SIZE(fields);
+    for (Py_ssize_t i = 0; i < nf; i++) {
+        PyObject *f = PyTuple_GET_ITEM(fields, i);
+        if (!PyTuple_Check(f) || PyTuple_GET_SIZE(f) != 3) {
+            PyErr_SetString(PyExc_TypeError, "decode: a field is (key, kind, sub-program)");
+            goto fail;
+        }
+        PyObject *key = PyTuple_GET_ITEM(f, 0), *sub = PyTuple_GET_ITEM(f, 2), *v = NULL;
+        long kind = PyLong_AsLong(PyTuple_GET_ITEM(f, 1));
+        if (kind == -1 && PyErr_Occurred()) goto fail;
+        switch (kind) {
+        case F64:
+        case I64:
+            if (*off > n - 8) {
+                bad("a number runs past the end of the message");
+                goto fail;
+            }
+            if (kind == F64) {
+                uint64_t u = from_le(p + *off);
+                double d;
+                memcpy(&d, &u, 8);
+                v = PyFloat_FromDouble(d);
+            } else {
+                v = PyLong_FromLongLong((long long)from_le(p + *off));
+            }
+            *off += 8;
+            break;
+        case BOOL_:
+            if (*off > n - 1) {
+                bad("a bool runs past the end of the message");
+                goto fail;
+            }
+            v = PyBool_FromLong(p[(*off)++] != 0);
+            break;
+        case STR: {
+            Py_ssize_t len;
+            if (take_u32(p, n, off, &len)) goto fail;
+            if (len > n - *off) {
+                bad("a string runs past the end of the message");
+                goto fail;
+            }
+            v = PyUnicode_DecodeUTF8((const char *)p + *off, len, "strict");
+            if (!v) { /* UnicodeDecodeError: a ValueError, as the Python version's */
+                PyObject *type, *value, *tb;
+                PyErr_Fetch(&type, &value, &tb);
+                Py_XDECREF(type);
+                Py_XDECREF(tb);
+                PyObject *text = value ? PyObject_Str(value) : NULL;
+                Py_XDECREF(value);
+                PyErr_Format(PyExc_ValueError, "not a message of its ros1 schema: %S", text ? text : Py_None);
+                Py_XDECREF(text);
+                goto fail;
+            }
+            *off += len;
+            break;
+        }
+        case F64S: {
+            Py_ssize_t len;
+            if (take_u32(p, n, off, &len)) goto fail;
+            if (len > (n - *off) / 8) {
+                bad("a float64[] runs past the end of the message");
+                goto fail;
+            }
+            v = PyList_New(len);
+            if (!v) goto fail;
+            for (Py_ssize_t j = 0; j < len; j++) {
+                uint64_t u = from_le(p + *off + 8 * j);
+                double d;
+                memcpy(&d, &u, 8);
+                PyObject *x = PyFloat_FromDouble(d);
+                if (!x) {
+                    Py_DECREF(v);
+                    goto fail;
+                }
+                PyList_SET_ITEM(v, j, x);
+            }
+            *off += 8 * len;
+            break;
+        }
+        case OBJ:
+            v = get(p, n, off, sub);
+            break;
+        case OBJS: {
+            Py_ssize_t len;
+            if (take_u32(p, n, off, &len)) goto fail;
+            v = PyList_New(0); /* (a count past the data fails at its first object, as in Python) */
+            for (Py_ssize_t j = 0; v && j < len; j++) {
+                PyObject *item = get(p, n, off, sub);
+                if (!item || PyList_Append(v, item) < 0) {
+                    Py_XDECREF(item);
+                    Py_CLEAR(v);
+                    break;
+                }
+                Py_DECREF(item);
+            }
+            break;
+        }
+        default:
+            PyErr_Format(PyExc_TypeError, "decode: unknown field kind %ld", kind);
+            goto fail;
+        }
+        if (!v) goto fail;
+        int err = PyDict_SetItem(out, key, v);
+        Py_DECREF(v);
+        if (err < 0) goto fail;
+    }
+    if (rest) {
+        Py_ssize_t len;
+        if (take_u32(p, n, off, &len)) goto fail;
+        if (len) {
+            if (len > n - *off) {
+                bad("the JSON part runs past the end of the message");
+                goto fail;
+            }
+            PyObject *text = PyBytes_FromStringAndSize((const char *)p + *off, len);
+            PyObject *extra = text ? PyObject_CallOneArg(g_loads, text) : NULL;
+            Py_XDECREF(text);
+            if (!extra) goto fail;
+            if (!PyDict_Check(extra)) {
+                Py_DECREF(extra);
+                PyErr_SetString(PyExc_ValueError, "json_rest is not a JSON object");
+                goto fail;
+            }
+            int err = PyDict_Update(out, extra);
+            Py_DECREF(extra);
+            if (err < 0) goto fail;
+            *off += len;
+        }
+    }
+    return out;
+fail:
+    Py_DECREF(out);
+    return NULL;
+}
+
+static PyObject *decode(PyObject *mod, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "decode(program, data)");
+        return NULL;
+    }
+    if (!g_loads) {
+        PyErr_SetString(PyExc_RuntimeError, "decode: configure(dumps, kwargs, loads) first");
+        return NULL;
+    }
+    Py_buffer view;
+    if (PyObject_GetBuffer(args[1], &view, PyBUF_SIMPLE) < 0) return NULL;
+    Py_ssize_t off = 0;
+    PyObject *out = get((const unsigned char *)view.buf, view.len, &off, args[0]);
+    if (out && off != view.len) {
+        Py_DECREF(out);
+        out = NULL;
+        PyErr_Format(PyExc_ValueError, "not a message of its ros1 schema: %zd byte(s) after its end", view.len - off);
+    }
+    PyBuffer_Release(&view);
+    return out;
+}
+
 static PyObject *configure(PyObject *mod, PyObject *args) {
-    PyObject *dumps, *kwargs;
-    if (!PyArg_ParseTuple(args, "OO!", &dumps, &PyDict_Type, &kwargs)) return NULL;
-    if (!PyCallable_Check(dumps)) {
-        PyErr_SetString(PyExc_TypeError, "configure: dumps must be callable");
+    PyObject *dumps, *kwargs, *loads;
+    if (!PyArg_ParseTuple(args, "OO!O", &dumps, &PyDict_Type, &kwargs, &loads)) return NULL;
+    if (!PyCallable_Check(dumps) || !PyCallable_Check(loads)) {
+        PyErr_SetString(PyExc_TypeError, "configure: dumps and loads must be callable");
         return NULL;
     }
     Py_XSETREF(g_dumps, Py_NewRef(dumps));
     Py_XSETREF(g_kwargs, Py_NewRef(kwargs));
+    Py_XSETREF(g_loads, Py_NewRef(loads));
     Py_RETURN_NONE;
 }
 
 static PyMethodDef methods[] = {
     {"encode", (PyCFunction)(void (*)(void))encode, METH_FASTCALL,
      "encode(program, payload) -> bytes | None: the payload's ROS 1 bytes (ros1.py's encode)"},
-    {"configure", configure, METH_VARARGS, "configure(dumps, kwargs): how optional keys become JSON"},
+    {"decode", (PyCFunction)(void (*)(void))decode, METH_FASTCALL,
+     "decode(program, data) -> dict: the payload of ROS 1 bytes (ros1.py's decoder); ValueError if they are not one"},
+    {"configure", configure, METH_VARARGS,
+     "configure(dumps, kwargs, loads): how optional keys become JSON and are read back"},
     {NULL, NULL, 0, NULL},
 };
 

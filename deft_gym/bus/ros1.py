@@ -219,7 +219,7 @@ def _put(program: Program, obj: Any, out: bytearray) -> bool:  # compiled in _ro
 
 _kernel = None if _ros1_c is None or os.environ.get("DEFT_GYM_PURE_PYTHON") else _ros1_c.encode
 if _kernel is not None:
-    _ros1_c.configure(orjson.dumps, {"default": _default, "option": _OPTS})
+    _ros1_c.configure(orjson.dumps, {"default": _default, "option": _OPTS}, decode_json)
 #: :func:`encode` without the Python call in front where it is compiled (the recorder's tap calls it)
 encode_fast: Callable[[Program, Any], bytes | None] = _kernel or encode
 
@@ -306,7 +306,7 @@ def _reader(layout: Layout) -> Callable[[memoryview, int], tuple[dict[str, Any],
                 (n,) = u32(buf, off)
                 off += 4
                 if off + n > len(buf):
-                    raise ValueError("a string runs past the end of the message")
+                    raise ValueError("not a message of its ros1 schema: a string runs past the end of the message")
                 out[key] = str(buf[off:off + n], "utf-8")
                 off += n
             elif kind == OBJ:
@@ -324,7 +324,7 @@ def _reader(layout: Layout) -> Callable[[memoryview, int], tuple[dict[str, Any],
             off += 4
             if n:
                 if off + n > len(buf):
-                    raise ValueError("the JSON part runs past the end of the message")
+                    raise ValueError("not a message of its ros1 schema: the JSON part runs past the end of the message")
                 extra = decode_json(bytes(buf[off:off + n]))
                 if type(extra) is not dict:
                     raise ValueError(f"{REST_FIELD} is not a JSON object")
@@ -338,8 +338,22 @@ def _reader(layout: Layout) -> Callable[[memoryview, int], tuple[dict[str, Any],
 @lru_cache(maxsize=64)
 def decoder(definition: bytes) -> Callable[[bytes], dict[str, Any]]:
     """The function decoding messages of a ``ros1msg`` schema text (cached per text); it raises
-    ValueError for bytes that are not one whole message of it."""
-    read = _reader(parse_definition(definition))
+    ValueError for bytes that are not one whole message of it. Compiled in ``_ros1_c`` (the same
+    values)."""
+    layout = parse_definition(definition)
+    if _kernel is not None:
+        program, kernel_decode = layout.program, _ros1_c.decode
+
+        def decode_compiled(data: bytes) -> dict[str, Any]:
+            return kernel_decode(program, data)
+
+        return decode_compiled
+    return python_decoder(layout)
+
+
+def python_decoder(layout: Layout) -> Callable[[bytes], dict[str, Any]]:  # compiled in _ros1_c.c
+    """:func:`decoder`'s Python version, for ``layout``."""
+    read = _reader(layout)
 
     def decode(data: bytes) -> dict[str, Any]:
         buf = memoryview(data)

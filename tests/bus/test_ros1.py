@@ -120,6 +120,35 @@ def test_random_payloads_round_trip_bit_exactly_and_c_matches_python() -> None:
                 assert ros1.encode(program, q) is None and _python(program, q) is None, i
 
 
+def test_the_compiled_decoder_gives_the_python_values_and_refuses_what_python_refuses() -> None:
+    """Random payloads, then every prefix of some and 2,000 single-byte corruptions: the compiled
+    decoder and the Python one give the same values (floats bit for bit) or both ValueError."""
+    rng = random.Random(11)
+    layout = LAYOUTS["prediction"]
+    compiled, python = ros1.decoder(layout.definition()), ros1.python_decoder(layout)
+    assert compiled is not python
+
+    def outcome(decode, data):
+        try:
+            return decode(data)
+        except ValueError:
+            return ValueError
+
+    for i in range(200):
+        data = ros1.encode(layout.program, _prediction(rng, rng.randint(0, 4)))
+        assert same_values(compiled(data), python(data))
+        cuts = range(len(data)) if i < 3 else [rng.randrange(len(data))]
+        for k in cuts:
+            got = outcome(compiled, data[:k])
+            assert got is ValueError and outcome(python, data[:k]) is ValueError
+        for _ in range(10):
+            bad = bytearray(data)
+            bad[rng.randrange(len(bad))] = rng.randrange(256)
+            a, b = outcome(compiled, bytes(bad)), outcome(python, bytes(bad))
+            assert (a is ValueError and b is ValueError) or same_values(a, b)
+        assert outcome(compiled, data + b"\0") is ValueError
+
+
 def test_the_compiled_encoder_is_the_one_in_use() -> None:
     """The kernel is built and current (make test builds it): otherwise this file tests Python alone."""
     assert ros1._kernel is not None and ros1.encode_fast is ros1._ros1_c.encode
