@@ -342,7 +342,8 @@ class _Scan:
         ch = Channel.read(ReadDataStream(io.BytesIO(buf[body:stop])))
         self.roles[ch.topic] = ch.metadata.get("role", "")
         self.chan_topic[ch.id] = ch.topic
-        self.chan_decode[ch.id] = _binary_decoder(ch, self.schemas)
+        # (a schema this scan has not seen, in a damaged chunk: the summary's decoder stands)
+        self.chan_decode[ch.id] = _binary_decoder(ch, self.schemas) or self.chan_decode.get(ch.id)
 
     def _schema(self, buf: bytes, body: int, stop: int) -> None:
         """A schema record (the first of each id counts: the summary's repeat them). One that does

@@ -17,8 +17,8 @@ same values (every float bit for bit) and re-encoding them as JSON gives the JSO
 have held (:func:`json_bytes`; the behaviour digests are taken over it). Anything else (an
 injected exceptional value of another type, an int where a float belongs, a numpy value, a
 non-finite float in the JSON part) makes :func:`encode` return None, and the recorder writes that
-message as JSON on a JSON channel of the same topic. Encoding is compiled in ``_ros1_c`` (the same
-bytes; this file is the Python version).
+message as JSON on a JSON channel of the same topic. Encoding and decoding (:func:`decoder`) are
+compiled in ``_ros1_c`` (the same bytes and values; this file is the Python version).
 """
 
 from __future__ import annotations
