@@ -10,7 +10,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 BROWSER_STAMP := $(VENV)/.browser
 
-.PHONY: venv demo test test-slow test-browser browser bench lint clean check-python
+.PHONY: venv demo test test-slow test-browser browser test-foxglove foxglove bench lint clean check-python
 
 venv: $(STAMP)
 
@@ -64,6 +64,19 @@ $(BROWSER_STAMP): $(STAMP)
 test-browser: $(BROWSER_STAMP)
 	$(PY) -m pytest -q -m slow tests/cli/test_scene_render_report.py -k browser
 
+# the binary logs read by Foxglove's own ROS 1 libraries (Node.js, from the npm registry)
+FOXGLOVE_STAMP := .foxglove/.installed
+foxglove: $(FOXGLOVE_STAMP)
+
+$(FOXGLOVE_STAMP):
+	command -v npm >/dev/null || { echo "error: npm (Node.js) is needed for make foxglove" >&2; exit 2; }
+	npm install --silent --no-save --prefix .foxglove @foxglove/rosmsg@5.0.5 \
+	  @foxglove/rosmsg-serialization@2.0.4 tslib@2.9.1
+	touch $(FOXGLOVE_STAMP)
+
+test-foxglove: $(STAMP) $(FOXGLOVE_STAMP)
+	$(PY) -m pytest -q -m slow tests/bus/test_ros1.py -k foxglove
+
 bench: $(STAMP)
 	$(PY) -m deft_gym.cli.bench --repeats 15 --out runs/bench.json
 
@@ -71,4 +84,4 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf $(VENV) runs/demo build deft_gym/*/*.so
+	rm -rf $(VENV) runs/demo build deft_gym/*/*.so .foxglove

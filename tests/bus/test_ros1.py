@@ -291,3 +291,39 @@ def test_the_foxglove_layout_reads_fields_the_log_has(tmp_path: Path) -> None:
             if index is not None:
                 value = value[int(index)]
         assert value is not None, path
+
+
+FOXGLOVE_JS = Path(__file__).resolve().parents[1] / "support" / "foxglove_ros1.js"
+FOXGLOVE_MODULES = Path(__file__).resolve().parents[2] / ".foxglove" / "node_modules"
+
+
+@pytest.mark.slow
+def test_foxglove_reads_every_binary_message_as_deft_gym_does(tmp_path: Path) -> None:
+    """Foxglove's own ROS 1 parser and reader (@foxglove/rosmsg, @foxglove/rosmsg-serialization:
+    `make foxglove` installs them) read every binary message of a recorded run to deft_gym's
+    values. Slow and needs Node.js: `make test-foxglove`."""
+    import base64
+    import json
+    import shutil
+    import subprocess
+
+    from deft_gym.bus.ros1 import ChannelDecoders
+    from deft_gym.sim.simulation import run_episode
+
+    node = shutil.which("node")
+    if node is None or not (FOXGLOVE_MODULES / "@foxglove" / "rosmsg-serialization").is_dir():
+        pytest.skip("Node.js and Foxglove's ROS 1 libraries are not installed (make foxglove)")
+    run_episode("left_turn", jitter_seed=7, out_dir=tmp_path, keep_planning=False)
+    out: dict = {"schemas": {}, "messages": []}
+    decoders = ChannelDecoders()
+    with open(tmp_path / "episode.mcap", "rb") as f:
+        for sc, ch, m in make_reader(f).iter_messages():
+            if ch.message_encoding == "ros1":
+                out["schemas"][sc.name] = sc.data.decode()
+                out["messages"].append({"schema": sc.name, "data": base64.b64encode(m.data).decode(),
+                                        "ours": base64.b64encode(decoders.json(sc, ch, m.data)).decode()})
+    (tmp_path / "messages.json").write_text(json.dumps(out))
+    run = subprocess.run([node, str(FOXGLOVE_JS), str(tmp_path / "messages.json")], capture_output=True, text=True,
+                         env={"NODE_PATH": str(FOXGLOVE_MODULES), "PATH": ""}, timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert f"{len(out['messages'])} of {len(out['messages'])} messages" in run.stdout and len(out["schemas"]) == 7
