@@ -3,6 +3,7 @@
     deft-gym bench [--scenario bench_highway] [--repeats 3]      # -> runs/bench.json
     deft-gym bench --metrics left_turn right_turn --repeats 2 --out runs/bench_metrics.json
     deft-gym bench --commonroad handwritten/stopped_bus left_turn --out runs/bench_commonroad.json
+    deft-gym bench --recording-only --repeats 40 --out runs/bench_recording.json
 
 Measures simulated seconds per wall second (one simulation process) of
 
@@ -209,6 +210,9 @@ def build_parser() -> common.Parser:
     ap.add_argument("--commonroad", nargs="+", default=None, metavar="SCENARIO",
                     help="instead: CPU of CommonRoad's planner on these scenarios, its kinematic check vectorised "
                     "and the library's loop, --repeats jitter seeds each, and whether the outputs are identical")
+    ap.add_argument("--recording-only", action="store_true",
+                    help="instead: only the recording overhead, binary and all-JSON logs against unrecorded runs, "
+                    "--repeats interleaved triplets (about 3x faster per repeat: use --repeats 40 on a noisy machine)")
     common.add_out(ap, common.RUNS / "bench.json", help="JSON file for the figures", folder=False)
     common.add_output_flags(ap)
     return ap
@@ -250,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
             console.print(f"wrote {args.out}")
         return 0 if cost["all_identical"] else 1
     sc = load_scenario(args.scenario)
+    if args.recording_only:
+        return _recording_only(sc, args, console)
     ads = load_ads_config()
     n_part = len(sc.participants)
     evaluation = "numpy" if lattice._lattice_c is None else "compiled (C)"
@@ -357,6 +363,41 @@ def main(argv: list[str] | None = None) -> int:
                                                  "planner_evaluation": evaluation,
                                                  "runs": {**runs, "breakdown": first}},
                                                 indent=2))
+    return 0
+
+
+def recording_overhead(scenario: Any, repeats: int, progress: Any = None) -> dict[str, Any]:
+    """CPU of both processes over the unrecorded run's, for binary and all-JSON logs: ``repeats``
+    triplets (unrecorded, binary, JSON) paired by jitter seed, their order rotated from one
+    repeat to the next; per encoding the median paired ratio and its bootstrap 95 % interval."""
+    modes = [("unrecorded", None, None), ("binary", "process", None), ("json", "process", "json")]
+    cpu: dict[str, list[float]] = {m: [] for m, _, _ in modes}
+    stack_speed(scenario, "process", seed=repeats)  # warm-up (caches, the recorder process), not timed
+    for i in range(repeats):
+        for name, recorder, encoding in modes[i % 3:] + modes[:i % 3]:
+            r = stack_speed(scenario, recorder, seed=i, encoding=encoding)
+            cpu[name].append(r["cpu"] + r["recorder_cpu"])
+        if progress is not None:
+            progress()
+    out: dict[str, Any] = {"repeats": repeats, "cpu_s": cpu}
+    for name in ("binary", "json"):
+        ratios = [r / n - 1.0 for r, n in zip(cpu[name], cpu["unrecorded"], strict=True)]
+        out[name] = {"median": statistics.median(ratios), "ci95": median_interval(ratios)}
+    out["binary_lower_in"] = sum(b < j for b, j in zip(cpu["binary"], cpu["json"], strict=True))
+    return out
+
+
+def _recording_only(sc: Any, args: Any, console: Any) -> int:
+    with common.bar(args, args.repeats, "recording triplets") as bar:
+        res = recording_overhead(sc, args.repeats, bar.update)
+    for name, what in (("binary", "binary payloads (the default)"), ("json", "every topic JSON")):
+        console.print(f"[bold]recording CPU, {what}: {100 * res[name]['median']:+.1f} %[/bold] "
+                      f"{_interval_text(res[name]['ci95'], args.repeats)}", highlight=False)
+    console.print(f"binary below JSON in {res['binary_lower_in']} of {args.repeats} pairs; target <= 10 % CPU",
+                  highlight=False)
+    if args.out:
+        write_atomic(Path(args.out), json.dumps(res, indent=2))
+        console.print(f"wrote {args.out}")
     return 0
 
 
