@@ -87,6 +87,32 @@ def test_deadline_context_manager() -> None:
         sum(range(1000))
 
 
+def test_a_deadline_that_lands_in_a_destructor_is_raised_after_it_not_lost() -> None:
+    """Python drops an exception raised in ``__del__`` ("Exception ignored in ..."): a deadline that
+    fired there used to vanish, and the computation ran on unguarded (seen as a warning in the
+    harness test above). It now fires again just after the destructor returns."""
+    import gc
+    import warnings
+
+    import pytest
+
+    class Slow:
+        def __del__(self) -> None:
+            t = time.process_time()
+            while time.process_time() - t < 0.3:  # the whole 0.1 s deadline passes in here
+                pass
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an exception ignored in __del__ would be an error here
+        t0 = time.process_time()
+        with pytest.raises(DeadlineExceeded), deadline(0.1):
+            obj = Slow()
+            del obj  # the destructor runs now and spends the deadline
+            gc.collect()
+            while time.process_time() - t0 < 2.0:  # a lost deadline: out of here, DID NOT RAISE
+                pass
+
+
 def test_a_computing_module_is_left_to_the_cpu_deadline_when_the_wall_budget_runs_out(monkeypatch) -> None:
     """A loaded machine makes a spinning computation run past its wall budget before it has used
     its CPU deadline; it is still the CPU deadline's hang (reason deadline), not a blocked one,
