@@ -106,6 +106,17 @@ class CountingInterrupts:
                 signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+def in_destructor(frame: Any) -> bool:
+    """Whether a signal handler's ``frame`` is in a ``__del__`` (or code it called): Python prints
+    and drops an exception raised there, so a timeout raised then would be lost and the call
+    would run on unwatched; the handlers raise it after the destructor instead."""
+    while frame is not None:
+        if frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
 def interrupts() -> int:
     """How many Ctrl-C (SIGINT) this process received while a heartbeat counted them."""
     return _INTERRUPTS[0]
@@ -194,6 +205,8 @@ class Watchdog:
     def _beat(self, signum: int, frame: Any) -> None:
         if not self._active:
             return
+        if in_destructor(frame):  # the next beat raises it, after the destructor
+            return
         now = time.perf_counter()
         if self.total_s and not self.expired and self._t0 != float("inf") and \
                 self._used + now - self._t0 >= self.total_s:
@@ -248,6 +261,7 @@ __all__ = [
     "apply_env",
     "carried_env",
     "describe_exception",
+    "in_destructor",
     "interrupts",
     "module_fault",
     "run_wall_seconds",

@@ -28,6 +28,7 @@ from deft_gym.bus.messages import NS_PER_S
 from deft_gym.execution.watchdog import (
     ENV,
     CountingInterrupts,
+    in_destructor,
     interrupts,
     module_fault,
     watchdog_seconds,
@@ -59,19 +60,8 @@ class WallDeadlineExceeded(DeadlineExceeded):
 _RETRY_S = 0.001  # [s] how soon a deadline that landed in a destructor fires again
 
 
-def _in_destructor(frame: Any) -> bool:
-    """Whether the signal interrupted a ``__del__`` (or code it called): Python prints and drops an
-    exception raised there, so a deadline raised then would be lost and the computation would run
-    on unguarded."""
-    while frame is not None:
-        if frame.f_code.co_name == "__del__":
-            return True
-        frame = frame.f_back
-    return False
-
-
 def _raise_deadline(signum: int, frame: Any) -> None:
-    if _in_destructor(frame):  # raised after the destructor, not lost in it
+    if in_destructor(frame):  # raised after the destructor, not lost in it
         signal.setitimer(_TIMER, _RETRY_S)
         return
     raise DeadlineExceeded()
@@ -95,7 +85,7 @@ def _raise_wall_deadline(signum: int, frame: Any) -> None:
     if time.process_time() - cpu0 > COMPUTING_SHARE * (time.perf_counter() - wall0):
         signal.setitimer(signal.ITIMER_REAL, budget)
         return
-    if _in_destructor(frame):  # raised after the destructor, not lost in it
+    if in_destructor(frame):  # raised after the destructor, not lost in it
         signal.setitimer(signal.ITIMER_REAL, _RETRY_S)
         return
     raise WallDeadlineExceeded()

@@ -90,6 +90,32 @@ def test_a_call_that_blocks_is_the_watchdogs_hang_and_the_child_is_killed() -> N
         h.call("add", 1)
 
 
+def test_a_hang_noticed_inside_a_destructor_is_raised_after_it_not_lost() -> None:
+    """Python drops an exception raised in ``__del__``: a ModuleHang raised there used to be lost,
+    and with it the call's one interruption (the call then ran on unwatched). The next heartbeat
+    raises it once the destructor has returned."""
+    import gc
+    import warnings
+
+    class SlowToDie:
+        def __del__(self) -> None:
+            time.sleep(0.6)  # the 0.3 s limit passes in here
+
+    def module() -> None:
+        obj = SlowToDie()
+        del obj
+        gc.collect()
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < 3.0:  # a lost hang: returns, DID NOT RAISE
+            pass
+
+    dog = Watchdog(0.3, 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an exception ignored in __del__ would be an error here
+        with dog.armed(), pytest.raises(ModuleHang):
+            dog.call(module)
+
+
 def test_construction_errors_and_unpicklable_results_are_reported() -> None:
     def broken() -> Thing:
         raise ValueError("bad params")
