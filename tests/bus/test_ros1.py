@@ -150,7 +150,9 @@ def test_the_compiled_decoder_gives_the_python_values_and_refuses_what_python_re
 
 
 def test_the_compiled_encoder_is_the_one_in_use() -> None:
-    """The kernel is built and current (make test builds it): otherwise this file tests Python alone."""
+    """The kernel is built and current (make test builds it): otherwise this file tests Python alone.
+    (Skipped only where it could not be built at all: the build is optional.)"""
+    pytest.importorskip("deft_gym.bus._ros1_c")
     assert ros1._kernel is not None and ros1.encode_fast is ros1._ros1_c.encode
 
 
