@@ -46,6 +46,54 @@ static inline void le(unsigned char *p, uint64_t v, int n) {
 #endif
 }
 
+/* a double's 8 bytes, little-endian, at q / read back from q */
+static inline void store_f64(unsigned char *q, double d) {
+    uint64_t u;
+    memcpy(&u, &d, 8);
+    le(q, u, 8);
+}
+
+static inline uint64_t from_le(const unsigned char *q) {
+    uint64_t u;
+#if defined(__BYTE_ORDER__) && __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__
+    memcpy(&u, q, 8);
+#else
+    u = 0;
+    for (int i = 7; i >= 0; i--) u = u << 8 | q[i];
+#endif
+    return u;
+}
+
+static inline double load_f64(const unsigned char *q) {
+    uint64_t u = from_le(q);
+    double d;
+    memcpy(&d, &u, 8);
+    return d;
+}
+
+/* a program's (fields, rest) and a field's (key, kind, sub-program), as encode and decode both walk
+ * them; `exc` and `who` name the error of a malformed one (0 on success, -1 with it set) */
+static int program_parts(PyObject *program, PyObject *exc, const char *who, PyObject **fields, int *rest) {
+    if (!PyTuple_Check(program) || PyTuple_GET_SIZE(program) != 2 || !PyTuple_Check(PyTuple_GET_ITEM(program, 0))) {
+        PyErr_Format(exc, "%s: a program is (fields, rest)", who);
+        return -1;
+    }
+    *fields = PyTuple_GET_ITEM(program, 0);
+    *rest = PyObject_IsTrue(PyTuple_GET_ITEM(program, 1));
+    return *rest < 0 ? -1 : 0;
+}
+
+static int field_parts(PyObject *f, PyObject *exc, const char *who, PyObject **key, long *kind, PyObject **sub) {
+    if (!PyTuple_Check(f) || PyTuple_GET_SIZE(f) != 3) {
+        PyErr_Format(exc, "%s: a field is (key, kind, sub-program)", who);
+        return -1;
+    }
+    *key = PyTuple_GET_ITEM(f, 0);
+    *sub = PyTuple_GET_ITEM(f, 2);
+    *kind = PyLong_AsLong(PyTuple_GET_ITEM(f, 1));
+    return *kind == -1 && PyErr_Occurred() ? -1 : 0;
+}
+
 static int put_u32(Buf *b, Py_ssize_t v) {
     if (v < 0 || (uint64_t)v > 0xFFFFFFFFu) return 0; /* struct.error in Python: does not fit */
     if (reserve(b, 4)) return -1;
@@ -55,10 +103,8 @@ static int put_u32(Buf *b, Py_ssize_t v) {
 }
 
 static int put_f64(Buf *b, double d) {
-    uint64_t u;
-    memcpy(&u, &d, 8);
     if (reserve(b, 8)) return -1;
-    le(b->p + b->n, u, 8);
+    store_f64(b->p + b->n, d);
     b->n += 8;
     return 1;
 }
@@ -113,27 +159,18 @@ static int put_rest(Buf *b, PyObject *obj, Py_ssize_t pos) {
 }
 
 static int put(Buf *b, PyObject *program, PyObject *obj) {
-    if (!PyTuple_Check(program) || PyTuple_GET_SIZE(program) != 2 || !PyTuple_Check(PyTuple_GET_ITEM(program, 0))) {
-        PyErr_SetString(PyExc_ValueError, "encode: a program is (fields, rest)");
-        return -1;
-    }
-    PyObject *fields = PyTuple_GET_ITEM(program, 0);
-    int rest = PyObject_IsTrue(PyTuple_GET_ITEM(program, 1));
-    if (rest < 0) return -1;
+    PyObject *fields;
+    int rest;
+    if (program_parts(program, PyExc_ValueError, "encode", &fields, &rest)) return -1;
     if (!PyDict_CheckExact(obj)) return 0;
     Py_ssize_t nf = PyTuple_GET_SIZE(fields), nd = PyDict_GET_SIZE(obj);
     if (nd < nf || (!rest && nd != nf)) return 0;
     Py_ssize_t pos = 0;
     PyObject *k, *v;
     for (Py_ssize_t i = 0; i < nf; i++) {
-        PyObject *f = PyTuple_GET_ITEM(fields, i);
-        if (!PyTuple_Check(f) || PyTuple_GET_SIZE(f) != 3) {
-            PyErr_SetString(PyExc_ValueError, "encode: a field is (key, kind, sub-program)");
-            return -1;
-        }
-        PyObject *key = PyTuple_GET_ITEM(f, 0), *sub = PyTuple_GET_ITEM(f, 2);
-        long kind = PyLong_AsLong(PyTuple_GET_ITEM(f, 1));
-        if (kind == -1 && PyErr_Occurred()) return -1;
+        PyObject *key, *sub;
+        long kind;
+        if (field_parts(PyTuple_GET_ITEM(fields, i), PyExc_ValueError, "encode", &key, &kind, &sub)) return -1;
         if (!PyDict_Next(obj, &pos, &k, &v)) return 0;
         if (k != key) {
             int ne = PyObject_RichCompareBool(k, key, Py_NE);
@@ -182,10 +219,7 @@ static int put(Buf *b, PyObject *program, PyObject *obj) {
             for (Py_ssize_t j = 0; j < n; j++, q += 8) {
                 PyObject *x = PyList_GET_ITEM(v, j);
                 if (!PyFloat_CheckExact(x)) return 0;
-                double d = PyFloat_AS_DOUBLE(x);
-                uint64_t u;
-                memcpy(&u, &d, 8);
-                le(q, u, 8);
+                store_f64(q, PyFloat_AS_DOUBLE(x));
             }
             b->n += 8 * n;
             break;
@@ -264,37 +298,17 @@ static int take_u32(const unsigned char *p, Py_ssize_t n, Py_ssize_t *off, Py_ss
     return 0;
 }
 
-static inline uint64_t from_le(const unsigned char *q) {
-    uint64_t u;
-#if defined(__BYTE_ORDER__) && __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__
-    memcpy(&u, q, 8);
-#else
-    u = 0;
-    for (int i = 7; i >= 0; i--) u = u << 8 | q[i];
-#endif
-    return u;
-}
-
 static PyObject *get(const unsigned char *p, Py_ssize_t n, Py_ssize_t *off, PyObject *program) {
-    if (!PyTuple_Check(program) || PyTuple_GET_SIZE(program) != 2 || !PyTuple_Check(PyTuple_GET_ITEM(program, 0))) {
-        PyErr_SetString(PyExc_TypeError, "decode: a program is (fields, rest)");
-        return NULL;
-    }
-    PyObject *fields = PyTuple_GET_ITEM(program, 0);
-    int rest = PyObject_IsTrue(PyTuple_GET_ITEM(program, 1));
-    if (rest < 0) return NULL;
+    PyObject *fields;
+    int rest;
+    if (program_parts(program, PyExc_TypeError, "decode", &fields, &rest)) return NULL;
     PyObject *out = PyDict_New();
     if (!out) return NULL;
     Py_ssize_t nf = PyTuple_GET_SIZE(fields);
     for (Py_ssize_t i = 0; i < nf; i++) {
-        PyObject *f = PyTuple_GET_ITEM(fields, i);
-        if (!PyTuple_Check(f) || PyTuple_GET_SIZE(f) != 3) {
-            PyErr_SetString(PyExc_TypeError, "decode: a field is (key, kind, sub-program)");
-            goto fail;
-        }
-        PyObject *key = PyTuple_GET_ITEM(f, 0), *sub = PyTuple_GET_ITEM(f, 2), *v = NULL;
-        long kind = PyLong_AsLong(PyTuple_GET_ITEM(f, 1));
-        if (kind == -1 && PyErr_Occurred()) goto fail;
+        PyObject *key, *sub, *v = NULL;
+        long kind;
+        if (field_parts(PyTuple_GET_ITEM(fields, i), PyExc_TypeError, "decode", &key, &kind, &sub)) goto fail;
         switch (kind) {
         case F64:
         case I64:
@@ -303,10 +317,7 @@ static PyObject *get(const unsigned char *p, Py_ssize_t n, Py_ssize_t *off, PyOb
                 goto fail;
             }
             if (kind == F64) {
-                uint64_t u = from_le(p + *off);
-                double d;
-                memcpy(&d, &u, 8);
-                v = PyFloat_FromDouble(d);
+                v = PyFloat_FromDouble(load_f64(p + *off));
             } else {
                 v = PyLong_FromLongLong((long long)from_le(p + *off));
             }
@@ -351,10 +362,7 @@ static PyObject *get(const unsigned char *p, Py_ssize_t n, Py_ssize_t *off, PyOb
             v = PyList_New(len);
             if (!v) goto fail;
             for (Py_ssize_t j = 0; j < len; j++) {
-                uint64_t u = from_le(p + *off + 8 * j);
-                double d;
-                memcpy(&d, &u, 8);
-                PyObject *x = PyFloat_FromDouble(d);
+                PyObject *x = PyFloat_FromDouble(load_f64(p + *off + 8 * j));
                 if (!x) {
                     Py_DECREF(v);
                     goto fail;
