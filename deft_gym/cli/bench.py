@@ -61,36 +61,32 @@ def stack_speed(scenario: Any, recorder: str | None, seed: int, breakdown: bool 
     charged for it."""
     from deft_gym.bus.ads import load_ads_config
     from deft_gym.bus.bus import TimingSupervisor
+    from deft_gym.execution.watchdog import apply_env
     from deft_gym.sim.simulation import Simulation
 
     ads = load_ads_config()
-    saved = os.environ.get("DEFT_GYM_SCENE_HZ")
-    saved_encoding = os.environ.pop(LOG_ENCODING_ENV, None)
-    if encoding:
-        os.environ[LOG_ENCODING_ENV] = encoding
-    if not scene:
-        os.environ["DEFT_GYM_SCENE_HZ"] = "0"
-    with tempfile.TemporaryDirectory() as tmp:
-        sim = Simulation(scenario, ads, jitter_seed=seed, out_dir=tmp if recorder in ("process", "inline") else None,
-                         keep_planning=False, recorder_process=recorder == "process")
-        if recorder == "json":
-            from deft_gym.bus.codec import encode
+    # the run's settings, restored after: the log's encoding (None: the default), no scene topics
+    changes = {LOG_ENCODING_ENV: encoding, **({} if scene else {"DEFT_GYM_SCENE_HZ": "0"})}
+    saved = {k: os.environ.get(k) for k in changes}
+    apply_env(changes)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            sim = Simulation(scenario, ads, jitter_seed=seed,
+                             out_dir=tmp if recorder in ("process", "inline") else None,
+                             keep_planning=False, recorder_process=recorder == "process")
+            if recorder == "json":
+                from deft_gym.bus.codec import encode
 
-            sim.bus.taps.append(lambda msg: encode(msg.payload))
-        sup = None
-        if breakdown:
-            sup = TimingSupervisor()
-            sim.bus.supervisor = sup
-        t0, c0 = time.perf_counter(), time.process_time()
-        r = sim.run()
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    if saved is None:
-        os.environ.pop("DEFT_GYM_SCENE_HZ", None)
-    else:
-        os.environ["DEFT_GYM_SCENE_HZ"] = saved
-    os.environ.pop(LOG_ENCODING_ENV, None)
-    if saved_encoding is not None:
-        os.environ[LOG_ENCODING_ENV] = saved_encoding
+                sim.bus.taps.append(lambda msg: encode(msg.payload))
+            sup = None
+            if breakdown:
+                sup = TimingSupervisor()
+                sim.bus.supervisor = sup
+            t0, c0 = time.perf_counter(), time.process_time()
+            r = sim.run()
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    finally:
+        apply_env(saved)
     out = {"sim": r.sim_time, "wall": wall, "cpu": cpu, "speed": r.sim_time / wall, "messages": r.messages,
            "recorder_cpu": sim.recorder.process_seconds if sim.recorder is not None else 0.0}
     if sup is not None:
@@ -108,6 +104,13 @@ def median_interval(values: list[float], confidence: float = 0.95) -> tuple[floa
     ci = bootstrap((values,), statistics.median, confidence_level=confidence, method="percentile",
                    random_state=0, vectorized=False).confidence_interval
     return float(ci.low), float(ci.high)
+
+
+def paired_overhead(values: list[float], base: list[float]) -> dict[str, Any]:
+    """Of runs paired with the unrecorded ones (same jitter seed): the overhead ``value / base - 1``
+    of each pair, their median and its bootstrap 95 % interval (:func:`median_interval`)."""
+    ratios = [v / b - 1.0 for v, b in zip(values, base, strict=True)]
+    return {"median": statistics.median(ratios), "ci95": median_interval(ratios)}
 
 
 def _interval_text(ci: tuple[float, float] | None, n: int) -> str:
@@ -292,17 +295,14 @@ def main(argv: list[str] | None = None) -> int:
                                                                                          strict=True)) - 1.0,
         "cpu_inline": statistics.median(r["cpu"] / n["cpu"] for r, n in zip(inline, norec, strict=True)) - 1.0,
         "cpu_json_only": statistics.median(r["cpu"] / n["cpu"] for r, n in zip(json_only, norec, strict=True)) - 1.0,
-        # CPU of both processes: what recording costs (the headline)
-        "cpu_both": statistics.median((r["cpu"] + r["recorder_cpu"]) / n["cpu"]
-                                      for r, n in zip(rec, norec, strict=True)) - 1.0,
-        # the same with every topic JSON (logs before the binary payloads)
-        "cpu_both_json_log": statistics.median((r["cpu"] + r["recorder_cpu"]) / n["cpu"]
-                                               for r, n in zip(json_log, norec, strict=True)) - 1.0,
     }
-    # how sure the headline is: a bootstrap interval of the median paired ratio (single runs on a
-    # shared machine drift by several per cent; more --repeats narrow it)
-    ci = {name: median_interval([(r["cpu"] + r["recorder_cpu"]) / n["cpu"] - 1.0 for r, n in zip(rs, norec, strict=True)])
-          for name, rs in (("cpu_both", rec), ("cpu_both_json_log", json_log))}
+    # CPU of both processes: what recording costs (the headline), and the same with every topic
+    # JSON (logs before the binary payloads); with how sure it is - a bootstrap interval of the
+    # median (single runs on a shared machine drift by several per cent; more --repeats narrow it)
+    both = {name: paired_overhead([r["cpu"] + r["recorder_cpu"] for r in rs], [n["cpu"] for n in norec])
+            for name, rs in (("cpu_both", rec), ("cpu_both_json_log", json_log))}
+    overhead.update({name: b["median"] for name, b in both.items()})
+    ci = {name: b["ci95"] for name, b in both.items()}
     recorder_ms = statistics.median(1e3 * r["recorder_cpu"] / r["sim"] for r in rec)
     ratio = med["stack_recording"] / med["highway_v0"]
     t = Table(title="simulated seconds per wall second (median)", title_justify="left")
@@ -381,8 +381,7 @@ def recording_overhead(scenario: Any, repeats: int, progress: Any = None) -> dic
             progress()
     out: dict[str, Any] = {"repeats": repeats, "cpu_s": cpu}
     for name in ("binary", "json"):
-        ratios = [r / n - 1.0 for r, n in zip(cpu[name], cpu["unrecorded"], strict=True)]
-        out[name] = {"median": statistics.median(ratios), "ci95": median_interval(ratios)}
+        out[name] = paired_overhead(cpu[name], cpu["unrecorded"])
     out["binary_lower_in"] = sum(b < j for b, j in zip(cpu["binary"], cpu["json"], strict=True))
     return out
 
