@@ -205,19 +205,20 @@ class Watchdog:
     def _beat(self, signum: int, frame: Any) -> None:
         if not self._active:
             return
-        if in_destructor(frame):  # the next beat raises it, after the destructor
-            return
         now = time.perf_counter()
-        if self.total_s and not self.expired and self._t0 != float("inf") and \
-                self._used + now - self._t0 >= self.total_s:
+        total = bool(self.total_s and not self.expired and self._t0 != float("inf")
+                     and self._used + now - self._t0 >= self.total_s)
+        call = bool(self.seconds and now - self._t0 >= self.seconds)
+        if not (total or call) or in_destructor(frame):  # in a destructor: the next beat raises it
+            return
+        if total:
             self.expired = True
             self._cause = "total"
             self._t0 = float("inf")
             raise ModuleHang()
-        if self.seconds and now - self._t0 >= self.seconds:
-            self._cause = "call"
-            self._t0 = float("inf")  # one interruption per call
-            raise ModuleHang()
+        self._cause = "call"
+        self._t0 = float("inf")  # one interruption per call
+        raise ModuleHang()
 
     def armed(self) -> _Heartbeat:
         """A context manager running the heartbeat (a no-op when both limits are off, or off the
