@@ -222,15 +222,13 @@ def test_a_message_that_does_not_fit_goes_as_json_on_a_second_channel(tmp_path: 
     assert raws["ros1"] == raws["json"]
 
 
-def test_a_recorded_log_reads_the_same_with_genpy(tmp_path: Path) -> None:
+def test_a_recorded_log_reads_the_same_with_genpy(lane_follow_log) -> None:
     """genpy's decoder (mcap-ros1-support, the ROS 1 reference implementation) reads every binary
     message of a recorded run to the values deft_gym's decoder gives."""
     from mcap_ros1.decoder import DecoderFactory
 
     from deft_gym.bus.ros1 import ChannelDecoders
-    from deft_gym.sim.simulation import run_episode
 
-    run_episode("left_turn", jitter_seed=7, out_dir=tmp_path, keep_planning=False)
     factory, ours, n = DecoderFactory(), ChannelDecoders(), 0
 
     def plain(m):
@@ -240,7 +238,7 @@ def test_a_recorded_log_reads_the_same_with_genpy(tmp_path: Path) -> None:
             return {**out, **orjson.loads(extra)} if extra else out
         return [plain(x) for x in m] if isinstance(m, list | tuple) else m
 
-    with open(tmp_path / "episode.mcap", "rb") as f:
+    with open(lane_follow_log.log_path, "rb") as f:
         for sc, ch, m in make_reader(f).iter_messages():
             if ch.message_encoding != "ros1":
                 continue
@@ -249,7 +247,7 @@ def test_a_recorded_log_reads_the_same_with_genpy(tmp_path: Path) -> None:
     assert n > 1000
 
 
-def test_the_foxglove_layout_reads_fields_the_log_has(tmp_path: Path) -> None:
+def test_the_foxglove_layout_reads_fields_the_log_has(lane_follow_log) -> None:
     """Every topic path of configs/foxglove/layout.json names a topic of a recorded log and a field
     its messages have as Foxglove sees them (ROS 1 fields by genpy; the planner's decision is in
     the planning message's json_rest since the payloads are binary)."""
@@ -259,7 +257,6 @@ def test_the_foxglove_layout_reads_fields_the_log_has(tmp_path: Path) -> None:
     from mcap_ros1.decoder import DecoderFactory
 
     from deft_gym.config import CONFIG_DIR
-    from deft_gym.sim.simulation import run_episode
 
     layout = json.loads((CONFIG_DIR / "foxglove" / "layout.json").read_text())
     paths: set[str] = set()
@@ -276,10 +273,9 @@ def test_the_foxglove_layout_reads_fields_the_log_has(tmp_path: Path) -> None:
 
     walk(layout)
     assert "/apollo/planning.json_rest" in paths and len(paths) >= 3
-    run_episode("lane_follow_static", jitter_seed=7, out_dir=tmp_path, keep_planning=False)
     first: dict[str, object] = {}
     factory = DecoderFactory()
-    with open(tmp_path / "episode.mcap", "rb") as f:
+    with open(lane_follow_log.log_path, "rb") as f:
         for sc, ch, m in make_reader(f).iter_messages():
             if ch.topic not in first:
                 first[ch.topic] = (factory.decoder_for("ros1", sc)(m.data) if ch.message_encoding == "ros1"
