@@ -33,7 +33,8 @@ check-python:
 KERNEL_SOURCES := deft_gym/planner/_lattice_c.c deft_gym/planner/lattice.py deft_gym/modules/_control_c.c \
                   deft_gym/modules/control.py deft_gym/record/_snapshot_c.c deft_gym/record/worker.py \
                   deft_gym/record/_tap_c.c deft_gym/record/recorder.py deft_gym/record/_format_c.c \
-                  deft_gym/record/textformat.py deft_gym/bus/_ros1_c.c deft_gym/bus/ros1.py
+                  deft_gym/record/textformat.py deft_gym/record/_scene_c.c deft_gym/record/scene.py \
+                  deft_gym/bus/_ros1_c.c deft_gym/bus/ros1.py
 
 $(STAMP): pyproject.toml setup.py $(KERNEL_SOURCES) | check-python
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)

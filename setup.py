@@ -7,6 +7,7 @@ its nearest-point search; ``deft_gym.record._snapshot_c`` is the recorder's payl
 is used without it); ``deft_gym.record._tap_c`` is the recorder's bus tap (JSON-encoding and framing
 each message as an MCAP record); ``deft_gym.record._format_c`` is ``template % args`` for the
 Foxglove scene's text (exact fixed-point numbers; Python's ``%`` formats what it does not take);
+``deft_gym.record._scene_c`` is the scene text's values (``scene.scene_args``);
 ``deft_gym.bus._ros1_c`` is a payload's ROS 1 bytes (the log's binary message encoding).
 All are bit-identical to the Python and numpy versions (which are used when an extension is
 missing: ``optional=True`` turns a failed build into a warning). IEEE
@@ -58,6 +59,7 @@ setup(
         kernel("deft_gym.record._snapshot_c", "deft_gym/record/_snapshot_c.c", "deft_gym/record/worker.py"),
         kernel("deft_gym.record._tap_c", "deft_gym/record/_tap_c.c", "deft_gym/record/recorder.py"),
         kernel("deft_gym.record._format_c", "deft_gym/record/_format_c.c", "deft_gym/record/textformat.py"),
+        kernel("deft_gym.record._scene_c", "deft_gym/record/_scene_c.c", "deft_gym/record/scene.py"),
         kernel("deft_gym.bus._ros1_c", "deft_gym/bus/_ros1_c.c", "deft_gym/bus/ros1.py"),
     ]
 )

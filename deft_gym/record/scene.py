@@ -26,12 +26,22 @@ import os
 from collections.abc import Callable
 from math import cos, isfinite, sin
 from operator import neg
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from deft_gym.bus.messages import NS_PER_S, SCENE_MAP_TOPIC, SCENE_TOPIC, TF_TOPIC, Message
+from deft_gym.files import checked_kernel
 from deft_gym.record.textformat import format_bytes
+
+try:  # the scene's values compiled (setup.py): the same tuple, without a Python frame per value
+    from deft_gym.record import _scene_c
+except ImportError:  # pragma: no cover - the build is optional
+    _scene_c = None
+# a kernel built before scene.py or _scene_c.c was edited is not used (the edit must count)
+_scene_c = None if os.environ.get("DEFT_GYM_PURE_PYTHON") else checked_kernel(
+    _scene_c, Path(__file__).with_name("_scene_c.c"), Path(__file__))
 
 SCENE_HZ = 5.0
 MAP_EVERY_S = 10.0
@@ -411,23 +421,37 @@ def _scene_texts(sec: int, nsec: int, rows: list[tuple[Any, ...]], xs: list[Any]
         tmpl = _SCENES[key] = _scene_template(*key)
     if not tmpl:
         return None
+    args = NotImplemented if _scene_c is None else _scene_c.scene_args(sec, nsec, rows, xs, ys, stamp, key[1] > 0)
+    if args is NotImplemented:  # (no kernel, or a state outside what it takes)
+        args = scene_args(sec, nsec, rows, xs, ys, stamp, key[1] > 0)
+    if args is None:
+        return None
+    return format_bytes(tmpl, args), format_bytes(_TF, args[2:8])
+
+
+def scene_args(sec: int, nsec: int, rows: list[tuple[Any, ...]], xs: list[Any], ys: list[Any], stamp: Any,
+               plan: bool) -> tuple[Any, ...] | None:
+    """The values of a scene template (:func:`_scene_template`): sec and nsec, each vehicle's
+    (sec, nsec, x, -y, sin and cos of -heading/2, x, -y, speed) and, with ``plan``, the plan
+    line's (sec, nsec, then x and -y of each point, the stamp's JSON string); None when one is
+    not finite (or not a number). Compiled in ``_scene_c.c`` (the same tuple)."""
     args: list[Any] = [sec, nsec]
     try:
         for _, _, x, y, h, v, _, _ in rows:
             half = -0.5 * h
             args += (sec, nsec, x, -y, sin(half), cos(half), x, -y, v)
         finite = sum(args[4::9]) + sum(args[5::9]) + sum(args[6::9]) + sum(args[10::9])
-        if key[1]:
-            plan = [0.0] * (2 * points)
-            plan[::2] = map(float, xs)  # as plan_entity reads them
-            plan[1::2] = map(neg, map(float, ys))
-            finite += sum(plan)
-            args += (sec, nsec, *plan, json.dumps(str(stamp)))
+        if plan:
+            line = [0.0] * (2 * len(xs))
+            line[::2] = map(float, xs)  # as plan_entity reads them
+            line[1::2] = map(neg, map(float, ys))
+            finite += sum(line)
+            args += (sec, nsec, *line, json.dumps(str(stamp)))
         if not isfinite(finite):  # (or a sum beyond the floats: then entity by entity, as well)
             return None
     except (TypeError, ValueError, OverflowError):
         return None
-    return format_bytes(tmpl, tuple(args)), format_bytes(_TF, tuple(args[2:8]))
+    return tuple(args)
 
 
 # -- the writer ---------------------------------------------------------------------------------------

@@ -308,7 +308,9 @@ def test_near_matches_numpy() -> None:
 KERNELS = [("deft_gym.planner._lattice_c", "deft_gym/planner/_lattice_c.c", "deft_gym/planner/lattice.py"),
            ("deft_gym.modules._control_c", "deft_gym/modules/_control_c.c", "deft_gym/modules/control.py"),
            ("deft_gym.record._snapshot_c", "deft_gym/record/_snapshot_c.c", "deft_gym/record/worker.py"),
+           ("deft_gym.record._tap_c", "deft_gym/record/_tap_c.c", "deft_gym/record/recorder.py"),
            ("deft_gym.record._format_c", "deft_gym/record/_format_c.c", "deft_gym/record/textformat.py"),
+           ("deft_gym.record._scene_c", "deft_gym/record/_scene_c.c", "deft_gym/record/scene.py"),
            ("deft_gym.bus._ros1_c", "deft_gym/bus/_ros1_c.c", "deft_gym/bus/ros1.py")]
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -1,7 +1,8 @@
 """The compiled formatter (deft_gym/record/_format_c.c) writes ``(template % args).encode()``
 byte for byte - exact fixed-point rounding with ties to even, negative zero, every precision -
-and leaves everything else to Python's ``%``; the Foxglove scene it writes is the scene written
-entity by entity (deft_gym/record/scene.py)."""
+and leaves everything else to Python's ``%``; the compiled scene values (deft_gym/record/_scene_c.c)
+are ``scene.scene_args``'s tuple or leave the state to it; the Foxglove scene they write is the
+scene written entity by entity (deft_gym/record/scene.py)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import pytest
 
 from deft_gym.record import scene, textformat
 from deft_gym.record.scene import COMPACT, SCENE_TOPIC, TF_TOPIC, expand
+from tests.support.fixtures import SCENARIOS, same_values
 
 kernel = getattr(textformat._format_c, "format_bytes", None)  # None: missing or stale (not loaded)
 compiled = pytest.mark.skipif(kernel is None, reason="the compiled formatter is missing or stale")
@@ -95,6 +97,7 @@ def test_the_scene_is_the_scene_written_entity_by_entity(pure: bool, monkeypatch
         pytest.skip("the compiled formatter is missing or stale")
     if pure:
         monkeypatch.setattr(textformat, "_kernel", None)
+        monkeypatch.setattr(scene, "_scene_c", None)
     rng = random.Random(11)
     odd = [math.nan, math.inf, -math.inf, 3, True, "1.5", -0.0, 1e300]
     fast = 0
@@ -130,3 +133,55 @@ def test_the_scene_is_the_scene_written_entity_by_entity(pure: bool, monkeypatch
         for _, _, data, _ in want:
             json.loads(data)
     assert fast > 300  # most states take the one-format path
+
+
+@pytest.mark.skipif(scene._scene_c is None, reason="the compiled scene values are missing or stale")
+def test_compiled_scene_values_are_the_python_ones() -> None:
+    """``_scene_c.scene_args`` gives ``scene.scene_args``'s tuple, every float with the same bits,
+    or None where it does, for random states with odd values in every place (non-finite, huge,
+    negative zero, subnormal, ints, strings, lists for tuples, short rows, stamps that need JSON
+    escapes); where it returns NotImplemented the Python version decides. Every scene state of a
+    recorded run is taken by it."""
+    kern, rng = scene._scene_c.scene_args, random.Random(5)
+    odd = [math.nan, math.inf, -math.inf, -0.0, 5e-324, 1e300, 1.7e308, 3, True, "1.5", None]
+    stamps = [4.9, "4.9", 12, 'a"b', "back\\slash", "tab\t", "\u00e9", "\x7f", "", None, 1e300, math.nan]
+    taken = none = 0
+    for i in range(3000):
+        rows = [(f"v{k}", "reactive", *(rng.uniform(-300, 300) for _ in range(4)), 4.8, 2.0)
+                for k in range(rng.randint(0, 7))]
+        n = rng.randint(0, 17)
+        xs, ys = [rng.uniform(-300, 300) for _ in range(n)], [rng.uniform(-50, 50) for _ in range(n)]
+        for _ in range(rng.choice([0, 0, 1, 2])):  # odd values anywhere
+            where = rng.random()
+            if where < 0.5 and rows:
+                k = rng.randrange(len(rows))
+                row = list(rows[k])
+                row[rng.randint(2, 5)] = rng.choice(odd)
+                rows[k] = tuple(row) if rng.random() < 0.9 else row
+            elif n:
+                (xs if where < 0.75 else ys)[rng.randrange(n)] = rng.choice(odd)
+        if rng.random() < 0.03 and rows:
+            rows[0] = rows[0][:7]
+        if rng.random() < 0.03:
+            ys = [*ys, 1.0]
+        stamp, plan = rng.choice(stamps), rng.random() < 0.8
+        sec, nsec = rng.randint(0, 2**40), rng.randint(0, 10**9 - 1)
+        want = scene.scene_args(sec, nsec, rows, xs, ys, stamp, plan)
+        got = kern(sec, nsec, rows, xs, ys, stamp, plan)
+        if got is NotImplemented:
+            continue
+        assert same_values(got, want), (i, got, want)
+        taken += 1
+        none += got is None
+    assert taken > 1000 and none > 100  # many states (half the stamps need escapes), many with a non-finite value
+    # the states of a real run: all taken, all the same
+    from deft_gym.sim.simulation import Simulation
+
+    states = []
+    sim = Simulation(SCENARIOS / "lane_follow_static.yaml", jitter_seed=7)
+    scene.SceneWriter(sim, lambda m: states.append(m.payload[COMPACT]) if m.topic == SCENE_TOPIC else None, 0)
+    sim.run()
+    assert len(states) > 50
+    for rows, xs, ys, stamp, _ in states:
+        got = kern(1, 2, rows, xs, ys, stamp, len(xs) >= 2)
+        assert got is not NotImplemented and same_values(got, scene.scene_args(1, 2, rows, xs, ys, stamp, len(xs) >= 2))
