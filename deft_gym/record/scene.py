@@ -421,9 +421,10 @@ def _scene_texts(sec: int, nsec: int, rows: list[tuple[Any, ...]], xs: list[Any]
         tmpl = _SCENES[key] = _scene_template(*key)
     if not tmpl:
         return None
-    args = NotImplemented if _scene_c is None else _scene_c.scene_args(sec, nsec, rows, xs, ys, stamp, key[1] > 0)
+    plan = key[1] > 0
+    args = NotImplemented if _scene_c is None else _scene_c.scene_args(sec, nsec, rows, xs, ys, stamp, plan)
     if args is NotImplemented:  # (no kernel, or a state outside what it takes)
-        args = scene_args(sec, nsec, rows, xs, ys, stamp, key[1] > 0)
+        args = scene_args(sec, nsec, rows, xs, ys, stamp, plan)
     if args is None:
         return None
     return format_bytes(tmpl, args), format_bytes(_TF, args[2:8])
