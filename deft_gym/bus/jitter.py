@@ -11,10 +11,16 @@ from __future__ import annotations
 import math
 import random
 import secrets
+from math import cos as _cos
+from math import exp as _exp
+from math import log as _log
+from math import sin as _sin
+from math import sqrt as _sqrt
 
 from deft_gym.bus.ads import Duration, JitterConfig
 
 _NS_PER_MS = 1_000_000
+_TWOPI = 2.0 * math.pi  # random.TWOPI
 
 
 def os_seed() -> int:
@@ -34,8 +40,13 @@ class JitterModel:
         self.config = config
         self.seed = os_seed() if seed is None else int(seed)
         self._rng = random.Random(self.seed)
-        self._lognormal_params: dict[int, tuple[Duration, float, float | None]] = {}
+        # per distribution object: (the object, mu, sigma, spike_prob, spike_factor, min_ms)
+        self._lognormal_params: dict[int, tuple[Duration, float, float | None, float, float, float]] = {}
         self.drops = 0
+        # the config is frozen: what each draw reads of it, read once
+        self._enabled = config.enabled
+        self._drop_prob = config.drop_prob
+        self._shuffle = config.enabled and config.shuffle_simultaneous
 
     def duration_ns(self, dist: Duration) -> int:
         """A processing (or dispatch) time [ns] drawn from ``dist``."""
@@ -44,15 +55,26 @@ class JitterModel:
         # its id is not reused)
         params = self._lognormal_params.get(id(dist))
         if params is None:
-            params = self._lognormal_params[id(dist)] = (dist, *self._lognormal(dist))
-        _, mu, sigma = params
+            params = self._lognormal_params[id(dist)] = (dist, *self._lognormal(dist), dist.spike_prob,
+                                                         dist.spike_factor, dist.min_ms)
+        _, mu, sigma, spike_prob, spike_factor, min_ms = params
         if sigma is None:
             return round(dist.mean_ms * _NS_PER_MS)
         rng = self._rng
-        ms = math.exp(rng.gauss(mu, sigma))  # lognormal (gauss caches its second Box-Muller draw)
-        if dist.spike_prob and rng.random() < dist.spike_prob:
-            ms *= dist.spike_factor
-        return round(max(ms, dist.min_ms) * _NS_PER_MS)
+        # rng.gauss(mu, sigma) written out (CPython's random.gauss: the same draws, the same
+        # operations, its cached second Box-Muller value in rng.gauss_next), without its call
+        z = rng.gauss_next
+        rng.gauss_next = None
+        if z is None:
+            uniform = rng.random
+            x2pi = uniform() * _TWOPI
+            g2rad = _sqrt(-2.0 * _log(1.0 - uniform()))
+            z = _cos(x2pi) * g2rad
+            rng.gauss_next = _sin(x2pi) * g2rad
+        ms = _exp(mu + z * sigma)  # lognormal
+        if spike_prob and rng.random() < spike_prob:
+            ms *= spike_factor
+        return round((min_ms if min_ms > ms else ms) * _NS_PER_MS)  # max(ms, min_ms), its choices
 
     def _lognormal(self, dist: Duration) -> tuple[float, float | None]:
         """``(mu, sigma)`` of the lognormal with ``dist``'s mean and std; sigma None when the
@@ -65,10 +87,10 @@ class JitterModel:
     def delivery_ns(self, reliable: bool = False) -> int | None:
         """Delivery delay [ns] of one message to one subscriber, or None if it is dropped; a
         ``reliable`` delivery that draws a loss is redelivered (its delay drawn after the loss)."""
-        if not self.config.enabled:
+        if not self._enabled:
             return round(self.config.delivery.mean_ms * _NS_PER_MS)
         # a loss is drawn for every delivery; a reliable one is redelivered after it
-        if self.config.drop_prob and self._rng.random() < self.config.drop_prob and not reliable:
+        if self._drop_prob and self._rng.random() < self._drop_prob and not reliable:
             self.drops += 1
             return None
         return self.duration_ns(self.config.delivery)
@@ -81,6 +103,4 @@ class JitterModel:
 
     def order_key(self) -> float:
         """Tie-break among events scheduled for the same instant (0 keeps FIFO order)."""
-        if self.config.enabled and self.config.shuffle_simultaneous:
-            return self._rng.random()
-        return 0.0
+        return self._rng.random() if self._shuffle else 0.0
