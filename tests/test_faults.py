@@ -418,6 +418,8 @@ def test_a_plan_with_nan_ends_the_episode_as_a_crash_of_planning(nan_run):
 
 
 def test_non_finite_fields_are_found_wherever_they_are():
+    import numpy
+
     from deft_gym.bus.messages import non_finite_field
 
     nan, inf = float("nan"), float("inf")
@@ -427,6 +429,13 @@ def test_non_finite_fields_are_found_wherever_they_are():
     assert non_finite_field({"obstacles": [{"id": "a", "v": 1.0}, {"id": "b", "v": -inf}]}) == "obstacles.1.v"
     assert non_finite_field({"xs": [1e308, 1e308]}) is None  # a sum that overflows is not a NaN
     assert non_finite_field({"xs": [1.0, "x", inf]}) == "xs.2" and non_finite_field(nan) == ""
+    # lists that are not numbers at both ends, bools, a tuple, a numpy float, an int beyond floats
+    assert non_finite_field({"xs": ["x", nan]}) == "xs.1" and non_finite_field({"xs": [nan, "x"]}) == "xs.0"
+    assert non_finite_field({"xs": [True, nan, 1]}) == "xs.1" and non_finite_field((1, 2, inf)) == "2"
+    assert non_finite_field({"xs": [1.0, numpy.float64("nan")]}) == "xs.1"
+    assert non_finite_field({"xs": [10**400, 1.0, nan]}) == "xs.2"
+    # numpy makes an array of a numpy float plus a ragged list, and raised out of the check
+    assert non_finite_field([1.0, numpy.float64(1.0), [1.0, [nan]], 2.0]) == "2.1.0"
 
 
 def test_nan_outputs_are_reproduced_and_reported_as_findings(nan_run, tmp_path):

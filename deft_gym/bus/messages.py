@@ -59,6 +59,8 @@ def non_finite_field(value: Any) -> str | None:
 
 
 _SCALARS = (str, int, bool, type(None))  # no float in them (an int is finite)
+_NUMBERS = (float, int)  # types whose lists are summed first (exact types: no bool, no subclass)
+_SEQUENCES = (list, tuple)  # isinstance(v, list | tuple), without building the union on every call
 
 
 def _non_finite(v: Any) -> tuple[Any, ...] | None:
@@ -71,16 +73,16 @@ def _non_finite(v: Any) -> tuple[Any, ...] | None:
             elif t not in _SCALARS and (r := _non_finite(x)) is not None:
                 return (k, *r)
         return None
-    if isinstance(v, list | tuple):
+    if isinstance(v, _SEQUENCES):
         if not v:
             return None
-        t = type(v[0])
-        if t is float or t is int:
+        if type(v[0]) in _NUMBERS and type(v[-1]) in _NUMBERS:  # numbers, most likely: one C loop
             try:  # a sum of finite floats is finite (unless it overflows: then element by element)
                 total = sum(v)
                 if total - total == 0.0:
                     return None
-            except (TypeError, OverflowError):  # not all numbers (or an int beyond floats)
+            except (TypeError, OverflowError, ValueError):  # not all numbers (an int beyond floats; numpy
+                # values beside lists, which numpy tries to make an array of)
                 pass
         for i, x in enumerate(v):
             if type(x) not in _SCALARS and (r := _non_finite(x)) is not None:

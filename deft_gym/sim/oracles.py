@@ -74,6 +74,7 @@ class EpisodeOracle:
                  stop_on_collision: bool = True) -> None:
         self.world = world
         self.destination = np.asarray(destination, dtype=float)
+        self._destination = (float(self.destination[0]), float(self.destination[1]))
         self.duration = duration
         self.reach_radius = reach_radius
         self.stuck_time = stuck_time
@@ -102,8 +103,9 @@ class EpisodeOracle:
         if w.collision is not None and self.stop_on_collision:
             self.result = "collision"
         else:
-            ex, ey = w.ego.position
-            if math.hypot(ex - self.destination[0], ey - self.destination[1]) <= self.reach_radius:
+            ex, ey = w.ego.position.tolist()  # floats: the same values as the array's, cheaper arithmetic
+            dx, dy = self._destination
+            if math.hypot(ex - dx, ey - dy) <= self.reach_radius:
                 self.result = "completed"
             else:
                 tr = self._track
