@@ -79,7 +79,7 @@ class JitterModel:
     def _lognormal(self, dist: Duration) -> tuple[float, float | None]:
         """``(mu, sigma)`` of the lognormal with ``dist``'s mean and std; sigma None when the
         duration is constant (jitter off, or no spread)."""
-        if not self.config.enabled or dist.std_ms == 0.0:
+        if not self._enabled or dist.std_ms == 0.0:
             return 0.0, None
         var = math.log1p((dist.std_ms / dist.mean_ms) ** 2) if dist.mean_ms > 0 else 0.0
         return math.log(max(dist.mean_ms, 1e-9)) - var / 2, math.sqrt(var)
@@ -97,7 +97,7 @@ class JitterModel:
 
     def timer_lateness_ns(self) -> int:
         """How late a periodic timer wakes up [ns] (half-normal)."""
-        if not self.config.enabled or self.config.timer_ms == 0.0:
+        if not self._enabled or self.config.timer_ms == 0.0:
             return 0
         return round(abs(self._rng.gauss(0.0, self.config.timer_ms)) * _NS_PER_MS)
 
