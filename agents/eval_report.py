@@ -368,7 +368,10 @@ def table_markdown(summary: dict[str, Any]) -> str:
         "for a valid mutation and when it reproduced on a second jitter seed; local NoDS and task failures "
         "(timeout/stuck of a valid mutation) are separate columns. Distinct: distinct root-cause signatures. "
         "Training episodes: scenarios simulated to train the method before the evaluation (a second budget). "
-        "`*`: scenarios or repeats missing in the cell.", ""]
+        "`*`: scenarios or repeats missing in the cell."
+        + (f" RL's actions: sampled from its policy at temperature {cfg['temperature']:g} (logits / "
+           f"{cfg['temperature']:g})." if cfg.get("temperature", 1.0) != 1.0 and not cfg.get("deterministic")
+           else ""), ""]
     if summary.get("unfit"):
         text += ["Left out, not seeds for the planner under test (its reference run does not complete them "
                  "unmutated): " + "; ".join(f"`{k}`: {v}" for k, v in summary["unfit"].items()) + ".", ""]

@@ -79,6 +79,9 @@ class EvalConfig(BaseModel):
     variants: int = Field(0, ge=0, le=1000, description="held-out perturbed variants per seed scenario")
     model: str | None = None
     deterministic: bool = False
+    temperature: float = Field(1.0, gt=0.0, le=100.0, description="method rl: the policy's action logits are "
+                               "divided by it before sampling (1: the trained policy; > 1 flatter, towards "
+                               "random_online; ignored with deterministic)")
     workers: int = Field(2, ge=1, le=4096)
     seed: int = 0
     log_failures: bool = False
@@ -143,6 +146,9 @@ def build_parser() -> common.Parser:
                    "one evaluation per planner in OUT/<file stem>, then OUT/planners.md compares them (default: the "
                    "config's ads, else the model's training env.ads, else configs/ads/default.yaml)")
     p.add_argument("--deterministic", action="store_true", default=None, help="greedy RL actions (default: off)")
+    p.add_argument("--temperature", type=float, default=None, metavar="T",
+                   help="RL actions sampled from the policy's logits divided by T (> 1: flatter, towards random "
+                   "actions; default: the config's, else 1)")
     p.add_argument("--workers", type=common.positive_int, default=None, metavar="N",
                    help=f"parallel worker processes (default: the config's, else the CPUs, {common.cpus()} here)")
     common.add_seed(p, None, "seed of the methods' randomness (default: the config's, else 0)")
@@ -169,8 +175,8 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
         name = str(args.config)
         data = load_mapping(args.config)
     flags: dict[str, tuple[str, Any]] = {}
-    for key in ("budget", "repeats", "held_out", "variants", "model", "deterministic", "workers", "seed", "log_failures",
-                "oracle", "validity"):
+    for key in ("budget", "repeats", "held_out", "variants", "model", "deterministic", "temperature", "workers", "seed",
+                "log_failures", "oracle", "validity"):
         flags[key] = ("--" + key.replace("_", "-"), getattr(args, key))
     ads_flag = getattr(args, "ads_config", None)
     flags["ads"] = ("--ads-config", str(ads_flag) if ads_flag is not None else None)
@@ -428,6 +434,7 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
     cfg = env_cfg.model_copy(update={"scenarios": [job["scenario"]], "variant_prob": 0.0, "log_dir": log_dir,
                                      "keep_passing": 0.0, "extract": True})
     env = AdversaryEnv(config=cfg)
+    temperature = float(job.get("temperature", 1.0))
     env.action_space.seed(job["seed"])
     rng = np.random.default_rng([job["seed"], 104729])
     recs = []
@@ -440,8 +447,10 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
         while not done:
             if model is None:  # random_online: uniform random actions in the same env
                 action = env.action_space.sample()
-            else:
+            elif temperature == 1.0 or job["deterministic"]:
                 action, _ = model.predict(obs, deterministic=job["deterministic"])
+            else:
+                action = tempered_action(model, obs, temperature)
             obs, _, done, _, info = env.step(action)
         v = env.last_verdict
         eq = env.equivalent_scenario()
@@ -452,6 +461,8 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
         rec = record_of(v, i, time.perf_counter() - w0, time.process_time() - c0,
                         1 + (confirmed is not None) + n_o, confirmed, int(info["jitter_seed"]), int(info["added"]),
                         float(info["sim_time"]), cols)
+        if model is not None:
+            rec["temperature"] = temperature
         if v.failure or v.task_failure or cols.get("oracle_signature") or cols.get("found_by_oracle"):
             rec["scenario_equivalent"] = eq
             rec["ops"] = env.ops
@@ -462,6 +473,24 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
             progress.put(1)
     env.close()
     return recs
+
+
+def tempered_action(model: Any, obs: Any, temperature: float) -> Any:
+    """An action of a (Multi)Discrete-action SB3 policy sampled from each dimension's logits divided
+    by ``temperature`` (torch's global generator, as ``predict`` samples)."""
+    import torch
+    from torch.distributions import Categorical
+
+    with torch.no_grad():
+        dist = model.policy.get_distribution(model.policy.obs_to_tensor(obs)[0])
+        parts = getattr(dist, "distribution", None)
+        if not isinstance(parts, list | tuple):  # Discrete: a single Categorical
+            parts = [parts]
+        if not all(isinstance(c, Categorical) for c in parts):
+            raise ValueError(f"temperature needs a discrete action space; the policy's is {model.action_space}")
+        action = torch.stack([Categorical(logits=c.logits / temperature).sample() for c in parts], dim=1)
+    out = action.cpu().numpy()[0]
+    return out if len(parts) > 1 else out[0]
 
 
 def job_artifacts(job: dict[str, Any]) -> list[Path]:
@@ -579,6 +608,7 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
         oracle = env.get("oracle", "default")  # records of another oracle count other findings
         records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code
                    and r.get("oracle", "default") == oracle and r.get("counted_oracles", []) == cfg.count_oracles
+                   and (r["method"] != "rl" or r.get("temperature", 1.0) == cfg.temperature)
                    and r["scenario"] in keys and r.get("scenario_key") == keys[r["scenario"]]]
         if stale:
             con.print(f"{stale} earlier record(s) ran other simulation code or another version of their "
@@ -626,7 +656,8 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
                         continue
                     jobs.append({"method": m, "placement": pl, "scenario": scn, "scenario_kind": kinds[scn],
                                  "repeat": rep, "budget": cfg.budget, "seed": cfg.seed * 1000 + rep, "env": env,
-                                 "model": cfg.model, "deterministic": cfg.deterministic, "out": str(out),
+                                 "model": cfg.model, "deterministic": cfg.deterministic,
+                                 "temperature": cfg.temperature, "out": str(out),
                                  "log_failures": cfg.log_failures, "max_added": cfg.max_added,
                                  "count": list(cfg.count_oracles)})
     from deft_gym.envs.adversary import load_env_config

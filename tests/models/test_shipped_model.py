@@ -43,3 +43,30 @@ def test_shipped_model_acts_in_its_env():
         assert int(info["added"]) >= 1  # the trained policy places something rather than doing nothing
     finally:
         env.close()
+
+
+def test_tempered_actions_sample_the_policy_flattened():
+    """``evaluate --temperature``: at 1 the sampled actions are ``predict``'s (the same draws of
+    torch's generator); higher temperatures spread the choices towards uniform, lower ones
+    concentrate them on the greedy action."""
+    import torch
+
+    from agents.evaluate import tempered_action
+
+    model = PPO.load(default_model(), device="cpu")
+    obs = np.zeros(model.observation_space.shape, dtype=np.float32)
+    for seed in range(20):
+        torch.manual_seed(seed)
+        a = model.predict(obs, deterministic=False)[0]
+        torch.manual_seed(seed)
+        assert np.array_equal(tempered_action(model, obs, 1.0), a)
+    greedy = model.predict(obs, deterministic=True)[0]
+    torch.manual_seed(0)
+    share = {}
+    for t in (0.01, 1.0, 8.0):
+        acts = np.array([tempered_action(model, obs, t) for _ in range(400)])
+        assert all(model.action_space.contains(x) for x in acts[:5])
+        share[t] = float((acts == greedy).mean())  # how often each dimension takes the greedy choice
+    assert share[0.01] > 0.98
+    assert share[0.01] > share[1.0] > share[8.0]
+    assert share[8.0] < 0.5
