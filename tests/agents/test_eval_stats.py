@@ -368,6 +368,11 @@ def test_evaluation_config_placements(tmp_path):
     assert load_eval_config(parse_args([*base, "--placements", "uniform"])).placements == ["uniform"]
     with pytest.raises(ConfigError, match="placements"):
         load_eval_config(parse_args([*base, "--placements", "sideways"]))
+    assert load_eval_config(parse_args(base)).temperature == 1.0
+    assert load_eval_config(parse_args([*base, "--temperature", "4"])).temperature == 4.0
+    for bad in ("0", "-1", "nan", "1e9"):
+        with pytest.raises(ConfigError, match="--temperature"):
+            load_eval_config(parse_args([*base, "--temperature", bad]))
 
 
 def test_handwritten_scenarios_form_a_third_group(tmp_path):
@@ -544,3 +549,24 @@ def test_count_oracles_config(tmp_path):
     assert stats.FOUND_ORACLES == COUNTED_ORACLES  # the stats' copy of the list (no import of the metrics)
     with pytest.raises(ConfigError, match="--count-oracles: unknown \\['default'\\]"):
         load_eval_config(parse_args([*base, "--count-oracles", "default"]))
+
+
+def test_rl_records_keep_their_temperature_and_another_is_simulated_again(tmp_path):
+    """``--temperature``: RL's records carry it, table.md names it, and resuming the folder at
+    another temperature simulates RL's scenarios again (random actions' records are kept)."""
+    from agents import evaluate
+    from deft_gym.files import read_jsonl
+
+    out = tmp_path / "ev"
+    args = ["--methods", "rl", "random_online", "--model", "default", "--budget", "1", "--scenarios",
+            "lane_follow_static", "--held-out", "0", "--placements", "closest", "--workers", "1", "--render", "none",
+            "--out", str(out), "--quiet"]
+    assert evaluate.main(args) == 0
+    first = {r["method"]: r for r in read_jsonl(out / "records.jsonl")}
+    assert first["rl"]["temperature"] == 1.0 and "temperature" not in first["random_online"]
+    assert evaluate.main([*args, "--temperature", "4"]) == 0
+    recs = read_jsonl(out / "records.jsonl")
+    rl = [r for r in recs if r["method"] == "rl"]
+    assert [r["temperature"] for r in rl] == [4.0]  # simulated again, the old record replaced
+    assert [r for r in recs if r["method"] == "random_online"] == [first["random_online"]]  # kept
+    assert "temperature 4 (logits / 4)" in (out / "table.md").read_text()
