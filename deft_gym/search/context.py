@@ -154,15 +154,33 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
     return ctx
 
 
+#: functions of ``search/trace.py`` that find and cache reference runs but judge none: an edit to
+#: them leaves cached verdicts valid (a change to how the reference is chosen bumps ``TRACE_FORMAT``,
+#: which the verdict's content key holds)
+_NOT_JUDGING = frozenset({"reference_run", "_failed_reference", "code_fingerprint", "content_key",
+                          "planner_source"})
+
+
 @functools.cache
 def _judge_key() -> str:
-    """Hash of the source that judges a run robust - the lane-change give-ups
-    (``search/trace.py``) and the consistency oracle (``search/nods.py``) - which the simulation's
-    :func:`~deft_gym.search.trace.code_fingerprint` leaves out: an edit there makes cached
-    verdicts stale."""
+    """Hash of the source that judges a run robust - ``search/trace.py`` (the lane-change give-ups,
+    the recorded trace) less its cache plumbing (:data:`_NOT_JUDGING`), and the consistency oracle
+    (``search/nods.py``) - which the simulation's :func:`~deft_gym.search.trace.code_fingerprint`
+    leaves out: an edit there makes cached verdicts stale. Hashed as syntax trees, so comments
+    and layout do not count."""
+    return judge_hash([(Path(__file__).parent / name).read_bytes() for name in ("trace.py", "nods.py")])
+
+
+def judge_hash(sources: Iterable[bytes | str]) -> str:
+    """8 hex digits of the syntax trees of ``sources`` (Python modules), the functions named in
+    :data:`_NOT_JUDGING` left out."""
+    import ast
+
     h = hashlib.sha256()
-    for name in ("trace.py", "nods.py"):
-        h.update((Path(__file__).parent / name).read_bytes())
+    for source in sources:
+        tree = ast.parse(source)
+        tree.body = [n for n in tree.body if not (isinstance(n, ast.FunctionDef) and n.name in _NOT_JUDGING)]
+        h.update(ast.unparse(tree).encode())
     return h.hexdigest()[:8]
 
 

@@ -288,6 +288,17 @@ def medoid(paths: list[np.ndarray]) -> int:
     return int(np.argmin(d.sum(axis=1)))
 
 
+def _failed_reference(path: Path | None) -> str | None:
+    """The cached error of a reference run none of whose runs completed, or None (none cached, or
+    the file is damaged: the runs are simulated again)."""
+    if path is None or not path.exists():
+        return None
+    try:
+        return str(json.loads(path.read_text())["error"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def reference_run(sc: Scenario, ads: AdsConfig | None = None, jitter_seed: int = 0,
                   cache_dir: Path | str | None = CACHE_DIR, runs: int = REFERENCE_RUNS) -> Trace:
     """The reference run of a seed scenario (memoised per process, cached on disk): of its runs
@@ -303,6 +314,10 @@ def reference_run(sc: Scenario, ads: AdsConfig | None = None, jitter_seed: int =
     if tr is not None:
         return tr
     path = Path(cache_dir) / key if cache_dir else None
+    failed = Path(cache_dir) / f"{key}.failed.json" if cache_dir else None
+    error = _failed_reference(failed)
+    if error:  # no run completed last time: the verdict is cached too
+        raise ValueError(error)
     if path is not None and path.with_suffix(".json").exists() and path.with_suffix(".npz").exists():
         try:
             tr = Trace.load(path)
@@ -313,8 +328,13 @@ def reference_run(sc: Scenario, ads: AdsConfig | None = None, jitter_seed: int =
         done = [t for t in tries if t.outcome == "completed"]
         if not done:
             first = tries[0]
-            raise ValueError(f"scenario {sc.name!r}: the reference run ended '{first.outcome}' at "
-                             f"{first.sim_time:.1f} s; a seed scenario must complete its task")
+            error = (f"scenario {sc.name!r}: the reference run ended '{first.outcome}' at "
+                     f"{first.sim_time:.1f} s; a seed scenario must complete its task")
+            if failed is not None:
+                from deft_gym.files import write_json_atomic
+
+                write_json_atomic(failed, {"error": error, "runs": len(tries)})
+            raise ValueError(error)
         tr = done[medoid([t.xy for t in done])]
         tr.meta["reference_of"] = [int(t.meta["jitter_seed"]) for t in done]
         tr.meta["not_completed"] = [int(t.meta["jitter_seed"]) for t in tries if t.outcome != "completed"]

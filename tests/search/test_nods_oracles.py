@@ -190,6 +190,55 @@ def test_the_reference_is_the_most_typical_of_several_jittered_runs(monkeypatch)
     assert ref.meta["not_completed"] == [4]
 
 
+def test_a_reference_none_of_whose_runs_completes_is_cached_as_such(monkeypatch, tmp_path):
+    """A scenario whose reference runs all fail (a planner that cannot do it) is named once: the
+    error is cached beside the references, and the next call raises it without simulating (an
+    evaluation against a slow planner re-checked such a scenario at every start, ~5 CPU-min)."""
+    from deft_gym.scenarios.scenario import load_scenario
+    from deft_gym.search import trace as trace_mod
+
+    calls: list[int] = []
+
+    def fake(sc, ads=None, jitter_seed=0):
+        calls.append(jitter_seed)
+        ego = np.zeros((3, 5))
+        return Trace(0.1, np.arange(3), ego, [], np.zeros((0, 5)), "timeout", 45.0, {"jitter_seed": jitter_seed})
+
+    monkeypatch.setattr(trace_mod, "record_run", fake)
+    monkeypatch.setattr(trace_mod, "_MEMO", {})
+    sc = load_scenario("lane_follow_static")
+    for _ in range(2):
+        with pytest.raises(ValueError, match=r"ended 'timeout' at 45\.0 s"):
+            trace_mod.reference_run(sc, cache_dir=tmp_path)
+    assert len(calls) == trace_mod.REFERENCE_RUNS  # simulated once, not twice
+    (cached,) = tmp_path.glob("*.failed.json")
+    cached.write_text("{damaged")  # a damaged verdict is simulated again, not trusted
+    with pytest.raises(ValueError, match="ended 'timeout'"):
+        trace_mod.reference_run(sc, cache_dir=tmp_path)
+    assert len(calls) == 2 * trace_mod.REFERENCE_RUNS
+
+
+def test_cached_verdicts_outlive_edits_to_the_cache_plumbing_only():
+    """The robust verdicts' key hashes what judges (the give-ups, the trace, the consistency
+    oracle), not how references are found and cached: an edit to ``reference_run`` or a comment
+    keeps the ~300 cached verdicts (CommonRoad's take ~25 CPU-min to rebuild); one to
+    ``aborted_changes`` makes them stale."""
+    import inspect
+
+    from deft_gym.search import nods, trace
+    from deft_gym.search.context import judge_hash
+
+    src, oracle = inspect.getsource(trace), inspect.getsource(nods)
+    key = judge_hash([src, oracle])
+    plumbing = src.replace("    tr = _MEMO.get(key)\n", "    tr = _MEMO.get(key)  # memoised\n    tr = tr or None\n", 1)
+    assert plumbing != src and judge_hash([plumbing, oracle]) == key
+    judging = src.replace("GIVE_UP_S = 0.5", "GIVE_UP_S = 0.6", 1)
+    assert judging != src and judge_hash([judging, oracle]) != key
+    give_ups = src.replace('if e["t"] - back >= hold - 1e-9:', 'if e["t"] - back > hold - 1e-9:', 1)
+    assert give_ups != src and judge_hash([give_ups, oracle]) != key
+    assert judge_hash([src, oracle.replace("def ", "def _", 1)]) != key
+
+
 def test_a_reference_that_gives_up_a_lane_change_is_not_robust(ctx):
     from deft_gym.search.context import robust
     from deft_gym.search.trace import aborted_changes
