@@ -100,7 +100,7 @@ try:  # the extra: pip install -e ".[commonroad]"
     from commonroad_rp.utility.config import ReactivePlannerConfiguration
     from commonroad_rp.utility.utils_coordinate_system import CoordinateSystem
 
-    from deft_gym.planner.commonroad_kinematics import FastKinematicsMixin
+    from deft_gym.planner.commonroad_kinematics import FastKinematicsMixin, SharedLateralMixin
 except ImportError as _exc:  # pragma: no cover - depends on the installation
     IMPORT_ERROR: ImportError | None = _exc
 else:
@@ -173,8 +173,9 @@ class CommonRoadParams(BaseModel):
     reference_back: float = Field(20.0, ge=0.0, description="[m] the reference path extended behind its first lane")
     reference_ahead: float = Field(50.0, ge=0.0, description="[m] ... and past its last lane")
     vectorised_kinematics: bool = Field(True, description="the library's kinematic check vectorised over samples "
-                                        "and time steps, bit for bit its results (commonroad_kinematics.py); false: "
-                                        "the library's own loop (plans take ~3.4x the CPU)")
+                                        "and time steps, and each bundle's lateral polynomials built once, bit for bit "
+                                        "its results (commonroad_kinematics.py); false: the library's own code (plans "
+                                        "take ~4x the CPU)")
 
 
 class _StepClock:
@@ -214,8 +215,9 @@ if IMPORT_ERROR is None:
                 return None
 
 
-    class _FastReactivePlanner(FastKinematicsMixin, ReactivePlanner):
-        """The library's planner with its kinematic check vectorised (same results)."""
+    class _FastReactivePlanner(SharedLateralMixin, FastKinematicsMixin, ReactivePlanner):
+        """The library's planner with its kinematic check vectorised and each bundle's lateral
+        polynomials built once (same results)."""
 
 
 class _MapModel:

@@ -1,7 +1,8 @@
 """The CommonRoad adapter's vectorised kinematic check (deft_gym/planner/commonroad_kinematics.py)
 is the library's ``ReactivePlanner._check_kinematics``, bit for bit: on every trajectory bundle
 of hand-made frames (both velocity modes) and of whole episodes, both run on copies of the same
-samples and every array, label and rejection count is compared. Skipped without the extra."""
+samples and every array, label and rejection count is compared. The bundles whose samples share
+their lateral polynomials are the library's, sample by sample. Skipped without the extra."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from commonroad_rp.reactive_planner import ReactivePlanner
 
 import deft_gym.planner.commonroad as adapter
 from deft_gym.planner.commonroad import CommonRoadPlanner
-from deft_gym.planner.commonroad_kinematics import check_kinematics
+from deft_gym.planner.commonroad_kinematics import SharedLateralMixin, check_kinematics
 from tests.planner.test_commonroad import ADS, TOGGLING, road_frames
 
 SAMPLE_ARRAYS = {"cartesian": ("x", "y", "theta", "v", "a", "kappa", "kappa_dot"),
@@ -85,6 +86,41 @@ def test_the_planner_uses_it_unless_told_not_to() -> None:
         model = next(iter(planner._models.values()))
         assert isinstance(model.planner, adapter._FastReactivePlanner) == (planner is fast)
     assert outputs[0] == outputs[1]
+
+
+class _BothBundles(SharedLateralMixin, ReactivePlanner):
+    """Builds every bundle the library's way and with shared lateral polynomials, asserts that
+    they hold the same samples bit for bit, and goes on with the shared one."""
+
+    bundles: list[tuple[bool, int, int]] = []
+
+    def _create_trajectory_bundle(self, x_0_lon: Any, x_0_lat: Any, samp_level: int) -> Any:
+        library = ReactivePlanner._create_trajectory_bundle(self, x_0_lon, x_0_lat, samp_level)
+        shared = SharedLateralMixin._create_trajectory_bundle(self, x_0_lon, x_0_lat, samp_level)
+        assert len(library.trajectories) == len(shared.trajectories)
+        for a, b in zip(library.trajectories, shared.trajectories, strict=True):
+            for pa, pb in ((a.trajectory_long, b.trajectory_long), (a.trajectory_lat, b.trajectory_lat)):
+                assert type(pa) is type(pb) and type(pa.delta_tau) is type(pb.delta_tau)
+                assert float(pa.delta_tau).hex() == float(pb.delta_tau).hex()
+                for name in ("coeffs", "x_0", "x_d"):
+                    assert _same_bits(np.asarray(getattr(pa, name)), np.asarray(getattr(pb, name))), name
+        _BothBundles.bundles.append((bool(self._low_vel_mode), len(shared.trajectories),
+                                     len({id(t.trajectory_lat) for t in shared.trajectories})))
+        return shared
+
+
+def test_bundles_that_share_lateral_polynomials_are_the_librarys(monkeypatch) -> None:
+    """Both velocity modes; at high velocity the samples share a lateral trajectory several times
+    over (at low velocity its length depends on the longitudinal sample: few are shared)."""
+    monkeypatch.setattr(adapter, "_FastReactivePlanner", _BothBundles)
+    _BothBundles.bundles = []
+    planner = CommonRoadPlanner({})
+    for fr in road_frames([*TOGGLING, 6.0, 8.0]) + road_frames([0.0, 0.3, 1.0]):
+        planner.plan(fr)
+    bundles = _BothBundles.bundles
+    assert len(bundles) >= len(TOGGLING) and {low for low, _, _ in bundles} == {True, False}
+    samples, lateral = (sum(b[i] for b in bundles if not b[0]) for i in (1, 2))
+    assert samples >= 3 * lateral > 0
 
 
 @pytest.mark.slow
