@@ -21,6 +21,10 @@ the library's:
 multiprocessing nor its drawing of infeasible samples is on (those keep the library's loop).
 tests/planner/test_commonroad_kinematics.py runs both on every bundle of whole episodes and
 compares every array bit for bit and the rejection counts.
+
+:class:`SharedLateralMixin` builds each lateral polynomial of a bundle once (the library builds it
+again for every longitudinal sample of its duration); the test builds every bundle both ways and
+compares every coefficient.
 """
 
 from __future__ import annotations
