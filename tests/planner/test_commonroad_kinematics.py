@@ -132,3 +132,16 @@ def test_the_vectorised_check_is_the_librarys_through_whole_episodes(both_checks
 
     res = Simulation(scenario, load_ads_config(ADS), jitter_seed=5).run()
     assert res.planning and len(both_checks) >= len(res.planning) // 2
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["left_turn", "handwritten/stopped_bus"])
+def test_bundles_that_share_lateral_polynomials_are_the_librarys_through_whole_episodes(monkeypatch,
+                                                                                     scenario) -> None:
+    from deft_gym.bus.ads import load_ads_config
+    from deft_gym.sim.simulation import Simulation
+
+    monkeypatch.setattr(adapter, "_FastReactivePlanner", _BothBundles)
+    _BothBundles.bundles = []
+    res = Simulation(scenario, load_ads_config(ADS), jitter_seed=5).run()
+    assert res.planning and len(_BothBundles.bundles) >= len(res.planning) // 2
