@@ -175,7 +175,7 @@ class CommonRoadParams(BaseModel):
     vectorised_kinematics: bool = Field(True, description="the library's kinematic check vectorised over samples "
                                         "and time steps, and each bundle's lateral polynomials built once, bit for bit "
                                         "its results (commonroad_kinematics.py); false: the library's own code (plans "
-                                        "take ~4x the CPU)")
+                                        "take ~3.5-3.8x the CPU)")
 
 
 class _StepClock:

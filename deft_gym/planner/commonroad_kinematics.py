@@ -304,8 +304,8 @@ class SharedLateralMixin:
 
     The library's ``generate_trajectories_at_level`` builds the lateral trajectory of a
     (duration, initial lateral state, end offset) again for every longitudinal sample of that
-    duration - about 6 times per plan on average, 26 % of a plan's CPU with its argument checks.
-    Here the samples of one bundle share it: nothing writes to a sample's lateral trajectory
+    duration - about 6 times per plan in high-velocity mode (a plan takes 1-10 % less CPU with
+    them shared: docs/planner.md). Here the samples of one bundle share it: nothing writes to a sample's lateral trajectory
     (the library's evaluation cache inside it holds the same values for every sample), so the
     bundle has the same samples with the same numbers in the same order. Keys are the arguments'
     bytes (0.0 and -0.0 stay apart)."""
@@ -328,4 +328,3 @@ class SharedLateralMixin:
             return super()._create_trajectory_bundle(x_0_lon, x_0_lat, samp_level)  # type: ignore[misc]
         finally:
             del space._generate_lat_trajectory
-
