@@ -109,15 +109,20 @@ class _BothBundles(SharedLateralMixin, ReactivePlanner):
         return shared
 
 
-def test_bundles_that_share_lateral_polynomials_are_the_librarys(monkeypatch) -> None:
-    """Both velocity modes; at high velocity the samples share a lateral trajectory several times
-    over (at low velocity its length depends on the longitudinal sample: few are shared)."""
+@pytest.fixture
+def both_bundles(monkeypatch: pytest.MonkeyPatch) -> list[tuple[bool, int, int]]:
     monkeypatch.setattr(adapter, "_FastReactivePlanner", _BothBundles)
     _BothBundles.bundles = []
+    return _BothBundles.bundles
+
+
+def test_bundles_that_share_lateral_polynomials_are_the_librarys(both_bundles) -> None:
+    """Both velocity modes; at high velocity the samples share a lateral trajectory several times
+    over (at low velocity its length depends on the longitudinal sample: few are shared)."""
     planner = CommonRoadPlanner({})
     for fr in road_frames([*TOGGLING, 6.0, 8.0]) + road_frames([0.0, 0.3, 1.0]):
         planner.plan(fr)
-    bundles = _BothBundles.bundles
+    bundles = both_bundles
     assert len(bundles) >= len(TOGGLING) and {low for low, _, _ in bundles} == {True, False}
     samples, lateral = (sum(b[i] for b in bundles if not b[0]) for i in (1, 2))
     assert samples >= 3 * lateral > 0
@@ -127,21 +132,20 @@ def test_bundles_that_share_lateral_polynomials_are_the_librarys(monkeypatch) ->
 @pytest.mark.parametrize("scenario", ["lane_follow_static", "blocked_red_light", "handwritten/stopped_bus",
                                       "handwritten/unprotected_left"])
 def test_the_vectorised_check_is_the_librarys_through_whole_episodes(both_checks, scenario) -> None:
-    from deft_gym.bus.ads import load_ads_config
-    from deft_gym.sim.simulation import Simulation
-
-    res = Simulation(scenario, load_ads_config(ADS), jitter_seed=5).run()
-    assert res.planning and len(both_checks) >= len(res.planning) // 2
+    _compared_through_an_episode(scenario, both_checks)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["left_turn", "handwritten/stopped_bus"])
-def test_bundles_that_share_lateral_polynomials_are_the_librarys_through_whole_episodes(monkeypatch,
+def test_bundles_that_share_lateral_polynomials_are_the_librarys_through_whole_episodes(both_bundles,
                                                                                      scenario) -> None:
+    _compared_through_an_episode(scenario, both_bundles)
+
+
+def _compared_through_an_episode(scenario: str, compared: list[Any]) -> None:
+    """Runs ``scenario`` on jitter seed 5 and checks that at least every other plan compared a bundle."""
     from deft_gym.bus.ads import load_ads_config
     from deft_gym.sim.simulation import Simulation
 
-    monkeypatch.setattr(adapter, "_FastReactivePlanner", _BothBundles)
-    _BothBundles.bundles = []
     res = Simulation(scenario, load_ads_config(ADS), jitter_seed=5).run()
-    assert res.planning and len(_BothBundles.bundles) >= len(res.planning) // 2
+    assert res.planning and len(compared) >= len(res.planning) // 2
