@@ -23,13 +23,14 @@ from deft_gym.scenarios.generate import resolve as resolve_generated
 from deft_gym.scenarios.scenario import (
     SCENARIO_GROUPS,
     Scenario,
+    destination_xy,
     group_path,
     group_scenarios,
     list_scenarios,
     load_scenario,
 )
 from deft_gym.search.feasible import FeasibleConfig, MotionAreas, motion_areas
-from deft_gym.search.nods import DecisionOracle
+from deft_gym.search.nods import DecisionOracle, reserved_path
 from deft_gym.search.refpath import RefPath
 from deft_gym.search.trace import (
     CACHE_DIR,
@@ -143,11 +144,13 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
         if limit < sc.duration or stuck < sc.stuck_time:
             sc = sc.model_copy(update={"duration": limit, "stuck_time": stuck})
         rm = shared_roadmap(sc.map)
-        areas = motion_areas(ref, rm, feasible, sc.duration)
+        # validity and placement reserve the reference path on to the destination itself
+        reserved = reserved_path(ref, destination_xy(rm, sc.ego.destination)[0])
+        areas = motion_areas(reserved, rm, feasible, sc.duration)
         oracle = DecisionOracle(ref, rm, threshold=threshold, grid_kind=grid,  # type: ignore[arg-type]
                                 clearance=feasible.margin, window=(feasible.early_window, feasible.late_window),
                                 spawn_distance=feasible.spawn_distance, static_clearance=feasible.static_margin,
-                                ego_lanes=areas.ego_lanes)
+                                ego_lanes=areas.ego_lanes, reserved=reserved)
         if len(_CTX) > 256:
             _CTX.clear()
         ctx = _CTX[key] = SeedContext(sc, ads, ref, rm, areas, RefPath(ref, rm), oracle, feasible)

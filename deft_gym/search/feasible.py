@@ -4,7 +4,8 @@ Time is cut into windows ``[k dt, (k+1) dt]`` (``dt`` = 2 s in the paper). For e
 reference run (the seed scenario's optimal run, :func:`deft_gym.search.trace.reference_run`) gives
 the *motion areas* R^p(pi(s*), dt): the area the ego's box sweeps along its reference path
 from ``late_window`` seconds before the window to ``early_window`` after it (all of the path once
-the reference run has ended), inflated by ``margin`` - the same reservation the validity check
+the reference run has ended, on to the destination itself: :func:`deft_gym.search.nods.reserved_path`),
+inflated by ``margin`` - the same reservation the validity check
 (:func:`deft_gym.search.nods.clearances`) applies - and the areas the seed participants sweep, inflated by
 ``participant_margin``. A new participant is non-invasive when, in every window it exists in,
 the area it sweeps stays out of all of them (eq. 3-4) and out of the areas of the participants

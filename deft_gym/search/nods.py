@@ -23,7 +23,8 @@
   and the planner's own hard buffer) to the reference ego box while that stretch of the path is
   reserved - from ``EARLY_WINDOW`` (1 s) before the reference ego is there until ``LATE_WINDOW``
   (3 s) after it left, and all of the path once the reference run has ended (a static one at any
-  time) - makes the mutation invasive. So does a static one (cone, parked vehicle) closer than
+  time) - makes the mutation invasive. The path reserved runs on to the destination itself
+  (:func:`reserved_path`): the reference ends within 3 m of it. So does a static one (cone, parked vehicle) closer than
   ``static_clearance`` (0.75 m) or standing in a lane the optimal path drives in
   (:func:`lane_strips`): inside the ego's lane, where a planner goes round it by design. So does
   one that appears within ``SPAWN_DISTANCE`` (15 m) of the live ego, or a seed participant (which
@@ -39,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -201,6 +202,26 @@ def _exact_min(ego: np.ndarray, boxes: np.ndarray, gap: np.ndarray, dims: np.nda
     return best
 
 
+def reserved_path(ref: Trace, destination: np.ndarray, step: float = 0.5) -> Trace:
+    """The reference run with the rest of its way: the ego's box moved on from its last pose to
+    ``destination`` (x, y) [m] every ``step`` [m], at the last pose's heading, standing, ticked at
+    the last tick. The reference ends once within the episode's ``reach_radius`` (3 m) of the
+    destination, so without it the destination itself - where a mutated ego that lags still drives
+    - would be free to stand on once the reference has ended."""
+    last = ref.ego[-1]
+    gap = float(math.hypot(destination[0] - last[0], destination[1] - last[1]))
+    n = math.ceil(gap / step)
+    if n == 0:
+        return ref
+    f = np.arange(1, n + 1) / n
+    tail = np.repeat(last[None, :], n, axis=0)
+    tail[:, 0] = last[0] + f * (destination[0] - last[0])
+    tail[:, 1] = last[1] + f * (destination[1] - last[1])
+    tail[:, 3:] = 0.0
+    ticks = np.concatenate([ref.ticks, np.full(n, ref.ticks[-1], dtype=ref.ticks.dtype)])
+    return replace(ref, ticks=ticks, ego=np.concatenate([ref.ego, tail]))
+
+
 def clearances(ref: Trace, trace: Trace, window: tuple[float, float] = (EARLY_WINDOW, LATE_WINDOW),
                reach: float = _REACH) -> dict[int, float]:
     """Per added participant of ``trace`` (actor index): its smallest distance [m] to the
@@ -208,7 +229,7 @@ def clearances(ref: Trace, trace: Trace, window: tuple[float, float] = (EARLY_WI
     seconds before the reference ego is there until ``window[1]`` seconds after it left, and
     all of the path once the reference run has ended (a mutated ego that lags meets what stands
     there then); a static participant at any time. Exact (shapely) up to ``reach`` metres,
-    ``inf`` beyond."""
+    ``inf`` beyond. ``ref``: the reference run, or its :func:`reserved_path`."""
     out: dict[int, float] = {}
     added = [i for i, a in enumerate(trace.actors) if a.added]
     if not added or not len(trace.parts):
@@ -555,8 +576,9 @@ class DecisionOracle:
                  grid_kind: Literal["lane", "world"] = "lane", clearance: float = CLEARANCE,
                  local_length: float = LOCAL_LENGTH, window: tuple[float, float] = (EARLY_WINDOW, LATE_WINDOW),
                  spawn_distance: float = SPAWN_DISTANCE, static_clearance: float = STATIC_CLEARANCE,
-                 ego_lanes: shapely.Geometry | None = None) -> None:
+                 ego_lanes: shapely.Geometry | None = None, reserved: Trace | None = None) -> None:
         self.ref, self.roadmap = ref, roadmap
+        self.reserved = ref if reserved is None else reserved  # what validity reserves (:func:`reserved_path`)
         self.threshold, self.grid, self.grid_kind = threshold, grid, grid_kind
         self.clearance, self.static_clearance, self.local_length = clearance, static_clearance, local_length
         self.ego_lanes = ego_lanes  # static objects stay out of them (:func:`lane_strips`; None: no lane test)
@@ -628,7 +650,7 @@ class DecisionOracle:
         xy = trace.xy
         dist = self.distances(xy)  # computed once: f_p, off_length, the finding
         io, fp, fb = self.iou(xy), self.f_p(dist), self.f_b(trace.ego)
-        clear = clearances(self.ref, trace, self.window)
+        clear = clearances(self.reserved, trace, self.window)
         why = invasive_why(self.ref, trace, clear, self.clearance, self.spawn_distance, self.static_clearance,
                            self.ego_lanes)
         is_collision = outcome == "collision"

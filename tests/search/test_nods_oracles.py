@@ -8,9 +8,18 @@ import numpy as np
 import pytest
 
 from deft_gym.search.context import seed_context
-from deft_gym.search.nods import LaneCells, collision_fault, iou, mmd_linear, world_cells
+from deft_gym.search.nods import (
+    CLEARANCE,
+    EGO_LENGTH,
+    LaneCells,
+    clearances,
+    collision_fault,
+    iou,
+    mmd_linear,
+    world_cells,
+)
 from deft_gym.search.trace import Actor, Trace
-from deft_gym.world.geometry import box_gap
+from deft_gym.world.geometry import box_gap, box_polygon
 
 
 @pytest.fixture(scope="module")
@@ -115,6 +124,28 @@ def test_a_car_on_the_optimal_path_after_the_reference_ended_is_invasive(ctx):
     x, y, h = ref.ego[k, :3]
     rows = [(end + 20 + i, x, y, h) for i in range(20)]
     assert ctx.oracle.judge(_with_car(ref, rows)).invasive_why == {"car": "path"}
+
+
+def test_a_car_standing_at_the_destination_after_the_reference_ended_is_invasive(ctx):
+    """The reference ends within 3 m of the destination, and its path used to end there too: a car
+    standing just past where it ended, on the destination, kept 0.5 m from its last box, while a
+    mutated ego that lags still has to drive there. The ego's box on to the destination is
+    reserved (in validity and in placement)."""
+    ref, oracle = ctx.ref, ctx.oracle
+    end = int(ref.ticks[-1])
+    x, y, h = ref.ego[-1, :3]
+    dest = oracle.reserved.ego[-1, :2]
+    assert np.hypot(*(dest - ref.ego[-1, :2])) > 1.0  # the reference stopped short of it
+    along = np.array([np.cos(h), np.sin(h)])
+    front = 0.5 * (EGO_LENGTH + CAR[3]) + 0.6  # the car's rear 0.6 m past the reference's last front
+    car = np.array([x, y]) + front * along
+    assert np.hypot(*(car - dest)) < 3.0  # within reach of the destination
+    rows = [(ref.ticks[0], car[0] - 60.0, car[1] + 50.0, h)]  # there from the start, far away
+    rows += [(end + 20 + i, car[0], car[1], h) for i in range(40)]  # then standing there
+    assert clearances(ref, _with_car(ref, rows))[0] > CLEARANCE  # the loophole, the path alone
+    assert oracle.judge(_with_car(ref, rows)).invasive_why == {"car": "path"}
+    box = box_polygon(car[0], car[1], h, CAR[3], CAR[4])
+    assert ctx.areas.forbidden[-1].intersects(box)  # and no method may place it there
 
 
 def test_a_car_appearing_beside_the_live_ego_is_invasive(ctx):
