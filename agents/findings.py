@@ -335,6 +335,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
                       f"- IoU {v.iou:.2f}, off the optimal path for {v.off_length:.0f} m, outcome {v.outcome}"
                       + (f", clearance of the trigger {clear:.2f} m" if clear is not None and math.isfinite(clear) else ""),
                       f"- the planner when it left the path: {leaving_decision(run.trace, dist, ctx.roadmap.spec.lane_width / 2)}",
+                      *([f"- {destination_line(ctx, run.trace)}"] if v.outcome != "completed" else []),
                       f"- replay: `{replay_cmd}`"]
             if args.tests:
                 lines.append(_test_line(run, out / f"{stem}_tests", args.tests))
@@ -343,6 +344,36 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
     write_atomic(out / "findings.md", "\n".join(lines) + "\n")
     con.print(f"{len(causes)} root causes, {len(sample)} failures drawn -> {out / 'findings.md'}")
     return 0
+
+
+REACH_RADIUS = 3.0  #: [m] the destination counts as reached this near (``EpisodeOracle.reach_radius``)
+
+
+def destination_approach(ctx: Any, trace: Any) -> tuple[float, float, float]:
+    """``(distance [m], along [m], beside [m])``: where the ego of ``trace`` came nearest its
+    destination (``ctx``'s scenario), how far from it, and there how far past it along the
+    destination lane (negative: short of it) and beside that lane's centre line."""
+    from deft_gym.scenarios.scenario import destination_xy
+
+    dest = ctx.scenario.ego.destination
+    point, s_dest = destination_xy(ctx.roadmap, dest)
+    dist = np.hypot(*(trace.xy - point).T)
+    k = int(np.argmin(dist))
+    s, d = ctx.roadmap.geom(tuple(dest.lane)).frenet_point(*trace.xy[k])
+    return float(dist[k]), float(s - s_dest), float(d)
+
+
+def destination_line(ctx: Any, trace: Any) -> str:
+    """How near a run that did not finish came to its destination, in a line; it says so when the
+    ego came level with it within a lane's width beside it: the completion radius (3 m around one
+    point of the destination lane), not the drive, may be what failed."""
+    dist, along, beside = destination_approach(ctx, trace)
+    line = f"nearest the destination: {dist:.2f} m ({along:+.1f} m along its lane, {beside:+.2f} m beside it)"
+    width = ctx.roadmap.geom(tuple(ctx.scenario.ego.destination.lane)).width
+    if dist > REACH_RADIUS and abs(along) <= REACH_RADIUS and abs(beside) <= 1.5 * width:
+        line += ("; **level with it, a lane over**: the 3 m completion radius, not the drive, may be what "
+                 "failed - judge it by the picture")
+    return line
 
 
 def closest_pass(trace: Any, actor_id: str) -> tuple[float, float]:

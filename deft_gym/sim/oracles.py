@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from deft_gym.world.geometry import LaneGeom
 from deft_gym.world.roadmap import RoadMap
 from deft_gym.world.traffic_lights import TrafficLights
 from deft_gym.world.world import Collision, World
@@ -44,6 +45,7 @@ class Outcome:
     collision: Collision | None
     min_distance: float
     failure: dict[str, Any] | None = None  #: crash / hang: {"kind", "module", "exception", "time"}
+    arrival: str | None = None  #: completed: "radius" (within reach_radius) or "a lane over"
 
     @property
     def task_completed(self) -> bool:
@@ -56,13 +58,20 @@ class Outcome:
                "min_distance": self.min_distance if math.isfinite(self.min_distance) else None}
         if self.failure is not None:
             out["failure"] = dict(self.failure)
+        if self.arrival == "a lane over":  # the usual arrival leaves the record as it always was
+            out["arrival"] = self.arrival
         return out
 
 
 class EpisodeOracle:
     """Watches the world after every step and decides when the episode is over.
 
-    ``reach_radius`` [m]: the destination counts as reached within this distance;
+    ``reach_radius`` [m]: the destination counts as reached within this distance - or, given the
+    destination's lane (``destination_lane``, at ``destination_s`` [m] along it), standing (slower
+    than ``STANDING_SPEED``) level with it (within ``reach_radius`` along that lane) at most a lane
+    beside it (1.5 lane widths from its centre line): stopped at its destination, one lane over
+    (a 3 m radius in a 3.5 m lane would call that ego stuck, and count a timeout or stuck failure
+    that no driver would);
     ``stuck_time`` [s]: moving less than ``stuck_distance`` [m] for this long is stuck. Time the
     ego spends held by a light (standing before the stop line of its lane while that light is not
     green, queued or first in line) never counts: the standstill is measured from when the light
@@ -71,10 +80,16 @@ class EpisodeOracle:
 
     def __init__(self, world: World, destination: np.ndarray, duration: float,
                  reach_radius: float = 3.0, stuck_time: float = 30.0, stuck_distance: float = 0.5,
-                 stop_on_collision: bool = True) -> None:
+                 stop_on_collision: bool = True, destination_lane: LaneGeom | None = None,
+                 destination_s: float = 0.0) -> None:
         self.world = world
         self.destination = np.asarray(destination, dtype=float)
         self._destination = (float(self.destination[0]), float(self.destination[1]))
+        self.destination_lane, self.destination_s = destination_lane, destination_s
+        beside = 1.5 * destination_lane.width if destination_lane is not None else 0.0
+        self._beside = beside
+        self._level_radius = math.hypot(reach_radius, beside)  # nearer than this: level-with test
+        self.arrival: str | None = None  #: how it arrived: "radius" or "a lane over"
         self.duration = duration
         self.reach_radius = reach_radius
         self.stuck_time = stuck_time
@@ -105,8 +120,11 @@ class EpisodeOracle:
         else:
             ex, ey = w.ego.position.tolist()  # floats: the same values as the array's, cheaper arithmetic
             dx, dy = self._destination
-            if math.hypot(ex - dx, ey - dy) <= self.reach_radius:
-                self.result = "completed"
+            dist = math.hypot(ex - dx, ey - dy)
+            if dist <= self.reach_radius:
+                self.result, self.arrival = "completed", "radius"
+            elif dist <= self._level_radius and w.ego.speed < STANDING_SPEED and self._level(ex, ey):
+                self.result, self.arrival = "completed", "a lane over"
             else:
                 tr = self._track
                 if w.ego.speed < STANDING_SPEED and self.held_by_light():
@@ -121,7 +139,14 @@ class EpisodeOracle:
                     self.result = "timeout"
         return self.result
 
+    def _level(self, x: float, y: float) -> bool:
+        """Whether ``(x, y)`` is level with the destination (within ``reach_radius`` along its
+        lane) and at most a lane beside it."""
+        assert self.destination_lane is not None
+        s, d = self.destination_lane.frenet_point(x, y)
+        return abs(s - self.destination_s) <= self.reach_radius and abs(d) <= self._beside
+
     def outcome(self) -> Outcome:
         w = self.world
         return Outcome(self.result or ("collision" if w.collision else "timeout"), w.time,
-                       w.collision, w.min_distance)
+                       w.collision, w.min_distance, arrival=self.arrival)

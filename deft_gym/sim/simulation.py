@@ -226,7 +226,9 @@ class Simulation:
         self.on_step: list[Callable[[Simulation], None]] = []
         topics = ads.topics
         dest_xy, dest_s = destination_xy(self.roadmap, sc.ego.destination)
-        self.oracle = EpisodeOracle(self.world, dest_xy, sc.duration, stuck_time=sc.stuck_time)
+        self.oracle = EpisodeOracle(self.world, dest_xy, sc.duration, stuck_time=sc.stuck_time,
+                                    destination_lane=self.roadmap.geom(tuple(sc.ego.destination.lane)),
+                                    destination_s=dest_s)
         self.planner = build_planner(ads, sc)
         start_lane = tuple(sc.ego.lane) if sc.ego.lane else self.roadmap.locate(
             self.world.ego.position, self.world.ego.heading)[0]

@@ -3,10 +3,12 @@ jitter seed, checked to fail with the same root cause, drawn, and listed by root
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 
 import matplotlib.pyplot as plt
+import pytest
 
 from agents import findings
 from agents.search import record_of
@@ -111,3 +113,20 @@ def test_the_sample_of_a_root_cause_spreads_over_its_scenarios() -> None:
     assert [(r["scenario"], r["repeat"], r["index"]) for r in picked] == [("a", 0, 1), ("b", 0, 1), ("c", 0, 1),
                                                                           ("a", 0, 3)]
     assert findings.spread(recs[:1], 3) == recs[:1] and findings.spread([], 2) == []
+
+
+def test_a_run_that_ends_level_with_its_destination_a_lane_over_is_pointed_out() -> None:
+    """The completion radius is 3 m around one point of the destination lane; an ego level with
+    that point in the next lane (3.5 m over) has not arrived. The findings page says so, so the
+    analyst judges the picture instead of counting it; a run that stops far short does not get it."""
+    ctx = seed_context("lane_follow_static")
+    whole = ctx.oracle.reserved  # the reference run on to the destination
+    ego = whole.ego.copy()
+    ego[:, 1] += 3.5
+    over = dataclasses.replace(whole, ego=ego)
+    dist, along, beside = findings.destination_approach(ctx, over)
+    assert dist == pytest.approx(3.5, abs=0.05) and abs(along) < 0.3 and abs(beside) == pytest.approx(3.5, abs=0.05)
+    assert "level with it, a lane over" in findings.destination_line(ctx, over)
+    short = dataclasses.replace(whole, ego=whole.ego[: len(whole.ego) // 2])
+    line = findings.destination_line(ctx, short)
+    assert findings.destination_approach(ctx, short)[1] < -50.0 and "a lane over" not in line

@@ -324,3 +324,26 @@ def test_a_reactive_vehicle_too_close_to_a_standing_leader_does_not_reverse() ->
         speeds.append(car.speed)
     assert min(speeds) == 0.0  # IDM braked it (into reverse, before the fix)
     assert car.position[0] >= start[0] - 1e-9
+
+
+@pytest.mark.parametrize(("beside", "speed", "done"), [(0.0, 5.0, True), (3.5, 0.0, True), (3.5, 5.0, False),
+                                                       (7.0, 0.0, False)])
+def test_an_ego_standing_level_with_its_destination_a_lane_over_has_arrived(beside: float, speed: float,
+                                                                           done: bool) -> None:
+    """Within 3 m of the destination point the ego has arrived; 3.5 m beside it, in the next lane,
+    only once it stands there (it stopped at its destination, one lane over), never while it
+    drives past, and never two lanes over."""
+    from deft_gym.scenarios.scenario import destination_xy
+    from deft_gym.sim.oracles import EpisodeOracle
+
+    sc = load_scenario(SCENARIOS / "lane_follow_static.yaml")
+    world = build_world(sc)
+    lane = world.roadmap.geom(tuple(sc.ego.destination.lane))
+    xy, s = destination_xy(world.roadmap, sc.ego.destination)
+    oracle = EpisodeOracle(world, xy, sc.duration, destination_lane=lane, destination_s=s)
+    world.ego.position = lane.xy(np.array(s - 1.0), beside).astype(float)  # 1 m short of it
+    world.ego.speed = speed
+    assert (oracle.check() == "completed") is done
+    assert oracle.arrival == (None if not done else "radius" if beside == 0.0 else "a lane over")
+    if done:
+        assert ("arrival" in oracle.outcome().as_dict()) is (beside > 0.0)
