@@ -365,14 +365,15 @@ def destination_approach(ctx: Any, trace: Any) -> tuple[float, float, float]:
 
 def destination_line(ctx: Any, trace: Any) -> str:
     """How near a run that did not finish came to its destination, in a line; it says so when the
-    ego came level with it within a lane's width beside it: the completion radius (3 m around one
-    point of the destination lane), not the drive, may be what failed."""
+    ego passed level with it at most a lane beside it (standing there, it would have arrived:
+    :class:`~deft_gym.sim.oracles.EpisodeOracle`): it missed it, or the seed's own run only just
+    reached it (within 3 m of one point of the destination lane)."""
     dist, along, beside = destination_approach(ctx, trace)
     line = f"nearest the destination: {dist:.2f} m ({along:+.1f} m along its lane, {beside:+.2f} m beside it)"
     width = ctx.roadmap.geom(tuple(ctx.scenario.ego.destination.lane)).width
     if dist > REACH_RADIUS and abs(along) <= REACH_RADIUS and abs(beside) <= 1.5 * width:
-        line += ("; **level with it, a lane over**: the 3 m completion radius, not the drive, may be what "
-                 "failed - judge it by the picture")
+        line += ("; **passed level with it, a lane over**: a miss, or a seed whose own run only just "
+                 "reached it (its reference ends within 3 m) - judge it by the picture")
     return line
 
 

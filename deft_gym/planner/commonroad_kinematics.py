@@ -305,10 +305,10 @@ class SharedLateralMixin:
     The library's ``generate_trajectories_at_level`` builds the lateral trajectory of a
     (duration, initial lateral state, end offset) again for every longitudinal sample of that
     duration - about 6 times per plan in high-velocity mode (a plan takes 1-10 % less CPU with
-    them shared: docs/planner.md). Here the samples of one bundle share it: nothing writes to a sample's lateral trajectory
-    (the library's evaluation cache inside it holds the same values for every sample), so the
-    bundle has the same samples with the same numbers in the same order. Keys are the arguments'
-    bytes (0.0 and -0.0 stay apart)."""
+    them shared: docs/planner.md). Here the samples of one bundle share it: nothing writes to a
+    sample's lateral trajectory (the library's evaluation cache inside it holds the same values for
+    every sample), so the bundle has the same samples with the same numbers in the same order. Keys
+    are the arguments' bytes (0.0 and -0.0 stay apart)."""
 
     def _create_trajectory_bundle(self, x_0_lon: Any, x_0_lat: Any, samp_level: int) -> Any:
         space = self.sampling_space  # type: ignore[attr-defined]

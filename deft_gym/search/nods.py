@@ -22,9 +22,9 @@
   mutated run. An added participant closer than ``clearance`` (0.5 m, the paper's safe distance
   and the planner's own hard buffer) to the reference ego box while that stretch of the path is
   reserved - from ``EARLY_WINDOW`` (1 s) before the reference ego is there until ``LATE_WINDOW``
-  (3 s) after it left, and all of the path once the reference run has ended (a static one at any
-  time) - makes the mutation invasive. The path reserved runs on to the destination itself
-  (:func:`reserved_path`): the reference ends within 3 m of it. So does a static one (cone, parked vehicle) closer than
+  (3 s) after it left, and all of the path once the reference run has ended, on to the destination
+  itself (:func:`reserved_path`: the reference ends within 3 m of it; a static one at any time) -
+  makes the mutation invasive. So does a static one (cone, parked vehicle) closer than
   ``static_clearance`` (0.75 m) or standing in a lane the optimal path drives in
   (:func:`lane_strips`): inside the ego's lane, where a planner goes round it by design. So does
   one that appears within ``SPAWN_DISTANCE`` (15 m) of the live ego, or a seed participant (which

@@ -126,7 +126,7 @@ def test_a_run_that_ends_level_with_its_destination_a_lane_over_is_pointed_out()
     over = dataclasses.replace(whole, ego=ego)
     dist, along, beside = findings.destination_approach(ctx, over)
     assert dist == pytest.approx(3.5, abs=0.05) and abs(along) < 0.3 and abs(beside) == pytest.approx(3.5, abs=0.05)
-    assert "level with it, a lane over" in findings.destination_line(ctx, over)
+    assert "passed level with it, a lane over" in findings.destination_line(ctx, over)
     short = dataclasses.replace(whole, ego=whole.ego[: len(whole.ego) // 2])
     line = findings.destination_line(ctx, short)
     assert findings.destination_approach(ctx, short)[1] < -50.0 and "a lane over" not in line
