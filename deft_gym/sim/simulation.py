@@ -200,7 +200,8 @@ class EpisodeResult:
                 "min_distance": None if o.min_distance == float("inf") else round(o.min_distance, 4),
                 "planning_outputs": len(self.planning), "messages": self.messages,
                 "dropped_deliveries": self.drops, "log": self.log_path, "truth": self.truth_path,
-                **({"failure": o.failure} if o.failure is not None else {})}
+                **({"failure": o.failure} if o.failure is not None else {}),
+                **({"arrival": o.arrival} if o.arrival == "a lane over" else {})}
 
 
 class Simulation:

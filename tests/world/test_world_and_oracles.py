@@ -347,3 +347,20 @@ def test_an_ego_standing_level_with_its_destination_a_lane_over_has_arrived(besi
     assert oracle.arrival == (None if not done else "radius" if beside == 0.0 else "a lane over")
     if done:
         assert ("arrival" in oracle.outcome().as_dict()) is (beside > 0.0)
+
+
+def test_a_run_that_arrives_a_lane_over_says_so_in_its_summary() -> None:
+    """A car parked on the destination of the hand-written parked street: the ego, in the other
+    lane, stops beside it, level with its destination one lane over - it has arrived (before
+    2026-11-27 this run was stuck), and its summary says how."""
+    from deft_gym.scenarios.scenario import destination_xy
+    from deft_gym.search.context import resolve_scenario
+
+    sc = resolve_scenario("handwritten/parked_street")
+    xy, _ = destination_xy(shared_roadmap(sc.map), sc.ego.destination)
+    data = scenario_to_dict(sc)
+    data["participants"].append({"id": "on_destination", "type": "static", "obstacle": "STATIC_VEHICLE",
+                                 "x": float(xy[0]), "y": float(xy[1]), "heading": 0.0})
+    s = run_episode(scenario_from_dict(data, source="parked on the destination"), jitter_seed=1,
+                    keep_planning=False).summary()
+    assert (s["outcome"], s.get("arrival")) == ("completed", "a lane over"), s
