@@ -115,10 +115,11 @@ def test_the_sample_of_a_root_cause_spreads_over_its_scenarios() -> None:
     assert findings.spread(recs[:1], 3) == recs[:1] and findings.spread([], 2) == []
 
 
-def test_a_run_that_ends_level_with_its_destination_a_lane_over_is_pointed_out() -> None:
-    """The completion radius is 3 m around one point of the destination lane; an ego level with
-    that point in the next lane (3.5 m over) has not arrived. The findings page says so, so the
-    analyst judges the picture instead of counting it; a run that stops far short does not get it."""
+def test_a_run_that_passed_level_with_its_destination_a_lane_over_is_pointed_out() -> None:
+    """An ego that passes level with its destination in the next lane (3.5 m over) without
+    stopping there has not arrived (3 m radius). The findings page says so, for the analyst to
+    judge the picture (a miss, or a seed only just reached); a run that stops far short does not
+    get it."""
     ctx = seed_context("lane_follow_static")
     whole = ctx.oracle.reserved  # the reference run on to the destination
     ego = whole.ego.copy()

@@ -352,7 +352,7 @@ def test_an_ego_standing_level_with_its_destination_a_lane_over_has_arrived(besi
 def test_a_run_that_arrives_a_lane_over_says_so_in_its_summary() -> None:
     """A car parked on the destination of the hand-written parked street: the ego, in the other
     lane, stops beside it, level with its destination one lane over - it has arrived (before
-    2026-11-27 this run was stuck), and its summary says how."""
+    2026-11-27 this run timed out, standing there), and its summary says how."""
     from deft_gym.scenarios.scenario import destination_xy
     from deft_gym.search.context import resolve_scenario
 
