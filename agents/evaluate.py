@@ -303,16 +303,19 @@ _POLICIES: dict[str, Any] = {}
 
 def seed_problem(item: dict[str, Any]) -> str | None:
     """Why ``item["scenario"]`` is no seed for the planner under test, else None: its reference run
-    (the medoid of five jitter seeds) does not complete its task, or it is not robust (its unmutated
-    runs on jitter seeds 1-8 do not all complete consistently with the reference; skipped for the
-    held-out scenarios, chosen robust). Builds and caches what the jobs use (in a worker process)."""
+    (the medoid of five jitter seeds) does not complete its task, or only just arrives
+    (:func:`~deft_gym.search.context.arrival_problem`), or it is not robust (its unmutated runs on
+    jitter seeds 1-8 do not all complete consistently with the reference; skipped for the held-out
+    scenarios, chosen robust). Builds and caches what the jobs use (in a worker process)."""
     from deft_gym.envs.adversary import load_env_config
-    from deft_gym.search.context import robust
+    from deft_gym.search.context import arrival_problem, robust
 
     try:
         ctx = load_env_config(item["env"]).context(item["scenario"])
     except ValueError as err:
         return str(err)
+    if (why := arrival_problem(ctx)) is not None:
+        return why
     if item.get("check_robust", True) and not robust(ctx):
         return (f"scenario {ctx.name!r}: not robust on this planner: its unmutated runs on jitter seeds 1-8 do "
                 "not all complete consistently with the reference (or the reference gives up a lane change)")

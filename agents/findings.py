@@ -346,9 +346,6 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
     return 0
 
 
-REACH_RADIUS = 3.0  #: [m] the destination counts as reached this near (``EpisodeOracle.reach_radius``)
-
-
 def destination_approach(ctx: Any, trace: Any) -> tuple[float, float, float]:
     """``(distance [m], along [m], beside [m])``: where the ego of ``trace`` came nearest its
     destination (``ctx``'s scenario), how far from it, and there how far past it along the
@@ -368,6 +365,8 @@ def destination_line(ctx: Any, trace: Any) -> str:
     ego passed level with it at most a lane beside it (standing there, it would have arrived:
     :class:`~deft_gym.sim.oracles.EpisodeOracle`): it missed it, or the seed's own run only just
     reached it (within 3 m of one point of the destination lane)."""
+    from deft_gym.sim.oracles import REACH_RADIUS
+
     dist, along, beside = destination_approach(ctx, trace)
     line = f"nearest the destination: {dist:.2f} m ({along:+.1f} m along its lane, {beside:+.2f} m beside it)"
     width = ctx.roadmap.geom(tuple(ctx.scenario.ego.destination.lane)).width

@@ -210,16 +210,38 @@ def robust(ctx: SeedContext, runs: int = 8, cache_dir: Path | str | None = CACHE
     return ok
 
 
+ARRIVAL_MARGIN = 0.5  # [m] the reference arrives at least this far inside the reach radius sideways
+
+
+def arrival_problem(ctx: SeedContext, margin: float = ARRIVAL_MARGIN) -> str | None:
+    """Why the reference run of ``ctx`` arrives too narrowly to be a seed, else None: its last pose
+    (the first within ``REACH_RADIUS``, 3 m, of the destination) lies more than ``REACH_RADIUS -
+    margin`` beside the destination lane's centre line. The ego then brushes the radius from the
+    side - CommonRoad's on ``dense_cut_ins`` arrives 2.75 m beside it, by 7 cm - and a mutated run
+    ``margin`` (0.5 m, validity's clearance) wider misses its destination: a task failure the
+    adversary did not cause."""
+    from deft_gym.sim.oracles import REACH_RADIUS
+
+    dest = ctx.scenario.ego.destination
+    _, beside = ctx.roadmap.geom(tuple(dest.lane)).frenet_point(*ctx.ref.xy[-1])
+    if abs(beside) <= REACH_RADIUS - margin:
+        return None
+    return (f"scenario {ctx.name!r}: its reference run arrives {abs(beside):.2f} m beside its destination's lane, "
+            f"within {REACH_RADIUS - abs(beside):.2f} m of missing it (less than {margin} m): move the "
+            "destination to where the ego has settled in a lane")
+
+
 def _first_robust(names: Iterable[str], count: int, ads: AdsConfig | None = None) -> list[str]:
     """The first ``count`` of ``names`` whose context (under ``ads``, default: the default ADS
-    config) is robust (see :func:`robust`); names that do not resolve or whose reference run fails
-    are skipped."""
+    config) is robust (see :func:`robust`) and arrives clearly (:func:`arrival_problem`); names
+    that do not resolve or whose reference run fails are skipped."""
     out: list[str] = []
     for name in names:
         if len(out) >= count:
             break
         try:
-            if robust(seed_context(name, ads=ads)):
+            ctx = seed_context(name, ads=ads)
+            if arrival_problem(ctx) is None and robust(ctx):
                 out.append(name)
         except (ValueError, ConfigError):
             continue

@@ -23,6 +23,7 @@ from deft_gym.world.world import Collision, World
 
 OUTCOMES = ("collision", "completed", "timeout", "stuck", "crash", "hang", "no_plan")
 STANDING_SPEED = 0.5  # [m/s] slower than this, the ego may be waiting at a light
+REACH_RADIUS = 3.0  # [m] the destination counts as reached this near (:class:`EpisodeOracle`)
 
 
 def held_by_light(roadmap: RoadMap, lights: TrafficLights | None, loc: tuple[Any, float, float] | None,
@@ -79,7 +80,7 @@ class EpisodeOracle:
     """
 
     def __init__(self, world: World, destination: np.ndarray, duration: float,
-                 reach_radius: float = 3.0, stuck_time: float = 30.0, stuck_distance: float = 0.5,
+                 reach_radius: float = REACH_RADIUS, stuck_time: float = 30.0, stuck_distance: float = 0.5,
                  stop_on_collision: bool = True, destination_lane: LaneGeom | None = None,
                  destination_s: float = 0.0) -> None:
         self.world = world

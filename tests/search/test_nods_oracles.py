@@ -319,3 +319,18 @@ def test_a_cached_robust_verdict_is_keyed_by_the_source_that_judged_it(tmp_path,
     assert not robust(ctx, runs=1, cache_dir=tmp_path)
     monkeypatch.setattr(context, "_judge_key", lambda: "edited00")
     assert robust(ctx, runs=1, cache_dir=tmp_path)
+
+
+def test_a_reference_that_arrives_from_beside_its_destinations_lane_is_no_seed(ctx):
+    """CommonRoad's reference on ``dense_cut_ins`` arrives 2.75 m beside its destination's lane,
+    inside the 3 m radius by 7 cm: a mutated run a little wider misses it. A seed's reference must
+    arrive at least 0.5 m inside the radius sideways."""
+    from deft_gym.search.context import arrival_problem
+
+    assert arrival_problem(ctx) is None
+    for beside, refused in ((2.4, False), (2.75, True)):
+        ego = ctx.ref.ego.copy()
+        ego[-1, 1] += beside  # the lane runs along x
+        why = arrival_problem(dataclasses.replace(ctx, ref=dataclasses.replace(ctx.ref, ego=ego)))
+        assert (why is not None) is refused, why
+        assert not refused or f"arrives {beside:.2f} m beside its destination's lane" in why
