@@ -365,12 +365,12 @@ def destination_line(ctx: Any, trace: Any) -> str:
     ego passed level with it at most a lane beside it (standing there, it would have arrived:
     :class:`~deft_gym.sim.oracles.EpisodeOracle`): it missed it, or the seed's own run only just
     reached it (within 3 m of one point of the destination lane)."""
-    from deft_gym.sim.oracles import REACH_RADIUS
+    from deft_gym.sim.oracles import REACH_RADIUS, level_with_destination
 
     dist, along, beside = destination_approach(ctx, trace)
     line = f"nearest the destination: {dist:.2f} m ({along:+.1f} m along its lane, {beside:+.2f} m beside it)"
     width = ctx.roadmap.geom(tuple(ctx.scenario.ego.destination.lane)).width
-    if dist > REACH_RADIUS and abs(along) <= REACH_RADIUS and abs(beside) <= 1.5 * width:
+    if dist > REACH_RADIUS and level_with_destination(along, beside, width):
         line += ("; **passed level with it, a lane over**: a miss, or a seed whose own run only just "
                  "reached it (its reference ends within 3 m) - judge it by the picture")
     return line

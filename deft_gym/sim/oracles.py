@@ -24,6 +24,15 @@ from deft_gym.world.world import Collision, World
 OUTCOMES = ("collision", "completed", "timeout", "stuck", "crash", "hang", "no_plan")
 STANDING_SPEED = 0.5  # [m/s] slower than this, the ego may be waiting at a light
 REACH_RADIUS = 3.0  # [m] the destination counts as reached this near (:class:`EpisodeOracle`)
+LEVEL_LANES = 1.5  # [lane widths] at most this far beside the destination's lane is "a lane over"
+
+
+def level_with_destination(along: float, beside: float, lane_width: float,
+                           reach_radius: float = REACH_RADIUS) -> bool:
+    """Whether a point ``along`` [m] past the destination on its lane (negative: short of it) and
+    ``beside`` [m] from that lane's centre line is level with it (within ``reach_radius`` [m]
+    along) and at most a lane beside it (``LEVEL_LANES`` widths of ``lane_width`` [m])."""
+    return abs(along) <= reach_radius and abs(beside) <= LEVEL_LANES * lane_width
 
 
 def held_by_light(roadmap: RoadMap, lights: TrafficLights | None, loc: tuple[Any, float, float] | None,
@@ -87,8 +96,7 @@ class EpisodeOracle:
         self.destination = np.asarray(destination, dtype=float)
         self._destination = (float(self.destination[0]), float(self.destination[1]))
         self.destination_lane, self.destination_s = destination_lane, destination_s
-        beside = 1.5 * destination_lane.width if destination_lane is not None else 0.0
-        self._beside = beside
+        beside = LEVEL_LANES * destination_lane.width if destination_lane is not None else 0.0
         self._level_radius = math.hypot(reach_radius, beside)  # nearer than this: level-with test
         self.arrival: str | None = None  #: how it arrived: "radius" or "a lane over"
         self.duration = duration
@@ -145,7 +153,7 @@ class EpisodeOracle:
         lane) and at most a lane beside it."""
         assert self.destination_lane is not None
         s, d = self.destination_lane.frenet_point(x, y)
-        return abs(s - self.destination_s) <= self.reach_radius and abs(d) <= self._beside
+        return level_with_destination(s - self.destination_s, d, self.destination_lane.width, self.reach_radius)
 
     def outcome(self) -> Outcome:
         w = self.world
