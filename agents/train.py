@@ -429,6 +429,9 @@ def summarize_run(out: Path) -> dict[str, Any]:
 
 # -- main -----------------------------------------------------------------------------------------
 def _interrupt(signum: int, frame: Any) -> None:
+    """SIGTERM stops training like Ctrl-C; a second SIGTERM is ignored from then on, so that it
+    cannot break off the model's save (GNU ``timeout`` signals the process, then its group)."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     raise KeyboardInterrupt
 
 

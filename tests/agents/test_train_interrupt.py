@@ -25,3 +25,28 @@ def test_envs_close_after_an_interrupt_between_two_replies() -> None:
     done.join(30)
     assert not done.is_alive(), "closing the envs after an interrupt hung"
     assert vec.closed and not any(p.is_alive() for p in vec.processes)
+
+
+def test_a_second_sigterm_cannot_break_off_the_save() -> None:
+    """GNU ``timeout`` sends SIGTERM to the training process and then to its process group: the
+    first stops training, the second once reached ``model.save`` and the model was lost (seen on a
+    lent 16-core machine). After the first, SIGTERM is ignored."""
+    import os
+    import signal
+
+    from agents.train import _interrupt
+
+    before = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        stopped = False
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+        except KeyboardInterrupt:
+            stopped = True
+        assert stopped, "the first SIGTERM did not stop training"
+        saved = False
+        os.kill(os.getpid(), signal.SIGTERM)  # while saving: must not raise
+        saved = True
+        assert saved and signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGTERM, before)
