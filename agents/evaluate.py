@@ -249,13 +249,39 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
 MAX_SIMULATIONS = 10_000_000  # simulated scenarios of one evaluation (checked before any work)
 
 
+#: what a saved model holds only for training (the last observations, the episode buffers): an
+#: evaluation does not unpickle it
+TRAINING_STATE = ("_last_obs", "_last_episode_starts", "_last_original_obs", "ep_info_buffer", "ep_success_buffer")
+SPACES = ("observation_space", "action_space")
+
+
+def load_policy(path: str, env: Any) -> Any:
+    """The SB3 model (PPO or A2C) at ``path`` for inference in ``env``. Its training state is not
+    unpickled, and where its spaces do not unpickle - pickled under another numpy major version
+    (numpy 2 on a lent machine, numpy 1.26 where the export extra pins it) - ``env``'s own are
+    used: the policy's parameters still have to fit them. RuntimeError when neither loads."""
+    from stable_baselines3 import A2C, PPO
+
+    skip: dict[str, Any] = dict.fromkeys(TRAINING_STATE)
+    spaces = {"observation_space": env.observation_space, "action_space": env.action_space}
+    errors = []
+    for custom in (skip, {**skip, **spaces}):
+        for cls in (PPO, A2C):
+            try:
+                return cls.load(path, device="cpu", custom_objects=custom)
+            except Exception as exc:  # not this algorithm, or spaces from another numpy
+                errors.append(f"{cls.__name__}: {type(exc).__name__}: {str(exc).splitlines()[0][:120] if str(exc) else ''}")
+    raise RuntimeError(f"cannot load model {path} ({'; '.join(errors)})")
+
+
 def check_model(path: str, where: str) -> None:
     """ConfigError (one line) unless ``path`` is a readable SB3 model with a policy (an empty,
     truncated or foreign file is refused here, not in a worker's traceback)."""
     from stable_baselines3.common.save_util import load_from_zip_file
 
-    try:
-        data, params, _ = load_from_zip_file(path, device="cpu", load_data=True)
+    try:  # the spaces and training state may be numpy 2 pickles under numpy 1: see load_policy
+        data, params, _ = load_from_zip_file(path, device="cpu", load_data=True,
+                                             custom_objects=dict.fromkeys((*TRAINING_STATE, *SPACES)))
     except Exception as exc:
         raise ConfigError(f"{where}: {path} is not a readable SB3 model ({type(exc).__name__}: "
                           f"{str(exc).splitlines()[0][:200] if str(exc) else ''})") from None
@@ -413,30 +439,21 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
     baselines' are (:func:`agents.search.confirm`)."""
     import numpy as np
     import torch
-    from stable_baselines3 import A2C, PPO
 
     from agents.search import confirm, oracle_columns, record_of
     from deft_gym.envs.adversary import AdversaryEnv
 
     torch.set_num_threads(1)
-    key = job["model"] if job["method"] == "rl" else None
-    model = _POLICIES.get(key) if key else None
-    if key and model is None:
-        for cls in (PPO, A2C):
-            try:
-                model = cls.load(key, device="cpu")
-                break
-            except Exception:  # not this algorithm
-                continue
-        if model is None:
-            raise RuntimeError(f"cannot load model {key}")
-        _POLICIES[key] = model
     log_dir = None
     if job["log_failures"]:
         log_dir = str(_log_root(job))
     cfg = env_cfg.model_copy(update={"scenarios": [job["scenario"]], "variant_prob": 0.0, "log_dir": log_dir,
                                      "keep_passing": 0.0, "extract": True})
     env = AdversaryEnv(config=cfg)
+    key = job["model"] if job["method"] == "rl" else None
+    model = _POLICIES.get(key) if key else None
+    if key and model is None:
+        model = _POLICIES[key] = load_policy(key, env)
     temperature = float(job.get("temperature", 1.0))
     env.action_space.seed(job["seed"])
     rng = np.random.default_rng([job["seed"], 104729])
