@@ -427,6 +427,20 @@ def summarize_run(out: Path) -> dict[str, Any]:
     return summary
 
 
+def usable_cores(n_envs: int) -> int:
+    """The cores a run of ``n_envs`` env processes can keep busy: one per env, at most the CPUs
+    this process may use (the learner runs between the envs' steps)."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(n_envs, cpus))
+
+
+def cores_busy(cpu_seconds: float, wall_seconds: float, cores: int) -> float:
+    """The share of ``cores`` busy over a run: its CPU [s] (learner and envs) over wall [s] x cores.
+    Low with many envs when they wait for each other: a vectorised env steps them together, so
+    every step waits for the slowest env, and every update for the learner."""
+    return cpu_seconds / max(wall_seconds * cores, 1e-9)
+
+
 # -- main -----------------------------------------------------------------------------------------
 def _interrupt(signum: int, frame: Any) -> None:
     """SIGTERM stops training like Ctrl-C; a second SIGTERM is ignored from then on, so that it
@@ -547,7 +561,9 @@ def _train(args: argparse.Namespace, con: Any, cfg: Any, backend: Any, out: Path
                     "episodes_this_session": summary["episodes"] - episodes0,
                     "episodes_per_hour": round((summary["episodes"] - episodes0) / max(seconds, 1e-9) * 3600, 1),
                     "cpu_seconds": round(stats.cpu_seconds(), 1),
-                    "scenarios_per_cpu_hour": round(stats.session / max(stats.cpu_seconds(), 1e-9) * 3600, 1)})
+                    "scenarios_per_cpu_hour": round(stats.session / max(stats.cpu_seconds(), 1e-9) * 3600, 1),
+                    "cores": usable_cores(cfg.n_envs),
+                    "cores_busy": round(cores_busy(stats.cpu_seconds(), seconds, usable_cores(cfg.n_envs)), 3)})
     write_json_atomic(out / "summary.json", summary)
     pictures = render_failures(out, args) if args.render != "none" else []
     print_summary(con, summary, out, len(pictures))
@@ -601,7 +617,8 @@ def print_summary(con: Any, s: dict[str, Any], out: Path, pictures: int) -> None
             *([("rolled back by resuming (in rolled_back/)", str(s["rolled_back_episodes"]))]
               if s.get("rolled_back_episodes") else []),
             ("training time", f"{s['train_seconds']:.0f} s ({s['episodes_per_hour']:.0f} episodes/h)"),
-            ("scenarios per CPU-hour", f"{s['scenarios_per_cpu_hour']:.0f}")]
+            ("scenarios per CPU-hour", f"{s['scenarios_per_cpu_hour']:.0f}"),
+            *([("cores busy", f"{100 * s['cores_busy']:.0f} % of {s['cores']}")] if "cores_busy" in s else [])]
     for k, v in rows:
         t.add_row(k, v)
     common.print_table(con, t)

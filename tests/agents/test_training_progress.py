@@ -20,5 +20,9 @@ def test_progress_reaches_the_end_of_training_and_the_report_draws_it(tmp_path: 
     assert 0 < summary["episodes"] < 50  # fewer than the 50 episodes between regular lines
     assert progress and progress[-1]["episodes"] == summary["episodes"]
     assert progress[-1]["timesteps"] == summary["timesteps"] >= 64
+    # how busy the cores were: CPU over wall x cores, a share (the envs' CPU comes from their reports)
+    assert summary["cores"] >= 1 and 0 < summary["cores_busy"] <= 1.5
+    assert abs(summary["cores_busy"] - train.cores_busy(summary["cpu_seconds"], summary["train_seconds"],
+                                                        summary["cores"])) < 0.05
     page = write_report(out, draw=False).read_text()
     assert 'alt="training curves"' in page and "too few progress records" not in page
