@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -174,6 +175,7 @@ class Watchdog:
         self._used = 0.0  # wall seconds of finished top-level calls
         self.expired = False  #: the whole-run cap was reached
         self._cause = "call"
+        self._dropped = False  # a hang raised where Python drops exceptions: raised again at the next beat
 
     def call(self, fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(*args)``, watched; :class:`ModuleHang` propagates out of it."""
@@ -184,11 +186,15 @@ class Watchdog:
         start = time.perf_counter()
         self._active, self._t0 = True, start
         try:
-            return fn(*args)
+            result = fn(*args)
         finally:
             self._active, self._t0 = outer, t0
             if not outer:
                 self._used += time.perf_counter() - start
+        if self._dropped:  # its hang was dropped and it returned before the next beat
+            self._dropped = False
+            raise ModuleHang()
+        return result
 
     @property
     def used(self) -> float:
@@ -204,6 +210,11 @@ class Watchdog:
 
     def _beat(self, signum: int, frame: Any) -> None:
         if not self._active:
+            return
+        if self._dropped:  # Python dropped the hang (see _Heartbeat.unraisable): raise it again here
+            if not in_destructor(frame):
+                self._dropped = False
+                raise ModuleHang()
             return
         now = time.perf_counter()
         total = bool(self.total_s and not self.expired and self._t0 != float("inf")
@@ -239,11 +250,24 @@ class _Heartbeat:
         if self.on:
             limits = [x for x in (self.dog.seconds, self.dog.total_s) if x > 0]
             tick = min(min(limits) / 4, 1.0)
+            self.old_hook = sys.unraisablehook
+            sys.unraisablehook = self.unraisable
             self.old = signal.signal(signal.SIGALRM, self.dog._beat)
             self.old_timer = signal.setitimer(signal.ITIMER_REAL, tick, tick)
 
+    def unraisable(self, info: Any) -> None:
+        """``sys.unraisablehook`` while armed: a :class:`ModuleHang` raised where Python drops
+        exceptions - a weakref callback or finaliser the garbage collector runs, outside any
+        ``__del__`` - is not lost: the next beat raises it again (else the call, interrupted once,
+        would run on unwatched). Anything else goes to the hook that was there."""
+        if isinstance(info.exc_value, ModuleHang) and self.dog._active:
+            self.dog._dropped = True
+            return
+        self.old_hook(info)
+
     def __exit__(self, *exc: Any) -> None:
         if self.on:
+            sys.unraisablehook = self.old_hook
             signal.setitimer(signal.ITIMER_REAL, 0)
             signal.signal(signal.SIGALRM, self.old if self.old is not None else signal.SIG_DFL)
             if self.old_timer[0] > 0:

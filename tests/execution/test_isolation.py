@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -114,6 +115,31 @@ def test_a_hang_noticed_inside_a_destructor_is_raised_after_it_not_lost() -> Non
         warnings.simplefilter("error")  # an exception ignored in __del__ would be an error here
         with dog.armed(), pytest.raises(ModuleHang):
             dog.call(module)
+
+
+def test_a_hang_noticed_inside_a_weakref_callback_is_raised_after_it_not_lost() -> None:
+    """Python drops an exception raised in a weakref callback too - a WeakSet's, run by the garbage
+    collector after another test's training left such objects behind, is where this was seen:
+    the hang was lost and the call ran on unwatched. The next heartbeat raises it again."""
+    import weakref
+
+    class Node:
+        pass
+
+    def module() -> None:
+        node = Node()
+        ref = weakref.ref(node, lambda _: time.sleep(0.6))  # the 0.3 s limit passes in the callback
+        del node
+        assert ref() is None
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < 3.0:  # a lost hang: returns, DID NOT RAISE
+            pass
+
+    dog = Watchdog(0.3, 0)
+    before = sys.unraisablehook
+    with dog.armed(), pytest.raises(ModuleHang):
+        dog.call(module)
+    assert sys.unraisablehook is before  # the hook put back
 
 
 def test_construction_errors_and_unpicklable_results_are_reported() -> None:
