@@ -191,8 +191,8 @@ class Watchdog:
             self._active, self._t0 = outer, t0
             if not outer:
                 self._used += time.perf_counter() - start
-        if self._dropped:  # its hang was dropped and it returned before the next beat
-            self._dropped = False
+            dropped, self._dropped = self._dropped, False  # never carried into the next call
+        if dropped:  # its hang was dropped and it returned before the next beat
             raise ModuleHang()
         return result
 

@@ -135,10 +135,25 @@ def test_a_hang_noticed_inside_a_weakref_callback_is_raised_after_it_not_lost() 
         while time.perf_counter() - t0 < 3.0:  # a lost hang: returns, DID NOT RAISE
             pass
 
+    def quick_after_a_drop() -> str:  # a call that returns at once: no hang carried over to it
+        return "ok"
+
     dog = Watchdog(0.3, 0)
     before = sys.unraisablehook
-    with dog.armed(), pytest.raises(ModuleHang):
-        dog.call(module)
+    def fails_after_a_drop() -> None:  # its own error right after the dropped hang, before a beat
+        node = Node()
+        ref = weakref.ref(node, lambda _: time.sleep(0.6))
+        del node
+        assert ref() is None
+        raise ValueError("its own")
+
+    with dog.armed():
+        with pytest.raises(ModuleHang):
+            dog.call(module)
+        assert dog.call(quick_after_a_drop) == "ok"
+        with pytest.raises((ValueError, ModuleHang)):
+            dog.call(fails_after_a_drop)
+        assert dog.call(quick_after_a_drop) == "ok"  # the dropped hang is not carried over
     assert sys.unraisablehook is before  # the hook put back
 
 
