@@ -555,6 +555,7 @@ def _train(args: argparse.Namespace, con: Any, cfg: Any, backend: Any, out: Path
                         "valid": c["valid"], "validity": round(c["valid"] / max(c["episodes"], 1), 4),
                         "failure_rate": round((c["collision"] + c["nods"]) / max(c["episodes"], 1), 4)})
     summary["findings"] = {k: v for k, v in sorted(stats.counts.items()) if k.startswith("found_") or k.endswith("findings")}
+    cores = usable_cores(cfg.n_envs)
     summary.update({"timesteps": int(model.num_timesteps), "train_seconds": round(seconds, 1),
                     "interrupted": interrupted,
                     "env_steps_per_second": round((model.num_timesteps - steps0) / max(seconds, 1e-9), 2),
@@ -562,8 +563,8 @@ def _train(args: argparse.Namespace, con: Any, cfg: Any, backend: Any, out: Path
                     "episodes_per_hour": round((summary["episodes"] - episodes0) / max(seconds, 1e-9) * 3600, 1),
                     "cpu_seconds": round(stats.cpu_seconds(), 1),
                     "scenarios_per_cpu_hour": round(stats.session / max(stats.cpu_seconds(), 1e-9) * 3600, 1),
-                    "cores": usable_cores(cfg.n_envs),
-                    "cores_busy": round(cores_busy(stats.cpu_seconds(), seconds, usable_cores(cfg.n_envs)), 3)})
+                    "cores": cores,
+                    "cores_busy": round(cores_busy(stats.cpu_seconds(), seconds, cores), 3)})
     write_json_atomic(out / "summary.json", summary)
     pictures = render_failures(out, args) if args.render != "none" else []
     print_summary(con, summary, out, len(pictures))
