@@ -138,8 +138,6 @@ def test_a_hang_noticed_inside_a_weakref_callback_is_raised_after_it_not_lost() 
     def quick_after_a_drop() -> str:  # a call that returns at once: no hang carried over to it
         return "ok"
 
-    dog = Watchdog(0.3, 0)
-    before = sys.unraisablehook
     def fails_after_a_drop() -> None:  # its own error right after the dropped hang, before a beat
         node = Node()
         ref = weakref.ref(node, lambda _: time.sleep(0.6))
@@ -147,6 +145,8 @@ def test_a_hang_noticed_inside_a_weakref_callback_is_raised_after_it_not_lost() 
         assert ref() is None
         raise ValueError("its own")
 
+    dog = Watchdog(0.3, 0)
+    before = sys.unraisablehook
     with dog.armed():
         with pytest.raises(ModuleHang):
             dog.call(module)
