@@ -55,7 +55,6 @@ from typing import Any, Literal
 
 import gymnasium as gym
 import numpy as np
-import shapely
 from gymnasium import spaces
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -465,7 +464,7 @@ class AdversaryEnv(gym.Env):
         r = 0.0
         if self.cfg.objective in ("nods", "both"):
             lane_w = ctx.roadmap.spec.lane_width
-            dev = np.asarray(ctx.oracle.ref_line.distance(shapely.points(ego[:, :2])), dtype=float)
+            dev = ctx.oracle.distances(ego[:, :2])
             new = max(self._max_dev, min(float(dev.max()), lane_w))
             r += cfg.deviation * (new - self._max_dev) / lane_w
             self._max_dev = new

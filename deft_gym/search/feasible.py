@@ -167,6 +167,18 @@ class MotionAreas:
         self.roi = shapely.intersection(self.ground, self.ref_line.buffer(cfg.roi))
         shapely.prepare(self.roi)
         shapely.prepare(self.ground)
+        self._near_static: dict[float, shapely.Geometry] = {}
+
+    def near_static_forbidden(self, reach: float) -> shapely.Geometry:
+        """A prepared area holding every point within ``reach`` [m] of :attr:`static_forbidden`
+        (its buffer, 2 % + 1 mm wider than ``reach``: the buffer's arcs are chords, inside the
+        true circle by under 0.5 %), built once per ``reach``. A box whose centre lies outside it
+        cannot meet the forbidden area."""
+        near = self._near_static.get(reach)
+        if near is None:
+            near = self._near_static[reach] = self.static_forbidden.buffer(1.02 * reach + 1e-3, quad_segs=8)
+            shapely.prepare(near)
+        return near
 
     def _idm_zone(self, rows: np.ndarray, world_dt: float, length: float) -> list[shapely.Geometry]:
         """What a reactive (IDM) participant at these poses ``(tick, x, y, h)`` reacts to in the
@@ -305,11 +317,19 @@ class Layout:
         ok = shapely.contains_xy(self.areas.ground, x, y) if on_road else np.ones(len(x), dtype=bool)
         idx = np.flatnonzero(ok)
         if len(idx):
-            polys = shapely.polygons(box_corners(x[idx], y[idx], h[idx], length, width))
-            free = ~shapely.intersects(polys, self.areas.static_forbidden)
+            corners = box_corners(x[idx], y[idx], h[idx], length, width)
+            # the box test only where the centres leave it open: a centre inside the forbidden
+            # area puts the box in it, one farther from it than the box's half-diagonal keeps the
+            # box out (the same answer as the box test, at a fraction of its cost)
+            forbidden, cx, cy = self.areas.static_forbidden, x[idx], y[idx]
+            near = shapely.contains_xy(self.areas.near_static_forbidden(0.5 * math.hypot(length, width)), cx, cy)
+            open_ = near & ~shapely.contains_xy(forbidden, cx, cy)
+            free = ~near
+            if open_.any():
+                free[open_] = ~shapely.intersects(shapely.polygons(corners[open_]), forbidden)
             other = self._added_any()
             if other is not None and free.any():
-                free[free] = ~shapely.intersects(polys[free], other)
+                free[free] = ~shapely.intersects(shapely.polygons(corners[free]), other)
             ok[idx] = free
         return ok
 

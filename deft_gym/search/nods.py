@@ -47,7 +47,7 @@ import numpy as np
 import shapely
 
 from deft_gym.search.trace import Actor, Trace
-from deft_gym.world.geometry import box_corners, box_gap, box_polygon
+from deft_gym.world.geometry import PolylineDistance, box_corners, box_gap, box_polygon
 from deft_gym.world.roadmap import RoadMap, lane_surface
 from deft_gym.world.world import EgoVehicle
 
@@ -155,18 +155,22 @@ def median_bandwidth(x: np.ndarray) -> float:
     return med if med > 1e-9 else 1.0
 
 
-def mmd_rbf(x: np.ndarray, y: np.ndarray, bandwidth: float) -> float:
+def mean_kernel(a: np.ndarray, b: np.ndarray, bandwidth: float) -> float:
+    """Mean of the Gaussian kernel ``exp(-|a-b|^2 / (2 bw^2))`` over all row pairs of ``a``, ``b``."""
+    g = -0.5 / (bandwidth * bandwidth)
+    return float(np.exp(g * ((a[:, None, :] - b[None, :, :]) ** 2).sum(-1)).mean())
+
+
+def mmd_rbf(x: np.ndarray, y: np.ndarray, bandwidth: float, kxx: float | None = None) -> float:
     """Biased MMD^2 of two samples with the Gaussian kernel ``exp(-|a-b|^2 / (2 bw^2))``, in
-    [0, 2]: 0 for equal distributions; an empty sample is as far as it gets (1)."""
+    [0, 2]: 0 for equal distributions; an empty sample is as far as it gets (1). ``kxx``: the
+    :func:`mean_kernel` of ``_thin(x)`` with itself, when the caller keeps it (the same float)."""
     if not len(x) or not len(y):
         return 1.0
     x, y = _thin(x), _thin(y)
-    g = -0.5 / (bandwidth * bandwidth)
-
-    def k(a: np.ndarray, b: np.ndarray) -> float:
-        return float(np.exp(g * ((a[:, None, :] - b[None, :, :]) ** 2).sum(-1)).mean())
-
-    return max(k(x, x) + k(y, y) - 2.0 * k(x, y), 0.0)
+    if kxx is None:
+        kxx = mean_kernel(x, x, bandwidth)
+    return max(kxx + mean_kernel(y, y, bandwidth) - 2.0 * mean_kernel(x, y, bandwidth), 0.0)
 
 
 # -- validity -----------------------------------------------------------------------------------
@@ -587,6 +591,7 @@ class DecisionOracle:
         self.ref_cells = self.cells(ref.xy)
         self.ref_line = shapely.LineString(ref.xy)
         shapely.prepare(self.ref_line)
+        self._ref_distance = PolylineDistance(ref.xy)
         # behaviour per reference lane (lanes holding >= 5 % of the reference points)
         pi, li, _ = self.lanes.membership(ref.xy)
         feats = behaviour_features(ref.ego)
@@ -596,6 +601,8 @@ class DecisionOracle:
             pts = pi[li == j]
             if len(pts) >= 0.05 * len(ref.xy):
                 self.ref_lanes[int(j)] = feats[pts]
+        # each reference lane's kernel with itself: the same in every judgement
+        self._ref_kxx = {j: mean_kernel(_thin(f), _thin(f), self.bandwidth) for j, f in self.ref_lanes.items()}
 
     def cells(self, xy: np.ndarray) -> np.ndarray:
         return self.lanes.cells(xy) if self.grid_kind == "lane" else world_cells(xy, self.grid)
@@ -611,7 +618,7 @@ class DecisionOracle:
 
     def distances(self, xy: np.ndarray) -> np.ndarray:
         """Exact distance [m] of each point of a path to the reference path."""
-        return shapely.distance(shapely.points(np.asarray(xy).reshape(-1, 2)), self.ref_line)
+        return self._ref_distance(xy)
 
     @staticmethod
     def f_p(dist: np.ndarray) -> float:
@@ -627,7 +634,7 @@ class DecisionOracle:
             return 0.0
         pi, li, _ = self.lanes.membership(ego[:, :2])
         feats = behaviour_features(ego)
-        vals = [math.sqrt(mmd_rbf(ref_feats, feats[pi[li == j]], self.bandwidth))
+        vals = [math.sqrt(mmd_rbf(ref_feats, feats[pi[li == j]], self.bandwidth, self._ref_kxx[j]))
                 for j, ref_feats in self.ref_lanes.items()]
         return float(np.mean(vals))
 

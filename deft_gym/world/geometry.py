@@ -284,6 +284,30 @@ class ReferenceLine:
 
 
 # -- oriented boxes (vectorised; scalars work too) -------------------------------------------------
+class PolylineDistance:
+    """Exact distances [m] from points to a polyline ``xy`` (n, 2), through an STRtree of its
+    segments: the same GEOS point-to-segment distance, minimised over the same segments, as
+    ``shapely.distance(points, LineString(xy))`` - the same floats - at about a third of its
+    cost for a path of a thousand points."""
+
+    def __init__(self, xy: np.ndarray) -> None:
+        xy = np.asarray(xy, dtype=float)
+        self.line = shapely.LineString(xy)
+        self._tree = shapely.STRtree(shapely.linestrings(np.stack([xy[:-1], xy[1:]], axis=1)))
+
+    def __call__(self, xy: np.ndarray) -> np.ndarray:
+        """Distance [m] of each point of ``xy`` (n, 2) to the polyline."""
+        points = shapely.points(np.asarray(xy, dtype=float).reshape(-1, 2))
+        out = np.full(len(points), np.nan)
+        if len(points):
+            (which, _), dist = self._tree.query_nearest(points, return_distance=True, all_matches=False)
+            out[which] = dist
+            if len(which) < len(points):  # a point the tree finds nothing for (not finite): as shapely says
+                rest = np.setdiff1d(np.arange(len(points)), which)
+                out[rest] = shapely.distance(points[rest], self.line)
+        return out
+
+
 def box_corners(x: np.ndarray, y: np.ndarray, h: np.ndarray, length: float | np.ndarray,
                 width: float | np.ndarray) -> np.ndarray:
     """Corners (n, 4, 2) of oriented boxes."""

@@ -10,7 +10,7 @@ from deft_gym.search.context import seed_context
 from deft_gym.search.feasible import FeasibleConfig, Layout, Placed, reachable_area
 from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH
 from deft_gym.search.vehicles import LENGTH, WIDTH, Controls, LaneDriver, VState, complete
-from deft_gym.world.geometry import box_gap
+from deft_gym.world.geometry import box_corners, box_gap
 
 
 @pytest.fixture(scope="module")
@@ -124,3 +124,37 @@ def test_config_errors_name_the_field():
 
     with pytest.raises(ValidationError, match="margin"):
         FeasibleConfig(margin=-1.0)
+
+
+def _plain_static_ok(lay: Layout, x, y, h, length, width):
+    """The box test on every box on the ground (what static_ok answered before its centre test)."""
+    ok = shapely.contains_xy(lay.areas.ground, x, y)
+    idx = np.flatnonzero(ok)
+    polys = shapely.polygons(box_corners(x[idx], y[idx], h[idx], length, width))
+    free = ~shapely.intersects(polys, lay.areas.static_forbidden)
+    other = lay._added_any()
+    if other is not None:
+        free &= ~shapely.intersects(polys, other)
+    ok[idx] = free
+    return ok
+
+
+@pytest.mark.parametrize("size", [(0.6, 0.6), (4.5, 2.0), (1.0, 0.25)])
+def test_static_ok_centre_test_gives_the_box_tests_answer(ctx, size):
+    """Centres inside the forbidden area or beyond the box's reach of it are decided without the
+    box: every answer is the plain box test's (boxes hugging the area's edge included)."""
+    rng = np.random.default_rng(1)
+    lay = Layout(ctx.areas)
+    lay.add(Placed("c1", "static", {}, area=lay.static_footprint(60.0, 4.0, 0.0, 0.6, 0.6)))
+    x0, y0, x1, y1 = ctx.areas.roi.bounds
+    x, y = rng.uniform(x0, x1, 20000), rng.uniform(y0, y1, 20000)
+    # and centres just inside and outside the reach of the forbidden area's boundary
+    edge = shapely.get_coordinates(shapely.boundary(ctx.areas.static_forbidden))[::7]
+    reach = 0.5 * np.hypot(*size)
+    for r in (reach - 1e-6, reach + 1e-6, 1.02 * reach + 1e-3):
+        ang = rng.uniform(-np.pi, np.pi, len(edge))
+        x, y = np.r_[x, edge[:, 0] + r * np.cos(ang)], np.r_[y, edge[:, 1] + r * np.sin(ang)]
+    h = rng.uniform(-np.pi, np.pi, len(x))
+    ok = lay.static_ok(x, y, h, *size)
+    np.testing.assert_array_equal(ok, _plain_static_ok(lay, x, y, h, *size))
+    assert 0 < ok.sum() < len(ok)

@@ -15,7 +15,9 @@ from deft_gym.search.nods import (
     clearances,
     collision_fault,
     iou,
+    mean_kernel,
     mmd_linear,
+    mmd_rbf,
     world_cells,
 )
 from deft_gym.search.trace import Actor, Trace
@@ -61,6 +63,23 @@ def test_mmd_linear_is_the_squared_mean_distance():
     x, y = rng.normal(size=(50, 4)), rng.normal(1.0, size=(70, 4))
     k_xx, k_yy, k_xy = x @ x.T, y @ y.T, x @ y.T
     assert mmd_linear(x, y) == pytest.approx(k_xx.mean() + k_yy.mean() - 2 * k_xy.mean())
+
+
+def test_mmd_rbf_with_the_kept_reference_kernel_is_the_same_float(ctx):
+    """The oracle keeps each reference lane's kernel with itself; f_b is the float it was without."""
+    rng = np.random.default_rng(2)
+    x, y = rng.normal(size=(350, 4)), rng.normal(0.3, size=(120, 4))
+    thin = x[np.round(np.linspace(0, len(x) - 1, 200)).astype(np.int64)]
+    assert mmd_rbf(x, y, 1.7, mean_kernel(thin, thin, 1.7)) == mmd_rbf(x, y, 1.7)
+    o = ctx.oracle
+    ego = ctx.ref.ego.copy()
+    ego[:, 3] *= 0.7  # slower all the way
+    kept, o._ref_kxx = o._ref_kxx, {j: None for j in o._ref_kxx}  # None: computed again
+    try:
+        again = o.f_b(ego)
+    finally:
+        o._ref_kxx = kept
+    assert o.f_b(ego) == again > 0.0
 
 
 def test_validity_replays_the_reference_ego(ctx):

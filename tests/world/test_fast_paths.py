@@ -262,3 +262,25 @@ def test_fast_road_neighbours_match_the_plain_search(kind: str) -> None:
         if kind == "highway":
             assert (front, rear) == stock.neighbour_vehicles(ghost, lane_index)
     assert checked > 500
+
+
+def test_polyline_distance_is_shapelys_distance_bitwise() -> None:
+    """The segment tree gives shapely's distance to the whole line, float for float: random walks,
+    repeated vertices, points on and next to the line, far away, and not finite."""
+    import shapely
+
+    from deft_gym.world.geometry import PolylineDistance
+
+    rng = np.random.default_rng(0)
+    for k in range(60):
+        m = int(rng.integers(2, 1500))
+        xy = np.cumsum(rng.normal(0, 1, (m, 2)), axis=0)
+        if k % 3 == 0:
+            xy[int(rng.integers(1, m))] = xy[int(rng.integers(0, m))]  # a repeated vertex
+        if k % 5 == 0:
+            xy = np.round(xy, 1)
+        pts = np.r_[xy[rng.integers(0, m, 30)], xy.mean(0) + rng.normal(0, 30, (100, 2)),
+                    xy[rng.integers(0, m, 20)] + rng.normal(0, 1e-9, (20, 2)), [[np.nan, 0.0], [np.inf, 1.0]]]
+        got = PolylineDistance(xy)(pts)
+        want = shapely.distance(shapely.points(pts), shapely.LineString(xy))
+        np.testing.assert_array_equal(float_bits(got), float_bits(want))
