@@ -50,7 +50,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from deft_gym.cli import common
 from deft_gym.config import ConfigError, load_mapping, validate_with_flags
 from deft_gym.execution import Executor, add_backend_arguments, backend_from_args
-from deft_gym.files import append_jsonl, read_jsonl, write_atomic, write_json_atomic
+from deft_gym.files import append_jsonl, first_line, read_jsonl, write_atomic, write_json_atomic
 from deft_gym.record.recorder import init_pool_worker
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
@@ -242,7 +242,7 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
             resolve_scenario(scenario)
         except (ConfigError, ValueError, OSError) as err:
             at = "--scenarios" if flags["scenarios"][1] is not None else f"{name}: scenarios.{i}"
-            raise ConfigError(f"{at}: {scenario!r} does not resolve ({str(err).splitlines()[0][:300]})") from None
+            raise ConfigError(f"{at}: {scenario!r} does not resolve ({first_line(err)[:300]})") from None
     return cfg
 
 
@@ -270,7 +270,7 @@ def load_policy(path: str, env: Any) -> Any:
             try:
                 return cls.load(path, device="cpu", custom_objects=custom)
             except Exception as exc:  # not this algorithm, or spaces from another numpy
-                errors.append(f"{cls.__name__}: {type(exc).__name__}: {str(exc).splitlines()[0][:120] if str(exc) else ''}")
+                errors.append(f"{cls.__name__}: {type(exc).__name__}: {first_line(exc, '')[:120]}")
     raise RuntimeError(f"cannot load model {path} ({'; '.join(errors)})")
 
 
@@ -284,7 +284,7 @@ def check_model(path: str, where: str) -> None:
                                              custom_objects=dict.fromkeys((*TRAINING_STATE, *SPACES)))
     except Exception as exc:
         raise ConfigError(f"{where}: {path} is not a readable SB3 model ({type(exc).__name__}: "
-                          f"{str(exc).splitlines()[0][:200] if str(exc) else ''})") from None
+                          f"{first_line(exc, '')[:200]})") from None
     if not isinstance(data, dict) or not params or "policy" not in params:
         raise ConfigError(f"{where}: {path} holds no policy (expected a model.zip written by agents.train)")
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from agents.stats import METHOD_LABELS, RecordError, counted_failure, normalize
 from deft_gym.cli import common
-from deft_gym.files import read_jsonl, write_atomic
+from deft_gym.files import first_line, read_jsonl, write_atomic
 
 
 def build_parser() -> common.Parser:
@@ -75,7 +75,7 @@ def eval_feasible(folder: Path) -> Any:
     try:
         return FeasibleConfig(**data["feasible"])
     except ValueError as err:
-        raise RecordError(f"{path}: field 'feasible': {str(err).splitlines()[0]}") from None
+        raise RecordError(f"{path}: field 'feasible': {first_line(err)}") from None
 
 
 def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None,

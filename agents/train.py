@@ -43,7 +43,14 @@ from deft_gym.config import ConfigError
 from deft_gym.envs.sink import ROLLED_BACK
 from deft_gym.execution import Backend, add_backend_arguments, backend_from_args
 from deft_gym.execution.watchdog import apply_env, carried_env
-from deft_gym.files import append_jsonl, atomic_path, read_jsonl, write_atomic, write_json_atomic
+from deft_gym.files import (
+    append_jsonl,
+    atomic_path,
+    first_line,
+    read_jsonl,
+    write_atomic,
+    write_json_atomic,
+)
 from deft_gym.record.recorder import init_pool_worker
 
 
@@ -184,7 +191,7 @@ def checkpoint_steps(path: Path) -> int:
         return int(data["num_timesteps"])
     except Exception as exc:  # a truncated or foreign file: name it, no traceback
         raise ConfigError(f"--resume {path}: not a readable SB3 checkpoint ({type(exc).__name__}: "
-                          f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+                          f"{first_line(exc, '')})") from None
 
 
 def mark_resume(out: Path, n_envs: int, step0: int, checkpoint: Path) -> None:

@@ -203,3 +203,12 @@ def checked_kernel(kernel: Any, c_source: Path | str, mirrors: Path | str) -> An
     warnings.warn(f"{why}: using the Python version (the same results, slower); rebuild the kernels with "
                   "`pip install -e .` (or `make venv`)", RuntimeWarning, stacklevel=2)
     return None
+
+
+def first_line(exc: BaseException, default: str | None = None) -> str:
+    """The first non-blank line of ``str(exc)`` (for one-line error messages), else ``default``,
+    else the exception's type name (an exception without a message has no line to show)."""
+    for line in str(exc).splitlines():
+        if line.strip():
+            return line.strip()
+    return type(exc).__name__ if default is None else default

@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from deft_gym.bus.codec import encode
+from deft_gym.files import first_line
 from deft_gym.planner.base import Frame, Planner, load_planner, validate_output
 from extract.validator import compare
 
@@ -416,7 +417,7 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"{args.path}: no such file; expected frames.jsonl or an .mcap log")
         report = check_path(args.path, args.planner, params, args.mapping, args.max_frames)
     except (LogError, MappingError, FramesError, ValueError, TypeError) as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        first = first_line(err)
         return common.cli_error(first)
     if args.json:
         print(json.dumps(report.as_dict(), indent=1, default=lambda x: None if not math.isfinite(x) else x))

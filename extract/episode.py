@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from deft_gym.execution.watchdog import ModuleHang
-from deft_gym.files import write_atomic
+from deft_gym.files import first_line, write_atomic
 from deft_gym.planner.base import load_planner, planner_provenance, validate_output
 from extract.emit import slug, test_module, write_frames
 from extract.io_filter import PlanningIOFilter
@@ -121,7 +121,7 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     try:
         planner = load_planner(planner_spec["class"], planner_spec["map"], planner_spec["params"])
     except (ValueError, TypeError) as exc:  # unknown class, bad parameters (pydantic errors are ValueErrors)
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        first = first_line(exc)
         raise MappingError(f"{log_path}: cannot build planner {planner_spec['class']!r}: {first}") from None
     provenance = planner_provenance(type(planner))
     setup_s = time.perf_counter() - t_setup

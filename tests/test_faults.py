@@ -11,12 +11,22 @@ from pathlib import Path
 import pytest
 
 from deft_gym.envs.sink import EpisodeSink
-from deft_gym.files import append_jsonl, read_jsonl
+from deft_gym.files import append_jsonl, first_line, read_jsonl
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 # -- data loss ---------------------------------------------------------------------------------
+def test_one_line_errors_take_the_first_line_that_says_something():
+    """Every one-line error names the exception's first non-blank line; an exception without a
+    message (str() empty or blank) gives its type's name (or the caller's default), never an
+    IndexError from inside the handler."""
+    assert first_line(ValueError("bad field 'x'\n  more detail")) == "bad field 'x'"
+    assert first_line(ValueError("\n\n   \n  the reason\nmore")) == "the reason"
+    assert first_line(AssertionError()) == "AssertionError"
+    assert first_line(RuntimeError("  \n "), default="") == ""
+
+
 def test_sink_on_an_existing_run_continues_numbering_and_deletes_nothing_it_did_not_make(tmp_path):
     old = tmp_path / "episodes" / "w0-000001-take_exit"
     old.mkdir(parents=True)

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from deft_gym.cli import common
+from deft_gym.files import first_line
 
 
 def build_parser() -> common.Parser:
@@ -65,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         scenario_from_dict(data, source=str(out))  # the YAML loads as it is written
     except ConfigError as err:
-        return common.cli_error(f"FILE {file}: the scenario it gives does not load: {str(err).splitlines()[0]}")
+        return common.cli_error(f"FILE {file}: the scenario it gives does not load: {first_line(err)}")
     seed = args.jitter_seed if args.jitter_seed is not None else meta.get("jitter_seed")
     head = (f"# imported by deft-gym import from {file}\n# {data['description']}\n"
             f"# rerun: deft-gym run {out} --reruns 1" + (f" --jitter-seed {seed}" if seed is not None else "")
@@ -80,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             ads = load_ads_config(args.ads_config)
         except ConfigError as err:
-            return common.cli_error(str(err).splitlines()[0])
+            return common.cli_error(first_line(err))
         outcome, ego = rerun(data, seed, ads)
         r = reproduces(meta, outcome, None, ego)
         logged = meta.get("outcome"), (meta.get("collision") or {}).get("participant"), (meta.get("collision") or {}).get("time")

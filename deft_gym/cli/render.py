@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from deft_gym.cli import common
+from deft_gym.files import first_line
 
 
 def build_parser() -> common.Parser:
@@ -52,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
                                only_failures=args.only == "failures")
             except (ValueError, OverflowError, OSError) as err:  # a damaged log, a full disk: named, counted
                 failed.append(log)
-                print(f"error: {log}: not drawn: {str(err).splitlines()[0] if str(err) else type(err).__name__}",
+                print(f"error: {log}: not drawn: {first_line(err)}",
                       file=sys.stderr)
                 r = None
             if r:

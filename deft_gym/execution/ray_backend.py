@@ -17,6 +17,7 @@ from typing import Any
 
 from deft_gym.execution import RAY_MISSING, Backend, BackendError, Progress, WorkerLost, transfer
 from deft_gym.execution.watchdog import apply_env, carried_env
+from deft_gym.files import first_line
 
 LOCAL_OBJECT_STORE = 256 * 2**20  # [bytes] a local instance's object store: items and results are small
 
@@ -60,7 +61,7 @@ def connect(backend: Backend, flag: str = "--ray") -> None:
                 warm.remote()
     except (ConnectionError, RuntimeError, ValueError, TimeoutError) as err:
         where = f"the Ray cluster at {backend.address}" if backend.address else "a local Ray instance"
-        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        first = first_line(err)
         raise BackendError(f"{flag}: cannot connect to {where}: {first}") from None
 
 
@@ -152,7 +153,7 @@ class RayPool:
             value, blob = self.ray.get(handle)
         except (WorkerCrashedError, NodeDiedError) as err:  # after Ray's retries
             raise WorkerLost(f"an item was lost {1 + self.retries} times as its worker died: "
-                             f"{str(err).splitlines()[0]}; the record keeps every finished item") from None
+                             f"{first_line(err)}; the record keeps every finished item") from None
         if blob:
             transfer.unpack(blob)
         return value

@@ -28,6 +28,7 @@ from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.bus.codec import encode
 from deft_gym.bus.messages import Message, to_ns
 from deft_gym.config import CONFIG_DIR, ROOT, resolve_config_path
+from deft_gym.files import first_line
 from deft_gym.robustness.hardening import harden_overrides
 from deft_gym.robustness.interception import Interceptor, attach
 from deft_gym.robustness.invariants import (
@@ -197,7 +198,7 @@ def check_setup(case: TestCase, source: str = "the ADS configuration") -> None:
     except ConfigError:
         raise
     except (ImportError, ValueError, TypeError, AttributeError) as exc:  # a module node that cannot be built
-        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        text = first_line(exc)
         raise ConfigError(f"{source}: cannot build the simulation of {case.scenario}: {text}") from None
     close = getattr(sim.planner, "close", None)
     if callable(close):

@@ -42,7 +42,7 @@ from deft_gym.execution.watchdog import (
     module_fault,
     watchdog_seconds,
 )
-from deft_gym.files import write_atomic
+from deft_gym.files import first_line, write_atomic
 from deft_gym.modules.control import ControlNode
 from deft_gym.modules.planning import PlanningNode
 from deft_gym.modules.prediction import PredictionNode
@@ -130,7 +130,7 @@ def build_planner(ads: AdsConfig, sc: Scenario) -> Any:
         if callable(errors):  # a pydantic ValidationError: its fields, one line
             first = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors())
         else:
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            first = first_line(exc)
         shown = repr(dict(spec.params))
         shown = shown if len(shown) <= 200 else shown[:200] + "...}"
         raise ConfigError(f"{getattr(ads, '_source', 'ADS config')}: planning.planner: cannot build "
