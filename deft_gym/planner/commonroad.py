@@ -100,7 +100,11 @@ try:  # the extra: pip install -e ".[commonroad]"
     from commonroad_rp.utility.config import ReactivePlannerConfiguration
     from commonroad_rp.utility.utils_coordinate_system import CoordinateSystem
 
-    from deft_gym.planner.commonroad_kinematics import FastKinematicsMixin, SharedLateralMixin
+    from deft_gym.planner.commonroad_kinematics import (
+        FastKinematicsMixin,
+        SharedLateralMixin,
+        VectorCostMixin,
+    )
 except ImportError as _exc:  # pragma: no cover - depends on the installation
     IMPORT_ERROR: ImportError | None = _exc
 else:
@@ -215,9 +219,9 @@ if IMPORT_ERROR is None:
                 return None
 
 
-    class _FastReactivePlanner(SharedLateralMixin, FastKinematicsMixin, ReactivePlanner):
-        """The library's planner with its kinematic check vectorised and each bundle's lateral
-        polynomials built once (same results)."""
+    class _FastReactivePlanner(VectorCostMixin, SharedLateralMixin, FastKinematicsMixin, ReactivePlanner):
+        """The library's planner with its kinematic check and its default cost vectorised and each
+        bundle's lateral polynomials built once (same results)."""
 
 
 class _MapModel:

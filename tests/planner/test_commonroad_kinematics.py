@@ -2,7 +2,8 @@
 is the library's ``ReactivePlanner._check_kinematics``, bit for bit: on every trajectory bundle
 of hand-made frames (both velocity modes) and of whole episodes, both run on copies of the same
 samples and every array, label and rejection count is compared. The bundles whose samples share
-their lateral polynomials are the library's, sample by sample. Skipped without the extra."""
+their lateral polynomials are the library's, sample by sample; the vectorised default cost gives
+every sample the library's cost and the bundle its order. Skipped without the extra."""
 
 from __future__ import annotations
 
@@ -19,7 +20,12 @@ from commonroad_rp.reactive_planner import ReactivePlanner
 
 import deft_gym.planner.commonroad as adapter
 from deft_gym.planner.commonroad import CommonRoadPlanner
-from deft_gym.planner.commonroad_kinematics import SharedLateralMixin, check_kinematics
+from deft_gym.planner.commonroad_kinematics import (
+    SharedLateralMixin,
+    check_kinematics,
+    default_costs,
+    sort_bundle,
+)
 from tests.planner.test_commonroad import ADS, TOGGLING, road_frames
 
 SAMPLE_ARRAYS = {"cartesian": ("x", "y", "theta", "v", "a", "kappa", "kappa_dot"),
@@ -126,6 +132,56 @@ def test_bundles_that_share_lateral_polynomials_are_the_librarys(both_bundles) -
     assert len(bundles) >= len(TOGGLING) and {low for low, _, _ in bundles} == {True, False}
     samples, lateral = (sum(b[i] for b in bundles if not b[0]) for i in (1, 2))
     assert samples >= 3 * lateral > 0
+
+
+class _BothSorts(ReactivePlanner):
+    """Costs every sorted bundle the library's way (``DefaultCostFunction.evaluate`` per sample)
+    and with :func:`default_costs`, asserts the same floats, sorts with :func:`sort_bundle` and
+    asserts the library's order."""
+
+    bundles: list[tuple[int, bool]] = []
+
+    def _create_trajectory_bundle(self, x_0_lon: Any, x_0_lat: Any, samp_level: int) -> Any:
+        bundle = ReactivePlanner._create_trajectory_bundle(self, x_0_lon, x_0_lat, samp_level)
+
+        def both() -> None:
+            samples, cost_function = list(bundle.trajectories), bundle._cost_function
+            if samples:
+                library = [cost_function.evaluate(t) for t in samples]
+                fast = default_costs(cost_function, samples)
+                assert fast is not None and len(fast) == len(library)
+                for a, b in zip(library, fast, strict=True):
+                    assert type(a) is type(b) and np.float64(a).tobytes() == np.float64(b).tobytes()
+                order = sorted(range(len(samples)), key=lambda i: library[i])
+            sort_bundle(bundle)
+            if samples:
+                assert [id(t) for t in bundle.trajectories] == [id(samples[i]) for i in order]
+                assert [t.cost for t in bundle.trajectories] == [library[i] for i in order]
+                _BothSorts.bundles.append((len(samples), cost_function.desired_s is not None))
+
+        bundle.sort = both
+        return bundle
+
+
+@pytest.fixture
+def both_sorts(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, bool]]:
+    monkeypatch.setattr(adapter, "_FastReactivePlanner", _BothSorts)
+    _BothSorts.bundles = []
+    return _BothSorts.bundles
+
+
+def test_the_vectorised_default_cost_is_the_librarys(both_sorts) -> None:
+    """Both velocity modes; bundles of many feasible samples."""
+    planner = CommonRoadPlanner({})
+    for fr in road_frames([*TOGGLING, 6.0, 8.0, 8.0]) + road_frames([0.0, 0.0, 0.3, 1.0]):
+        planner.plan(fr)
+    assert len(both_sorts) >= len(TOGGLING) and max(n for n, _ in both_sorts) > 50
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["blocked_red_light", "handwritten/stalled_car"])
+def test_the_vectorised_default_cost_is_the_librarys_through_whole_episodes(both_sorts, scenario) -> None:
+    _compared_through_an_episode(scenario, both_sorts)
 
 
 @pytest.mark.slow
