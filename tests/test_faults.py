@@ -535,6 +535,39 @@ def test_the_robustness_watchdog_reports_a_blocking_module_by_wall_clock(tmp_pat
     assert [(f.kind, f.node, f.reason) for f in sup.failures] == [("hang", "planning", "wall_deadline")]
 
 
+def test_the_robustness_deadline_leaves_out_the_garbage_collectors_pauses():
+    """A full collection of a large heap inside a module computation is the process's pause, not
+    the module's CPU (its length depends on everything the process holds: a test worker's heap
+    once made a hang of a planning call). It is no hang; a computation that burns its CPU past the
+    deadline still is one."""
+    import gc
+    import time
+    from types import SimpleNamespace
+
+    from deft_gym.robustness.monitors import GuardedSupervisor
+
+    heap = [[i] for i in range(2_000_000)]  # tracked objects: a full collection walks them all
+    t0 = time.process_time()
+    gc.collect()
+    pause = time.process_time() - t0
+    deadline = pause / 4
+    sup = GuardedSupervisor(SimpleNamespace(now=0.0), deadline_s=deadline, wall_s=30.0)
+
+    def spin(seconds: float) -> None:
+        end = time.process_time() + seconds
+        while time.process_time() < end:
+            pass
+
+    collecting, spinning = SimpleNamespace(name="planning", alive=True, busy=False), \
+        SimpleNamespace(name="control", alive=True, busy=False)
+    with sup:
+        sup.run(collecting, lambda: (gc.collect(), gc.collect(), spin(deadline / 4)))
+        assert sup.failures == []
+        sup.run(spinning, spin, 4 * deadline)
+    assert [(f.kind, f.node, f.reason) for f in sup.failures] == [("hang", "control", "deadline")]
+    assert collecting.alive and not spinning.alive and len(heap) == 2_000_000
+
+
 # -- bad input: one line naming the file and the field, before any work ------------------------------
 NAN = float("nan")
 SCENARIO_FAULTS = {

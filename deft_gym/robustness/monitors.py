@@ -1,8 +1,8 @@
 """Crash and hang monitors.
 
 - :class:`GuardedSupervisor` replaces the bus supervisor: it runs every node computation, turns an
-  exception into a *crash* finding and a computation that overruns its deadline (CPU seconds) into
-  a *hang* finding (a SIGPROF watchdog interrupts it - runs are single-threaded and own the main
+  exception into a *crash* finding and a computation that overruns its deadline (CPU seconds, the
+  garbage collector's pauses not counted) into a *hang* finding (a SIGPROF watchdog interrupts it - runs are single-threaded and own the main
   thread); a computation that blocks without burning CPU (sleeps, waits on a lock or a socket) is
   a hang after ``wall_s`` seconds of wall clock (a SIGALRM watchdog, default
   :func:`wall_budget` of the CPU deadline, or ``--watchdog-s``), checks the shape of what the node returns, and marks the failed node dead, as a
@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import threading
@@ -59,8 +60,39 @@ class WallDeadlineExceeded(DeadlineExceeded):
 
 _RETRY_S = 0.001  # [s] how soon a deadline that landed in a destructor fires again
 
+# The deadline counts the module's CPU, not the garbage collector's pauses: a full collection's
+# length depends on everything the process holds (a test worker's heap after hundreds of tests, a
+# campaign's caches), so counted, it made a hang of a computation that was not one.
+# [process CPU s spent in collections so far, when the running one began (-1: none), the first
+# at the last arming or credit of the deadline]
+_GC = [0.0, -1.0, 0.0]
+
+
+def _gc_clock(phase: str, info: dict[str, Any]) -> None:
+    """A ``gc.callbacks`` entry: adds up the process CPU time of each collection."""
+    if phase == "start":
+        _GC[1] = time.process_time()
+    elif _GC[1] >= 0.0:
+        _GC[0] += time.process_time() - _GC[1]
+        _GC[1] = -1.0
+
+
+def _gc_seconds() -> float:
+    """Process CPU [s] the garbage collector has taken so far (the running collection included)."""
+    return _GC[0] + (time.process_time() - _GC[1] if _GC[1] >= 0.0 else 0.0)
+
+
+def _arm_deadline(deadline_s: float) -> None:
+    _GC[2] = _gc_seconds()
+    signal.setitimer(_TIMER, deadline_s)
+
 
 def _raise_deadline(signum: int, frame: Any) -> None:
+    paused = _gc_seconds() - _GC[2]
+    if paused > 0.0:  # the collector ran inside the computation: the deadline moves by its CPU
+        _GC[2] += paused
+        signal.setitimer(_TIMER, paused)
+        return
     if in_destructor(frame):  # raised after the destructor, not lost in it
         signal.setitimer(_TIMER, _RETRY_S)
         return
@@ -187,6 +219,7 @@ class GuardedSupervisor:
         self._armed = threading.current_thread() is threading.main_thread()
         self._old_handler: Any = None
         self._old_wall: Any = None
+        self._gc_clock = False  # whether this supervisor put the collector's clock in gc.callbacks
 
     # -- watchdog ---------------------------------------------------------------------------
     def __enter__(self) -> GuardedSupervisor:
@@ -194,6 +227,9 @@ class GuardedSupervisor:
         if self._armed:
             self._old_handler = signal.signal(_SIGNAL, _raise_deadline)
             self._old_wall = signal.signal(signal.SIGALRM, _raise_wall_deadline)
+            self._gc_clock = _gc_clock not in gc.callbacks
+            if self._gc_clock:
+                gc.callbacks.append(_gc_clock)
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -201,6 +237,8 @@ class GuardedSupervisor:
             self._disarm()
             signal.signal(_SIGNAL, self._old_handler or signal.SIG_DFL)
             signal.signal(signal.SIGALRM, self._old_wall or signal.SIG_DFL)
+            if self._gc_clock and _gc_clock in gc.callbacks:
+                gc.callbacks.remove(_gc_clock)
         self._counting.__exit__(*exc)
 
     def _disarm(self) -> None:
@@ -215,7 +253,7 @@ class GuardedSupervisor:
         before = interrupts()
         try:
             if self._armed:
-                signal.setitimer(_TIMER, self.deadline_s)
+                _arm_deadline(self.deadline_s)
                 _start_wall(self.wall_s)
             out = fn(*args)
             if self._armed:
