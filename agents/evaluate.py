@@ -263,7 +263,7 @@ def load_policy(path: str, env: Any) -> Any:
     from stable_baselines3 import A2C, PPO
 
     skip: dict[str, Any] = dict.fromkeys(TRAINING_STATE)
-    spaces = {"observation_space": env.observation_space, "action_space": env.action_space}
+    spaces = {name: getattr(env, name) for name in SPACES}
     errors = []
     for custom in (skip, {**skip, **spaces}):
         for cls in (PPO, A2C):

@@ -437,8 +437,7 @@ def summarize_run(out: Path) -> dict[str, Any]:
 def usable_cores(n_envs: int) -> int:
     """The cores a run of ``n_envs`` env processes can keep busy: one per env, at most the CPUs
     this process may use (the learner runs between the envs' steps)."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    return max(1, min(n_envs, cpus))
+    return max(1, min(n_envs, common.cpus()))
 
 
 def cores_busy(cpu_seconds: float, wall_seconds: float, cores: int) -> float:

@@ -3,8 +3,8 @@
 - :class:`GuardedSupervisor` replaces the bus supervisor: it runs every node computation, turns an
   exception into a *crash* finding and a computation that overruns its deadline (CPU seconds, the
   garbage collector's pauses not counted) into a *hang* finding (a SIGPROF watchdog interrupts it -
-  runs are single-threaded and own the main thread); a computation that blocks without burning CPU (sleeps, waits on a lock or a socket) is
-  a hang after ``wall_s`` seconds of wall clock (a SIGALRM watchdog, default
+  runs are single-threaded and own the main thread); a computation that blocks without burning CPU
+  (sleeps, waits on a lock or a socket) is a hang after ``wall_s`` seconds of wall clock (a SIGALRM watchdog, default
   :func:`wall_budget` of the CPU deadline, or ``--watchdog-s``), checks the shape of what the node returns, and marks the failed node dead, as a
   process that died would be. Failures never propagate into the harness.
 - :class:`SilenceMonitor` (an ``on_step`` callback) reports a node that stopped publishing for

@@ -589,8 +589,6 @@ class DecisionOracle:
         self.window, self.spawn_distance = window, spawn_distance
         self.lanes = LaneCells(roadmap, grid)
         self.ref_cells = self.cells(ref.xy)
-        self.ref_line = shapely.LineString(ref.xy)
-        shapely.prepare(self.ref_line)
         self._ref_distance = PolylineDistance(ref.xy)
         # behaviour per reference lane (lanes holding >= 5 % of the reference points)
         pi, li, _ = self.lanes.membership(ref.xy)

@@ -66,6 +66,13 @@ class _BothChecks(ReactivePlanner):
         return library, []
 
 
+def _plan_hand_made_frames() -> None:
+    """One planner through frames in both velocity modes (the speed crosses 4 m/s both ways)."""
+    planner = CommonRoadPlanner({})
+    for fr in road_frames([*TOGGLING, 6.0, 8.0, 8.0]) + road_frames([0.0, 0.0, 0.3, 1.0]):
+        planner.plan(fr)
+
+
 @pytest.fixture
 def both_checks(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
     monkeypatch.setattr(adapter, "_FastReactivePlanner", _BothChecks)
@@ -75,9 +82,7 @@ def both_checks(monkeypatch: pytest.MonkeyPatch) -> list[dict[str, Any]]:
 
 def test_the_vectorised_check_is_the_librarys_on_hand_made_frames(both_checks) -> None:
     """Both velocity modes, feasible and rejected samples (the speed crosses 4 m/s both ways)."""
-    planner = CommonRoadPlanner({})
-    for fr in road_frames([*TOGGLING, 6.0, 8.0, 8.0]) + road_frames([0.0, 0.0, 0.3, 1.0]):
-        planner.plan(fr)
+    _plan_hand_made_frames()
     assert len(both_checks) >= len(TOGGLING) + 7
     assert {b["low_vel"] for b in both_checks} == {True, False}
     assert sum(b["feasible"] for b in both_checks) > 0
@@ -172,9 +177,7 @@ def both_sorts(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, bool]]:
 
 def test_the_vectorised_default_cost_is_the_librarys(both_sorts) -> None:
     """Both velocity modes; bundles of many feasible samples."""
-    planner = CommonRoadPlanner({})
-    for fr in road_frames([*TOGGLING, 6.0, 8.0, 8.0]) + road_frames([0.0, 0.0, 0.3, 1.0]):
-        planner.plan(fr)
+    _plan_hand_made_frames()
     assert len(both_sorts) >= len(TOGGLING) and max(n for n, _ in both_sorts) > 50
 
 
