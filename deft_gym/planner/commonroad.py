@@ -212,9 +212,11 @@ if IMPORT_ERROR is None:
         gives None outside the projection domain (the planner then drops the sample as "out of
         projection domain"), where commonroad-clcs 2025 raises, which would end the whole cycle."""
 
+        _to_cartesian = CoordinateSystem.convert_to_cartesian_coords  # super()'s, looked up once
+
         def convert_to_cartesian_coords(self, s: float, d: float) -> Any:
             try:
-                return super().convert_to_cartesian_coords(s, d)
+                return self._to_cartesian(s, d)
             except (CurvilinearProjectionDomainLongitudinalError, CurvilinearProjectionDomainLateralError):
                 return None
 

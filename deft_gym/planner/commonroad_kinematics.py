@@ -240,15 +240,7 @@ def _check_group(planner: Any, group: list[Any], members: list[int], t: np.ndarr
         reasons[CONSTRAINTS[which[r]]] += 1
         group[keep[r]].feasibility_label = FeasibilityStatus.INFEASIBLE_KINEMATIC
     ok = np.flatnonzero(which < 0)
-    x, y = np.zeros((len(ok), n_steps)), np.zeros((len(ok), n_steps))
-    inside = np.ones(len(ok), bool)
-    for r, row in enumerate(ok.tolist()):
-        for i in range(n):
-            pos = co.convert_to_cartesian_coords(s[row, i], d[row, i])
-            if pos is None:
-                inside[r] = False
-                break
-            x[r, i], y[r, i] = pos[0], pos[1]
+    x, y, inside = to_cartesian(co, ss[ok], dd[ok], n_steps)
     ok, x, y = ok[inside], x[inside], y[inside]
     full = {}
     for name, part in (("theta_gl", theta_gl), ("theta_cl", theta_cl), ("kappa", kappa), ("v", vel), ("a", acc)):
@@ -271,6 +263,30 @@ def _check_group(planner: Any, group: list[Any], members: list[int], t: np.ndarr
                                                    ddd=curv["ddd"][r], current_time_step=n_steps)
         out[members[keep[row]]] = trajectory
     return out
+
+
+def to_cartesian(co: Any, s: np.ndarray, d: np.ndarray, columns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``co.convert_to_cartesian_coords(s, d)`` of each row's points in step order: ``(x, y,
+    inside)``, ``x`` and ``y`` [m] with ``columns`` columns (zero beyond the row's points);
+    ``inside`` is False for a row with a point outside the projection domain (the call gave None),
+    whose points after that one are not converted (the library's loop stops the sample there)."""
+    rows, n = s.shape
+    x, y = np.zeros((rows, columns)), np.zeros((rows, columns))
+    inside = np.ones(rows, bool)
+    convert = co.convert_to_cartesian_coords
+    for r, (s_row, d_row) in enumerate(zip(s.tolist(), d.tolist())):
+        points = []
+        for s_i, d_i in zip(s_row, d_row):
+            pos = convert(s_i, d_i)
+            if pos is None:
+                inside[r] = False
+                break
+            points.append(pos)
+        else:
+            if points:
+                xy = np.array(points)
+                x[r, :n], y[r, :n] = xy[:, 0], xy[:, 1]
+    return x, y, inside
 
 
 def _enlarge(cart: dict[str, np.ndarray], curv: dict[str, np.ndarray], n: int, dt: float) -> None:

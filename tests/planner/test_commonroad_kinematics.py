@@ -25,6 +25,7 @@ from deft_gym.planner.commonroad_kinematics import (
     check_kinematics,
     default_costs,
     sort_bundle,
+    to_cartesian,
 )
 from tests.planner.test_commonroad import ADS, TOGGLING, road_frames
 
@@ -208,3 +209,25 @@ def _compared_through_an_episode(scenario: str, compared: list[Any]) -> None:
 
     res = Simulation(scenario, load_ads_config(ADS), jitter_seed=5).run()
     assert res.planning and len(compared) >= len(res.planning) // 2
+
+
+def test_rows_to_cartesian_are_the_point_by_point_conversion() -> None:
+    """:func:`to_cartesian` gives each point's ``convert_to_cartesian_coords`` and drops a row at its
+    first point outside the projection domain, as the library's loop does."""
+    planner = CommonRoadPlanner({})
+    planner.plan(road_frames([8.0])[0])
+    (model,) = planner._models.values()
+    (co,) = model.coords.values()
+    rng = np.random.default_rng(3)
+    s = rng.uniform(5.0, 60.0, (40, 21))
+    d = rng.uniform(-3.0, 3.0, (40, 21))
+    s[3, 7] = 1e6  # beyond the reference's end
+    d[11, 0] = 1e4  # far beside it
+    s[12, 20] = -1e6
+    x, y, inside = to_cartesian(co, s, d, 31)
+    assert inside.tolist() == [r not in (3, 11, 12) for r in range(40)]
+    for r in np.flatnonzero(inside):
+        points = np.array([co.convert_to_cartesian_coords(a, b) for a, b in zip(s[r], d[r])])
+        assert _same_bits(x[r, :21], points[:, 0]) and _same_bits(y[r, :21], points[:, 1])
+        assert not x[r, 21:].any() and not y[r, 21:].any()
+    assert co.convert_to_cartesian_coords(1e6, 0.0) is None
