@@ -45,6 +45,7 @@ from deft_gym.bus import ros1
 from deft_gym.bus.codec import _default, encode
 from deft_gym.bus.messages import SCENE_TOPIC, SCHEMAS, Message, log_start_ns
 from deft_gym.bus.ros1 import Program
+from deft_gym.cli.common import cpus as available_cpus  # how many CPUs this process may run on
 from deft_gym.files import checked_kernel, write_atomic
 from deft_gym.record.mcapwrite import MESSAGE_FIELDS, MESSAGE_HEAD, ChannelSpec, RecordBatch
 from deft_gym.record.scene import expand
@@ -63,14 +64,6 @@ OUTCOME_METADATA = "deft_gym.outcome"
 #: extractor's non-optimal-decision test reads it)
 OPTIMAL_PATH_METADATA = "deft_gym.optimal_path"
 RECORDER_ENV = "DEFT_GYM_RECORDER"
-
-
-def available_cpus() -> int:
-    """How many CPUs this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
 
 
 def recorder_in_process() -> bool:
