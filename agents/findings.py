@@ -42,6 +42,10 @@ def build_parser() -> common.Parser:
                    help="also record each drawn failure's re-simulation, extract its planning-module tests, run "
                    "them once with pytest and each failure test (a collision's P_faulty, a non-optimal decision's "
                    "P_departure) N times: how often it fails (default: 0, off)")
+    p.add_argument("--statics-from-start", action="store_true",
+                   help="also simulate each drawn failure again with its static objects that joined after t = 0 "
+                   "(the RL env adds objects every 2 s) there from the start, and say whether the same finding "
+                   "comes back: does it rest on a parked car or cone appearing mid-run? (default: off)")
     common.add_ads_config(p, "the evaluation's (eval_config.json), else configs/ads/default.yaml")
     common.add_out(p, None, "output folder (default: FOLDER/findings)")
     common.add_output_flags(p)
@@ -78,19 +82,45 @@ def eval_feasible(folder: Path) -> Any:
         raise RecordError(f"{path}: field 'feasible': {first_line(err)}") from None
 
 
+def late_statics(data: dict[str, Any], added_at: dict[str, float] | None) -> list[str]:
+    """Ids of the added static objects of a failure's scenario ``data`` that joined after t = 0
+    (``added_at``: participant id -> sim time [s])."""
+    return [p["id"] for p in data["participants"]
+            if p.get("type") == "static" and (added_at or {}).get(p["id"], 0.0) > 0.0]
+
+
 def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None,
-               feasible: Any = None) -> tuple[Any, Any]:
+               feasible: Any = None, statics_from_start: bool = False) -> tuple[Any, Any]:
     """``(context, run)``: the record's failure simulated again with its jitter seed (on the ADS
     config ``ads``, default: the default one; judged under ``feasible``, a
     :class:`~deft_gym.search.feasible.FeasibleConfig`, default: the default one; its MCAP log in
-    ``out_dir`` when given)."""
+    ``out_dir`` when given); with ``statics_from_start`` its static objects that joined after
+    t = 0 are part of the scenario from the start (:func:`late_statics`)."""
     from deft_gym.search.context import ads_config, seed_context
     from deft_gym.search.episode import run_scenario
 
     ctx = seed_context(rec["scenario"], feasible, ads=ads_config(ads))
     data, added_at, jitter = split_equivalent(rec)
     specs = data["participants"][len(ctx.scenario.participants):]
+    if statics_from_start and added_at:
+        late = set(late_statics(data, added_at))
+        added_at = {k: v for k, v in added_at.items() if k not in late} or None
     return ctx, run_scenario(ctx, specs, jitter, out_dir, added_at=added_at)
+
+
+def judged_again(ctx: Any, run: Any, rec: dict[str, Any], cause: str) -> tuple[bool, str | None, Any]:
+    """Whether ``run`` (a failure simulated again) has the root cause ``cause`` of ``rec`` again:
+    ``(same, what it found, metrics)`` - the decision verdict's signature and failure, or for a
+    metric oracle's finding (``rec["_oracle"]``) that oracle's finding and the run's metrics."""
+    v = run.verdict
+    oracle = rec.get("_oracle")
+    if not oracle:
+        return v.signature == rec.get("signature") and v.failure == rec.get("failure"), v.signature or v.outcome, None
+    from deft_gym.metrics.oracle import run_metrics, seed_finding
+
+    m = run_metrics(ctx, run.trace, v.collision_detail)
+    got = seed_finding(ctx, v.valid, m, oracle)
+    return got == cause, got, m
 
 
 #: the failure tests an extraction emits: a collision's (P_faulty), a non-optimal decision's
@@ -300,6 +330,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
     for c in causes:
         lines.append(f"| `{c}` | {len(by_cause[c])} | " + " | ".join(str(counts[c].get(m, 0) or "-")
                                                                for m in METHOD_LABELS) + " |")
+    from_start: dict[str, tuple[int, int]] = {}
     with common.bar(args, len(sample), "failures simulated again") as b:
         current = None
         for n, (cause, rec) in enumerate(sample):
@@ -310,27 +341,21 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             log_dir = out / f"{stem}_log" if args.tests else None
             ctx, run = resimulate(rec, ads, log_dir, feasible)
             v = run.verdict
-            same = v.signature == rec.get("signature") and v.failure == rec.get("failure")
-            oracle, m, highlight = rec.get("_oracle"), None, None
-            if oracle:  # a metric oracle's finding: the same signature on it again
-                from deft_gym.metrics.oracle import run_metrics, seed_finding
-
-                m = run_metrics(ctx, run.trace, v.collision_detail)
-                got = seed_finding(ctx, v.valid, m, oracle)
-                same = got == cause
-                highlight = {m.ttc_actor} if oracle == "ttc" and m.ttc_actor else None
+            oracle = rec.get("_oracle")
+            same, got, m = judged_again(ctx, run, rec, cause)
+            highlight = {m.ttc_actor} if oracle == "ttc" and m.ttc_actor else None
             name = f"{stem}.png"
             replay = write_replay(out / f"{stem}.replay.yaml", read_replay(rec.get("scenario_equivalent"),
                                                                            rec.get("jitter_seed")))
             replay_cmd = f"deft-gym run {replay} --reruns 1" + (f" --ads-config {ads}" if ads else "")
             title = (f"{METHOD_LABELS.get(rec['method'], rec['method'])} {rec['placement']} on {rec['scenario']} "
-                     f"(repeat {rec['repeat']}, #{rec['index']}): {(got or 'none') if oracle else v.signature or v.outcome}")
+                     f"(repeat {rec['repeat']}, #{rec['index']}): {got or 'none'}")
             draw(ctx, run, out / name, title, highlight)
             dist = ctx.oracle.distances(run.trace.xy)
             clear = v.finding.clearance if v.finding else None
             lines += [f"![{cause}]({name})", "",
                       f"- {rec['method']} / {rec['placement']} / {rec['scenario']} repeat {rec['repeat']} #{rec['index']}, "
-                      f"jitter seed {rec['jitter_seed']}: again **{'the same' if same else 'NOT the same: ' + ((got or 'no finding') if oracle else v.signature or v.outcome)}**",
+                      f"jitter seed {rec['jitter_seed']}: again **{'the same' if same else 'NOT the same: ' + (got or 'no finding')}**",
                       *([f"- {metric_line(m, oracle, run.trace)}"] if oracle else []),
                       f"- IoU {v.iou:.2f}, off the optimal path for {v.off_length:.0f} m, outcome {v.outcome}"
                       + (f", clearance of the trigger {clear:.2f} m" if clear is not None and math.isfinite(clear) else ""),
@@ -339,11 +364,49 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
                       f"- replay: `{replay_cmd}`"]
             if args.tests:
                 lines.append(_test_line(run, out / f"{stem}_tests", args.tests))
+            if args.statics_from_start:
+                lines.append(_from_start_line(ctx, rec, cause, ads, feasible, from_start))
             lines.append("")
             b.update(1)
+    if args.statics_from_start:
+        lines += from_start_summary(from_start)
     write_atomic(out / "findings.md", "\n".join(lines) + "\n")
     con.print(f"{len(causes)} root causes, {len(sample)} failures drawn -> {out / 'findings.md'}")
+    if args.statics_from_start:
+        kept, tried = sum(k for k, _ in from_start.values()), sum(n for _, n in from_start.values())
+        con.print(f"with their late static objects there from the start: {kept} of {tried} drawn failures found again")
     return 0
+
+
+def _from_start_line(ctx: Any, rec: dict[str, Any], cause: str, ads: str | None, feasible: Any,
+                     tally: dict[str, tuple[int, int]]) -> str:
+    """The line of ``--statics-from-start`` for one drawn failure (``tally``: cause -> (found
+    again, simulated), updated)."""
+    data, added_at, _ = split_equivalent(rec)
+    late = late_statics(data, added_at)
+    if not late:
+        return "- no static object joined after t = 0"
+    _, run = resimulate(rec, ads, None, feasible, statics_from_start=True)
+    same, got, _ = judged_again(ctx, run, rec, cause)
+    kept, tried = tally.get(cause, (0, 0))
+    tally[cause] = (kept + same, tried + 1)
+    return (f"- with its static objects that joined after t = 0 ({', '.join(late)}) there from the start: "
+            + ("**found again**" if same else f"**gone** ({got or 'no finding'}"
+               + (", an invalid mutation" if not run.verdict.valid else "") + ")"))
+
+
+def from_start_summary(tally: dict[str, tuple[int, int]]) -> list[str]:
+    """The ``--statics-from-start`` section of ``findings.md``: per root cause, how many drawn
+    failures with a static object that joined after t = 0 came back with it there from the start."""
+    lines = ["## Static objects there from the start", "",
+             "Drawn failures whose static objects joined after t = 0, simulated again on their jitter seed with "
+             "those objects there from the start: found again means the same root cause (the same oracle finding).",
+             ""]
+    if not tally:
+        return [*lines, "No drawn failure has a static object that joined after t = 0.", ""]
+    lines += ["| root cause | found again | simulated |", "|---|---|---|"]
+    lines += [f"| `{c}` | {k} | {n} |" for c, (k, n) in tally.items()]
+    return [*lines, ""]
 
 
 def destination_approach(ctx: Any, trace: Any) -> tuple[float, float, float]:

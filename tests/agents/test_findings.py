@@ -131,3 +131,33 @@ def test_a_run_that_passed_level_with_its_destination_a_lane_over_is_pointed_out
     short = dataclasses.replace(whole, ego=whole.ego[: len(whole.ego) // 2])
     line = findings.destination_line(ctx, short)
     assert findings.destination_approach(ctx, short)[1] < -50.0 and "a lane over" not in line
+
+
+def test_statics_from_start_simulates_a_failure_again_with_its_late_objects_there_at_once(tmp_path) -> None:
+    """``--statics-from-start``: a static object that joined mid-run is put in the scenario from the
+    start for a second simulation, which says whether the same root cause comes back. Here the parked
+    car joining at 1 s makes a local detour only, and there from the start it makes the NoDS."""
+    from deft_gym.search.episode import replay_record
+
+    ctx = seed_context("lane_follow_static", PAPER)
+    added = [place_static(ctx, Layout(ctx.areas), "STATIC_VEHICLE", 40.0, -0.5, "added_0")]
+    run = run_scenario(ctx, added, 0)
+    assert run.verdict.failure == "nods"
+    assert findings.late_statics(run.scenario, {"added_0": 1.0}) == ["added_0"]
+    assert findings.late_statics(run.scenario, {"added_0": 0.0}) == []
+    rec = {"method": "rl", "placement": "closest", "scenario": "lane_follow_static", "repeat": 0,
+           **record_of(run.verdict, 3, 1.0, 1.0, 2, True, 0, 1, run.result.sim_time),
+           "scenario_equivalent": replay_record(run.scenario, 0, {"added_0": 1.0})}
+    (tmp_path / "eval_config.json").write_text(json.dumps({"feasible": PAPER.model_dump()}))
+    (tmp_path / "records.jsonl").write_text(json.dumps(rec) + "\n")
+    assert findings.main([str(tmp_path), "--no-progress", "--statics-from-start"]) == 0
+    text = (tmp_path / "findings" / "findings.md").read_text()
+    assert "again **NOT the same: local:parked:in_lane:blocked**" in text
+    assert "with its static objects that joined after t = 0 (added_0) there from the start: **found again**" in text
+    assert "| `nods:parked:in_lane:blocked` | 1 | 1 |" in text.split("## Static objects there from the start")[1]
+    # without a late object there is nothing to move
+    rec["scenario_equivalent"] = replay_record(run.scenario, 0, None)
+    (tmp_path / "records.jsonl").write_text(json.dumps(rec) + "\n")
+    assert findings.main([str(tmp_path), "--no-progress", "--statics-from-start", "--out", str(tmp_path / "f2")]) == 0
+    text = (tmp_path / "f2" / "findings.md").read_text()
+    assert "- no static object joined after t = 0" in text and "No drawn failure has a static object" in text
