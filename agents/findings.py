@@ -13,7 +13,10 @@ an at-fault collision is the decision oracle's already): each re-simulated, chec
 signature, drawn with the participant of the smallest TTC in red, and its metric's values listed. ``findings.md`` lists the root causes with
 their counts per method and, under each, the pictures, the numbers (IoU, longest stretch off the
 path, clearance) and the decision the planner took when it left the optimal path - what a reader
-needs to judge whether a competent driver would call it a failure.
+needs to judge whether a competent driver would call it a failure. ``--statics-from-start``
+simulates each drawn failure once more with its static objects that joined mid-run (the RL env
+adds objects every 2 s) there from the start: a finding that vanishes rested on a parked car or
+cone appearing in front of the ego, a loophole of mid-run placement rather than a planner failure.
 """
 
 from __future__ import annotations
