@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from deft_gym.config import load_mapping, validate_with_flags
+from deft_gym.config import load_mapping_with_base, validate_with_flags
 
 if TYPE_CHECKING:  # imported on first use (it loads the whole simulation): ``--help`` stays fast
     from deft_gym.envs.adversary import AdversaryConfig
@@ -75,10 +75,11 @@ def complete() -> None:
 
 
 def load_train_config(path: Path | str | None = None, overrides: dict[str, Any] | None = None) -> TrainConfig:
-    """Load ``path`` (or the defaults) with ``overrides`` on top; errors name file and field, or
+    """Load ``path`` (or the defaults; a file with ``base: other.yaml`` builds on that file) with
+    ``overrides`` on top; errors name file and field, or
     the flag of an override (``--timesteps``, ``--n-envs``: a field name ``n_envs`` is ``--n-envs``)."""
     complete()
-    data = load_mapping(path) if path is not None else {}
+    data = load_mapping_with_base(path, "a training config") if path is not None else {}
     flags = {key: ("--" + key.replace("_", "-"), value) for key, value in (overrides or {}).items()}
     return validate_with_flags(TrainConfig, data, path if path is not None else "<defaults>", flags)
 

@@ -196,6 +196,28 @@ def load_mapping(path: Path | str) -> dict[str, Any]:
     return data
 
 
+def load_mapping_with_base(path: Path | str, what: str = "config") -> dict[str, Any]:
+    """:func:`load_mapping` of ``path``; a file with ``base: other.yaml`` (relative to it) is that
+    file, recursively, with its own keys deep-merged on top (``what``: the kind of file errors name)."""
+    return _with_base(Path(path), load_mapping(path), [], what)
+
+
+def _with_base(path: Path, data: dict[str, Any], seen: list[Path], what: str) -> dict[str, Any]:
+    """``data`` (the mapping of ``path``) deep-merged on top of its ``base:`` file, recursively."""
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f"{path}: base: {base!r}; expected the path of {what}, relative to this file")
+    base_path = (path.parent / base).resolve()
+    if base_path in seen or base_path == path.resolve():
+        raise ConfigError(f"{path}: base: {base!r} leads back to itself; expected a chain of configs without a loop")
+    if not base_path.is_file():
+        raise ConfigError(f"{path}: base: {base!r}: no such file {base_path}")
+    parent = _with_base(base_path, load_mapping(base_path), [*seen, path.resolve()], what)
+    return deep_merge(parent, data)
+
+
 M = TypeVar("M", bound=BaseModel)
 
 

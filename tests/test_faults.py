@@ -989,6 +989,24 @@ def test_training_settings_check_accepts_every_scenario_spec(tmp_path):
     check_train_settings(load_train_config(cfg), cfg)  # no ConfigError
 
 
+def test_a_training_config_builds_on_its_base(tmp_path):
+    """``base: other.yaml`` in a training config: that file with this one's keys deep-merged on top
+    (as for ADS configs); a base that leads back to the file is one line naming it."""
+    from agents.config import load_train_config
+    from deft_gym.config import ConfigError
+
+    (tmp_path / "a.yaml").write_text("name: a\nseed: 1\nalgo_kwargs: {n_steps: 256, batch_size: 64}\n"
+                                     "env: {scenarios: [left_turn, u_turn]}\n")
+    (tmp_path / "b.yaml").write_text("base: a.yaml\nname: b\nalgo_kwargs: {n_steps: 512}\n")
+    a, b = load_train_config(tmp_path / "a.yaml"), load_train_config(tmp_path / "b.yaml")
+    assert (b.name, b.seed, b.algo_kwargs, b.env.scenarios) == ("b", 1, {"n_steps": 512, "batch_size": 64},
+                                                                 ["left_turn", "u_turn"])
+    assert a.model_dump(exclude={"name", "algo_kwargs"}) == b.model_dump(exclude={"name", "algo_kwargs"})
+    (tmp_path / "c.yaml").write_text("base: c.yaml\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml: base: 'c\.yaml' leads back to itself"):
+        load_train_config(tmp_path / "c.yaml")
+
+
 def test_sink_keeps_one_log_per_distinct_failure_and_names_it_in_the_duplicates_lines(tmp_path):
     """With ``distinct``, a failure whose (scenario, signature) the worker already kept - in this
     session or in the journal of a run it resumes, while that log is in place - is journalled with

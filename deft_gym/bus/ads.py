@@ -13,7 +13,13 @@ from typing import Any
 from pydantic import ConfigDict, Field, PrivateAttr, field_validator
 
 from deft_gym.bus.messages import DEFAULT_TOPICS, ROLES, VIEWER_TOPICS
-from deft_gym.config import CONFIG_DIR, ConfigError, Strict, deep_merge, load_mapping, validate
+from deft_gym.config import (
+    CONFIG_DIR,
+    Strict,
+    deep_merge,
+    load_mapping_with_base,
+    validate,
+)
 
 DEFAULT_ADS_CONFIG = CONFIG_DIR / "ads" / "default.yaml"
 
@@ -173,25 +179,9 @@ def load_ads_config(path: Path | str | None = None, overrides: dict[str, Any] | 
     with ``base: other.yaml`` (relative to it) is that file with its own keys deep-merged on top.
     ``source``: what errors name (default: the file), e.g. the overlay that ``overrides`` came from."""
     path = Path(path) if path else DEFAULT_ADS_CONFIG
-    data = _with_base(path, load_mapping(path), [])
+    data = load_mapping_with_base(path, "an ADS config")
     if overrides:
         data = deep_merge(data, overrides)
     ads = validate(AdsConfig, data, source or path)
     ads._source = str(path)  # names the file in errors found later (the planner)
     return ads
-
-
-def _with_base(path: Path, data: dict[str, Any], seen: list[Path]) -> dict[str, Any]:
-    """``data`` (the mapping of ``path``) deep-merged on top of its ``base:`` file, recursively."""
-    base = data.pop("base", None)
-    if base is None:
-        return data
-    if not isinstance(base, str) or not base.strip():
-        raise ConfigError(f"{path}: base: {base!r}; expected the path of an ADS config, relative to this file")
-    base_path = (path.parent / base).resolve()
-    if base_path in seen or base_path == path.resolve():
-        raise ConfigError(f"{path}: base: {base!r} leads back to itself; expected a chain of configs without a loop")
-    if not base_path.is_file():
-        raise ConfigError(f"{path}: base: {base!r}: no such file {base_path}")
-    parent = _with_base(base_path, load_mapping(base_path), [*seen, path.resolve()])
-    return deep_merge(parent, data)
