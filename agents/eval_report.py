@@ -365,7 +365,10 @@ def table_markdown(summary: dict[str, Any]) -> str:
            if summary.get("handwritten") else f" and {len(summary['held_out'])} held-out ") +
         "scenario(s). Cells: mean ± sd over repeats of the per-repeat totals over the group's scenarios (sd - with "
         "one repeat). A failure (NoDS under the grid consistency check, or an ego-at-fault collision) counts only "
-        "for a valid mutation and when it reproduced on a second jitter seed; local NoDS and task failures "
+        "for a valid mutation and when it reproduced on a second jitter seed"
+        + (" (for RL and random actions, which place while the scenario runs, with every static object they "
+           "placed there from the start)" if cfg.get("late_statics", "as_placed") == "from_start" else "")
+        + "; local NoDS and task failures "
         "(timeout/stuck of a valid mutation) are separate columns. Distinct: distinct root-cause signatures. "
         "Training episodes: scenarios simulated to train the method before the evaluation (a second budget). "
         "`*`: scenarios or repeats missing in the cell."

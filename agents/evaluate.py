@@ -55,6 +55,7 @@ from deft_gym.record.recorder import init_pool_worker
 
 METHODS = ("rl", "decictor", "random_delta", "random", "random_online")
 DEFAULT_METHODS = ("rl", "random_online", "decictor", "random_delta", "random")
+ONLINE = ("rl", "random_online")  # methods that place while the scenario runs (the adversary env)
 PLACEMENT_FREE = ("random",)  # methods that place with no feasibility constraint: no placement rule
 HELD_OUT_BASE = 1_000_000
 
@@ -102,6 +103,11 @@ class EvalConfig(BaseModel):
                                                       "(out of the ego's lane) or paper (Decictor's 0.5 m from "
                                                       "the optimal path; docs/search.md); default: the model's "
                                                       "training env.feasible, else lane")
+    late_statics: Literal["from_start", "as_placed"] = Field(
+        "from_start", description="methods rl and random_online place static objects while the scenario runs: "
+        "from_start (a failure counts only when it reproduces on the second jitter seed with them there from "
+        "t = 0, as parked cars and cones are: docs/search.md) or as_placed (the rule before 2026-11-28: "
+        "confirmed with them joining when they joined)")
     ads: str | None = Field(None, description="ADS config YAML every method runs on, the planner under test "
                             "included (default: the model's training env.ads, else configs/ads/default.yaml), "
                             "e.g. configs/ads/commonroad.yaml")
@@ -130,6 +136,10 @@ def build_parser() -> common.Parser:
                    help="where static objects may stand: lane (out of the ego's lane) or paper (Decictor's 0.5 m "
                    "from the optimal path, which lets a parked car stand inside the lane); default: the model's "
                    "training config, else lane")
+    p.add_argument("--late-statics", choices=["from_start", "as_placed"], default=None, dest="late_statics",
+                   help="rl and random_online: confirm a failure with the static objects they placed mid-run there "
+                   "from the start (from_start, the default) or joining when they joined (as_placed, the rule before "
+                   "2026-11-28)")
     p.add_argument("--oracle", default=None, metavar="ORACLE",
                    help="default (NoDS, at-fault collisions), any (those and every metric oracle's findings: the GA "
                    "selects by both, counted oracle by oracle) or a metric oracle: collision, ttc, drivable_area, "
@@ -176,7 +186,7 @@ def load_eval_config(args: argparse.Namespace) -> EvalConfig:
         data = load_mapping(args.config)
     flags: dict[str, tuple[str, Any]] = {}
     for key in ("budget", "repeats", "held_out", "variants", "model", "deterministic", "temperature", "workers", "seed",
-                "log_failures", "oracle", "validity"):
+                "log_failures", "oracle", "validity", "late_statics"):
         flags[key] = ("--" + key.replace("_", "-"), getattr(args, key))
     ads_flag = getattr(args, "ads_config", None)
     flags["ads"] = ("--ads-config", str(ads_flag) if ads_flag is not None else None)
@@ -359,7 +369,7 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
     recs: list[dict[str, Any]] = []
     base = {"method": method, "placement": job["placement"], "scenario": scenario,
             "scenario_kind": job["scenario_kind"], "repeat": job["repeat"]}
-    if method in ("rl", "random_online"):
+    if method in ONLINE:
         recs = _run_rl(job, env_cfg, progress)
     else:
         from agents.search import search
@@ -442,6 +452,7 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
 
     from agents.search import confirm, oracle_columns, record_of
     from deft_gym.envs.adversary import AdversaryEnv
+    from deft_gym.search.episode import statics_from_start
 
     torch.set_num_threads(1)
     log_dir = None
@@ -475,9 +486,12 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
         v = env.last_verdict
         eq = env.equivalent_scenario()
         specs = eq["scenario"]["participants"][len(env.ctx.scenario.participants):]
-        confirmed, _, _ = confirm(env.ctx, v, specs, int(rng.integers(2**31 - 1)), eq["added_at"])
+        late = job.get("late_statics", "as_placed")
+        again_at = statics_from_start(specs, eq["added_at"]) if late == "from_start" else eq["added_at"]
+        confirmed, _, _ = confirm(env.ctx, v, specs, int(rng.integers(2**31 - 1)), again_at)
         cols, _, _, n_o = oracle_columns(env.ctx, env.last_metrics, v.valid, env_cfg.oracle, specs, rng,
-                                         eq["added_at"], tuple(job.get("count", ())), int(info["jitter_seed"]))
+                                         again_at, tuple(job.get("count", ())), int(info["jitter_seed"]))
+        cols["late_statics"] = late
         rec = record_of(v, i, time.perf_counter() - w0, time.process_time() - c0,
                         1 + (confirmed is not None) + n_o, confirmed, int(info["jitter_seed"]), int(info["added"]),
                         float(info["sim_time"]), cols)
@@ -521,7 +535,7 @@ def job_artifacts(job: dict[str, Any]) -> list[Path]:
 def worker_preload(methods: list[str]) -> tuple[str, ...]:
     """Modules a local worker starts with already imported (a fork of a warm forkserver); torch
     (stable_baselines3) only where the env methods need it."""
-    rl = any(m in ("rl", "random_online") for m in methods)
+    rl = any(m in ONLINE for m in methods)
     return ("deft_gym.envs.adversary", "agents.search", *(("stable_baselines3",) if rl else ()))
 
 
@@ -629,6 +643,7 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
         records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code
                    and r.get("oracle", "default") == oracle and r.get("counted_oracles", []) == cfg.count_oracles
                    and (r["method"] != "rl" or r.get("temperature", 1.0) == cfg.temperature)
+                   and (r["method"] not in ONLINE or r.get("late_statics", "as_placed") == cfg.late_statics)
                    and r["scenario"] in keys and r.get("scenario_key") == keys[r["scenario"]]]
         if stale:
             con.print(f"{stale} earlier record(s) ran other simulation code or another version of their "
@@ -679,6 +694,7 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
                                  "model": cfg.model, "deterministic": cfg.deterministic,
                                  "temperature": cfg.temperature, "out": str(out),
                                  "log_failures": cfg.log_failures, "max_added": cfg.max_added,
+                                 "late_statics": cfg.late_statics,
                                  "count": list(cfg.count_oracles)})
     from deft_gym.envs.adversary import load_env_config
 

@@ -85,29 +85,23 @@ def eval_feasible(folder: Path) -> Any:
         raise RecordError(f"{path}: field 'feasible': {first_line(err)}") from None
 
 
-def late_statics(data: dict[str, Any], added_at: dict[str, float] | None) -> list[str]:
-    """Ids of the added static objects of a failure's scenario ``data`` that joined after t = 0
-    (``added_at``: participant id -> sim time [s])."""
-    return [p["id"] for p in data["participants"]
-            if p.get("type") == "static" and (added_at or {}).get(p["id"], 0.0) > 0.0]
-
-
 def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None,
                feasible: Any = None, statics_from_start: bool = False) -> tuple[Any, Any]:
     """``(context, run)``: the record's failure simulated again with its jitter seed (on the ADS
     config ``ads``, default: the default one; judged under ``feasible``, a
     :class:`~deft_gym.search.feasible.FeasibleConfig`, default: the default one; its MCAP log in
     ``out_dir`` when given); with ``statics_from_start`` its static objects that joined after
-    t = 0 are part of the scenario from the start (:func:`late_statics`)."""
+    t = 0 are part of the scenario from the start
+    (:func:`deft_gym.search.episode.statics_from_start`)."""
     from deft_gym.search.context import ads_config, seed_context
     from deft_gym.search.episode import run_scenario
+    from deft_gym.search.episode import statics_from_start as statics_from_start_of
 
     ctx = seed_context(rec["scenario"], feasible, ads=ads_config(ads))
     data, added_at, jitter = split_equivalent(rec)
     specs = data["participants"][len(ctx.scenario.participants):]
-    if statics_from_start and added_at:
-        late = set(late_statics(data, added_at))
-        added_at = {k: v for k, v in added_at.items() if k not in late} or None
+    if statics_from_start:
+        added_at = statics_from_start_of(data["participants"], added_at)
     return ctx, run_scenario(ctx, specs, jitter, out_dir, added_at=added_at)
 
 
@@ -385,8 +379,10 @@ def _from_start_line(ctx: Any, rec: dict[str, Any], cause: str, ads: str | None,
                      tally: dict[str, tuple[int, int]]) -> str:
     """The line of ``--statics-from-start`` for one drawn failure (``tally``: cause -> (found
     again, simulated), updated)."""
+    from deft_gym.search.episode import late_statics
+
     data, added_at, _ = split_equivalent(rec)
-    late = late_statics(data, added_at)
+    late = late_statics(data["participants"], added_at)
     if not late:
         return "- no static object joined after t = 0"
     _, run = resimulate(rec, ads, None, feasible, statics_from_start=True)

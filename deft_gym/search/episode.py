@@ -90,6 +90,23 @@ def simulate(data: dict[str, Any], ads: Any, jitter_seed: int, out_dir: Path | s
     return res
 
 
+# -- validity: static objects are there from the start -----------------------------------------
+def late_statics(participants: list[dict[str, Any]], added_at: dict[str, float] | None) -> list[str]:
+    """Ids of the static objects among ``participants`` (scenario participant specs) that join
+    after t = 0 (``added_at``: participant id -> sim time [s])."""
+    return [p["id"] for p in participants
+            if p.get("type") == "static" and (added_at or {}).get(p["id"], 0.0) > 0.0]
+
+
+def statics_from_start(participants: list[dict[str, Any]], added_at: dict[str, float] | None) -> dict[str, float] | None:
+    """``added_at`` with the static objects among ``participants`` taken out: they stand in the
+    scenario from t = 0, where the ego's sensors see them as it approaches. A parked car or a cone
+    does not appear out of nowhere in front of a car, so an online adversary's failure counts
+    only when it reproduces this way (docs/search.md, "Validity"); None when nothing joins later."""
+    late = set(late_statics(participants, added_at))
+    return {k: v for k, v in (added_at or {}).items() if k not in late} or None
+
+
 # -- the one shape of a failure's scenario ----------------------------------------------------------
 REPLAY_FORMAT = "deft_gym.replay/1"
 

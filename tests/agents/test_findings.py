@@ -137,14 +137,16 @@ def test_statics_from_start_simulates_a_failure_again_with_its_late_objects_ther
     """``--statics-from-start``: a static object that joined mid-run is put in the scenario from the
     start for a second simulation, which says whether the same root cause comes back. Here the parked
     car joining at 1 s makes a local detour only, and there from the start it makes the NoDS."""
-    from deft_gym.search.episode import replay_record
+    from deft_gym.search.episode import late_statics, replay_record, statics_from_start
 
     ctx = seed_context("lane_follow_static", PAPER)
     added = [place_static(ctx, Layout(ctx.areas), "STATIC_VEHICLE", 40.0, -0.5, "added_0")]
     run = run_scenario(ctx, added, 0)
     assert run.verdict.failure == "nods"
-    assert findings.late_statics(run.scenario, {"added_0": 1.0}) == ["added_0"]
-    assert findings.late_statics(run.scenario, {"added_0": 0.0}) == []
+    assert late_statics(run.scenario["participants"], {"added_0": 1.0}) == ["added_0"]
+    assert late_statics(run.scenario["participants"], {"added_0": 0.0}) == []
+    assert statics_from_start(run.scenario["participants"], {"added_0": 1.0, "veh_1": 2.0}) == {"veh_1": 2.0}
+    assert statics_from_start(run.scenario["participants"], {"added_0": 1.0}) is None
     rec = {"method": "rl", "placement": "closest", "scenario": "lane_follow_static", "repeat": 0,
            **record_of(run.verdict, 3, 1.0, 1.0, 2, True, 0, 1, run.result.sim_time),
            "scenario_equivalent": replay_record(run.scenario, 0, {"added_0": 1.0})}

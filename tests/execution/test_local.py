@@ -229,3 +229,24 @@ def _alive(pid: int) -> bool:
             return f.read().split(")")[-1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def test_online_methods_records_name_their_late_statics_rule_and_resume_only_under_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Random actions place while the scenario runs: their records say under which rule a failure
+    was confirmed (late static objects there from the start, by default), and a resumed evaluation
+    under the other rule simulates them again instead of counting them."""
+    from agents import evaluate
+    from deft_gym.files import read_jsonl
+
+    args = ["--methods", "random_online", "--budget", "2", "--scenarios", "lane_follow_static",
+            "--placements", "closest", "--held-out", "0", "--no-progress", "--workers", "1",
+            "--out", str(tmp_path / "ev")]
+    assert evaluate.main(args) == 0
+    first = read_jsonl(tmp_path / "ev" / "records.jsonl")
+    assert len(first) == 2 and {r["late_statics"] for r in first} == {"from_start"}
+    assert json.loads((tmp_path / "ev" / "eval_config.json").read_text())["late_statics"] == "from_start"
+    capsys.readouterr()
+    assert evaluate.main([*args, "--late-statics", "as_placed"]) == 0
+    assert "1 jobs, 2 simulated scenarios" in capsys.readouterr().out
+    assert {r["late_statics"] for r in read_jsonl(tmp_path / "ev" / "records.jsonl")} == {"as_placed"}
