@@ -459,7 +459,8 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
     if job["log_failures"]:
         log_dir = str(_log_root(job))
     cfg = env_cfg.model_copy(update={"scenarios": [job["scenario"]], "variant_prob": 0.0, "log_dir": log_dir,
-                                     "keep_passing": 0.0, "extract": True})
+                                     "keep_passing": 0.0, "extract": True,
+                                     "late_statics": "as_placed"})  # no reward here: the confirmation applies the rule
     env = AdversaryEnv(config=cfg)
     key = job["model"] if job["method"] == "rl" else None
     model = _POLICIES.get(key) if key else None

@@ -37,11 +37,15 @@ the ego (not the ego's fault), and shaping by 1 - IoU.
 by its signature, and a run without one earns ``iou_shaping`` x its severity. ``any``: the bonus
 for the decision oracle's failure and for each counted metric oracle's finding, each with its own
 novelty (the evaluation's "any oracle"); a run with none is rewarded as under ``default``.
+``late_statics: from_start`` pays a bonus only for what comes back with the static objects placed
+mid-run standing from t = 0 (one more simulation of such an episode: the evaluation's rule).
 
 **info** (final step): ``metrics`` (docs/metrics.md), ``oracle``, ``oracle_signature``, ``found_by_oracle`` (every
 counted metric oracle's finding, not re-checked), ``collision``, ``ego_at_fault``, ``nods``, ``failure``, ``iou``, ``f_p``, ``f_b``,
 ``valid``, ``invasive``, ``outcome``, ``signature``, ``scenario``, ``jitter_seed``, ``added``,
-``env_steps`` (the env's steps so far, all episodes), and the log / extraction results when logging.
+``env_steps`` (the env's steps so far, all episodes), ``from_start`` (None, or when ``late_statics:
+from_start`` simulated the episode again, what came back: ``decision``, ``found`` (oracles),
+``aimed``), and the log / extraction results when logging.
 """
 
 from __future__ import annotations
@@ -70,7 +74,13 @@ from deft_gym.metrics.oracle import (
 )
 from deft_gym.scenarios.scenario import with_participants
 from deft_gym.search.context import SEED_SCENARIOS, SeedContext, ads_config, robust, seed_context
-from deft_gym.search.episode import replay_record, run_scenario, write_optimal_path
+from deft_gym.search.episode import (
+    late_statics,
+    replay_record,
+    run_scenario,
+    statics_from_start,
+    write_optimal_path,
+)
 from deft_gym.search.feasible import FeasibleConfig, Layout
 from deft_gym.search.nods import EGO_LENGTH, EGO_WIDTH, IN_LANE
 from deft_gym.search.placement import ALONG, LATERAL, MANOEUVRES, SPEEDS, Placer, first_window
@@ -138,6 +148,11 @@ class AdversaryConfig(BaseModel):
     respect_plan: bool = Field(True, description="never place into the ego's current planned trajectory")
     plan_margin: float = Field(0.3, ge=0.0, le=5.0)
     reward: RewardConfig = RewardConfig()
+    late_statics: Literal["from_start", "as_placed"] = Field(
+        "as_placed", description="from_start: the end bonus pays for a failure or finding only when it comes "
+        "back with the static objects this episode placed mid-run standing from t = 0 (one more simulation, on "
+        "the same jitter seed, of an episode that has both) - the evaluation's rule for counting it "
+        "(docs/search.md, Validity); as_placed: as the episode ran")
     grid: Literal["lane", "world"] = "lane"
     threshold: float = Field(0.6, gt=0.0, lt=1.0)
     reference_seed: int = 0
@@ -505,19 +520,21 @@ class AdversaryEnv(gym.Env):
         metrics = self.last_metrics = run_metrics(ctx, trace, o.collision.as_dict() if o.collision else None)
         found = findings_by_oracle(ctx, verdict.valid, metrics, COUNTED_ORACLES)  # every metric's, unchecked
         aimed = seed_finding(ctx, verdict.valid, metrics, cfg.oracle)  # the aimed metric oracle's (None: default, any)
+        decision = self._objective_failure(verdict)
+        paid = self._paid_from_start(verdict, decision, found, aimed)
         rw = cfg.reward
         r = 0.0
         if not verdict.valid:
             r += rw.invalid
         elif cfg.oracle == "any":  # the union: each decision and metric finding, novelty by signature
-            r += self._union_bonus(verdict, found, o.outcome)
+            r += self._union_bonus(verdict, found, o.outcome, paid)
         elif cfg.oracle != "default":  # a metric oracle: its finding, novelty by its signature
-            if aimed is not None:
-                r += self._failure_bonus(verdict, aimed)
-            else:
+            if aimed is None:
                 r += rw.iou_shaping * severity(metrics, cfg.oracle)
+            elif paid[2] is not None:
+                r += self._failure_bonus(verdict, aimed)
         else:
-            if self._objective_failure(verdict):
+            if paid[0]:
                 r += self._failure_bonus(verdict)
             r += self._spent_or_shaping(verdict, o.outcome)
         info = {**verdict.as_dict(), "metrics": metrics.as_dict(),
@@ -526,7 +543,7 @@ class AdversaryEnv(gym.Env):
                 "scenario": ctx.name, "jitter_seed": self.jitter_seed,
                 "pid": os.getpid(), "process_cpu": round(time.process_time() - self._cpu0, 3),
                 "added": len(self.layout.placed), "sim_time": round(o.sim_time, 3),
-                "wall_time": round(result.wall_time, 3)}
+                "wall_time": round(result.wall_time, 3), "from_start": self._from_start}
         if self.sink is not None:
             details = {"scenario_equivalent": self.equivalent_scenario(), "ops": self.ops,
                        "reference_seed": cfg.reference_seed}
@@ -539,16 +556,41 @@ class AdversaryEnv(gym.Env):
             info["extraction"] = done.get("extraction")
         return r, info
 
-    def _union_bonus(self, verdict: Any, found: dict[str, str], outcome: str) -> float:
+    def _paid_from_start(self, verdict: Any, decision: bool, found: dict[str, str],
+                         aimed: str | None) -> tuple[bool, dict[str, str], str | None]:
+        """What of this run's findings the end bonus may pay for: ``(decision failure, metric
+        findings, aimed oracle's finding)``. Under ``late_statics: from_start`` an episode with a
+        finding and a static object placed after t = 0 is simulated once more on its jitter seed
+        with those objects there from the start, and only what comes back with the same root
+        cause (signature) is paid; otherwise all of it."""
+        self._from_start: dict[str, Any] | None = None
+        if self.cfg.late_statics == "as_placed" or not verdict.valid or not (decision or found or aimed):
+            return decision, found, aimed
+        eq = self.equivalent_scenario()
+        specs = eq["scenario"]["participants"][len(self.ctx.scenario.participants):]
+        if not late_statics(specs, eq["added_at"]):
+            return decision, found, aimed
+        again = run_scenario(self.ctx, specs, self.jitter_seed, added_at=statics_from_start(specs, eq["added_at"]))
+        v, m = again.verdict, run_metrics(self.ctx, again.trace, again.verdict.collision_detail)
+        paid = (decision and v.failure == verdict.failure and v.signature == verdict.signature,
+                {o: sig for o, sig in found.items() if seed_finding(self.ctx, v.valid, m, o) == sig},
+                aimed if aimed is not None and seed_finding(self.ctx, v.valid, m, self.cfg.oracle) == aimed else None)
+        self._from_start = {"decision": paid[0], "found": sorted(paid[1]), "aimed": paid[2] is not None}
+        return paid
+
+    def _union_bonus(self, verdict: Any, found: dict[str, str], outcome: str,
+                     paid: tuple[bool, dict[str, str], str | None] | None = None) -> float:
         """The end reward of ``oracle: any``: :meth:`_failure_bonus` for the decision oracle's
         failure (the objective's) and for each metric finding in ``found`` (``{oracle:
-        signature}``; an at-fault collision once), each with its own novelty; without any, the
-        task-failure penalty or the objective's IoU shaping, as ``default``."""
+        signature}``; an at-fault collision once), each with its own novelty, of those ``paid``
+        (:meth:`_paid_from_start`; default: all); without any found, the task-failure penalty or the objective's
+        IoU shaping, as ``default``."""
         decision = self._objective_failure(verdict)
         if decision and verdict.failure == "collision":
             found = {o: sig for o, sig in found.items() if o != "collision"}
-        r = (self._failure_bonus(verdict) if decision else 0.0) + sum(self._failure_bonus(verdict, sig)
-                                                                        for sig in found.values())
+        paid = paid or (decision, found, None)
+        r = (self._failure_bonus(verdict) if paid[0] else 0.0) + sum(self._failure_bonus(verdict, sig)
+                                                                       for o, sig in found.items() if o in paid[1])
         return r if decision or found else self._spent_or_shaping(verdict, outcome)
 
     def _spent_or_shaping(self, verdict: Any, outcome: str) -> float:

@@ -204,3 +204,31 @@ def test_the_ga_aims_at_every_oracle_with_any() -> None:
     assert severity(m, "ttc") > severity(ref, "ttc")
     assert fitness(ctx, run.verdict, m, "any") == pytest.approx(feedback(run.verdict) + severity_growth(ctx, m))
     assert severity_growth(ctx, m) > 0.0
+
+
+def test_late_statics_from_start_pays_only_what_comes_back_with_the_objects_there_at_t0() -> None:
+    """``late_statics: from_start``: an episode with a finding and a static object placed mid-run is
+    simulated once more with the object standing from t = 0, and the end bonus pays only the
+    findings that come back. A parked car appearing 10 m ahead of the ego at 2 s makes it brake
+    hard (comfort); standing there from the start it does not, so that finding earns nothing."""
+    import numpy as np
+
+    from deft_gym.envs.adversary import AdversaryEnv
+
+    def episode(rule: str) -> tuple[float, dict]:
+        env = AdversaryEnv("lane_follow_static", late_statics=rule, oracle="any",
+                           feasible={"static_margin": 0.5, "static_lane_depth": None})
+        env.reset(seed=0, options={"jitter_seed": 0})
+        total, done, step, info = 0.0, False, 0, {}
+        while not done:  # a parked car 10 m ahead, as close to the path as allowed, at the second step
+            _, r, done, _, info = env.step(np.array([2, 3, 4, 0, 0]) if step == 1 else np.zeros(5, dtype=int))
+            total, step = total + r, step + 1
+        env.close()
+        return total, info
+
+    placed, placed_info = episode("as_placed")
+    start, start_info = episode("from_start")
+    assert placed_info["from_start"] is None and placed_info["added"] == 1
+    assert "comfort" in start_info["found_by_oracle"] and "comfort" not in start_info["from_start"]["found"]
+    assert set(start_info["from_start"]["found"]) < set(start_info["found_by_oracle"])
+    assert start < placed  # the same episode, less paid
