@@ -17,6 +17,8 @@ needs to judge whether a competent driver would call it a failure. ``--statics-f
 simulates each drawn failure once more with its static objects that joined mid-run (the RL env
 adds objects every 2 s) there from the start: a finding that vanishes rested on a parked car or
 cone appearing in front of the ego, a loophole of mid-run placement rather than a planner failure.
+Records of an evaluation that counted that way (``late_statics: from_start``, the default since
+2026-11-28) are always drawn and replayed with their static objects there from the start.
 """
 
 from __future__ import annotations
@@ -100,9 +102,15 @@ def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None
     ctx = seed_context(rec["scenario"], feasible, ads=ads_config(ads))
     data, added_at, jitter = split_equivalent(rec)
     specs = data["participants"][len(ctx.scenario.participants):]
-    if statics_from_start:
+    if statics_from_start or counted_from_start(rec):
         added_at = statics_from_start_of(data["participants"], added_at)
     return ctx, run_scenario(ctx, specs, jitter, out_dir, added_at=added_at)
+
+
+def counted_from_start(rec: dict[str, Any]) -> bool:
+    """Whether the record's failure counted with its late static objects there from the start
+    (``late_statics: from_start``, docs/search.md): then that is the scenario drawn and replayed."""
+    return rec.get("late_statics") == "from_start"
 
 
 def judged_again(ctx: Any, run: Any, rec: dict[str, Any], cause: str) -> tuple[bool, str | None, Any]:
@@ -313,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any]]],
           counts: dict[str, dict[str, int]], ads: str | None, feasible: Any = None) -> int:
-    from deft_gym.search.episode import read_replay, write_replay
+    from deft_gym.search.episode import read_replay, statics_from_start, write_replay
 
     out.mkdir(parents=True, exist_ok=True)
     causes = sorted(by_cause, key=lambda c: (-len(by_cause[c]), c))
@@ -342,8 +350,10 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             same, got, m = judged_again(ctx, run, rec, cause)
             highlight = {m.ttc_actor} if oracle == "ttc" and m.ttc_actor else None
             name = f"{stem}.png"
-            replay = write_replay(out / f"{stem}.replay.yaml", read_replay(rec.get("scenario_equivalent"),
-                                                                           rec.get("jitter_seed")))
+            eq = read_replay(rec.get("scenario_equivalent"), rec.get("jitter_seed"))
+            if eq is not None and counted_from_start(rec):
+                eq = {**eq, "added_at": statics_from_start(eq["scenario"]["participants"], eq["added_at"]) or {}}
+            replay = write_replay(out / f"{stem}.replay.yaml", eq)
             replay_cmd = f"deft-gym run {replay} --reruns 1" + (f" --ads-config {ads}" if ads else "")
             title = (f"{METHOD_LABELS.get(rec['method'], rec['method'])} {rec['placement']} on {rec['scenario']} "
                      f"(repeat {rec['repeat']}, #{rec['index']}): {got or 'none'}")
@@ -352,7 +362,9 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             clear = v.finding.clearance if v.finding else None
             lines += [f"![{cause}]({name})", "",
                       f"- {rec['method']} / {rec['placement']} / {rec['scenario']} repeat {rec['repeat']} #{rec['index']}, "
-                      f"jitter seed {rec['jitter_seed']}: again **{'the same' if same else 'NOT the same: ' + (got or 'no finding')}**",
+                      f"jitter seed {rec['jitter_seed']}"
+                      + (", its static objects there from the start (how it counted)" if counted_from_start(rec) else "")
+                      + f": again **{'the same' if same else 'NOT the same: ' + (got or 'no finding')}**",
                       *([f"- {metric_line(m, oracle, run.trace)}"] if oracle else []),
                       f"- IoU {v.iou:.2f}, off the optimal path for {v.off_length:.0f} m, outcome {v.outcome}"
                       + (f", clearance of the trigger {clear:.2f} m" if clear is not None and math.isfinite(clear) else ""),

@@ -9,6 +9,7 @@ import re
 
 import matplotlib.pyplot as plt
 import pytest
+import yaml
 
 from agents import findings
 from agents.search import record_of
@@ -157,6 +158,13 @@ def test_statics_from_start_simulates_a_failure_again_with_its_late_objects_ther
     assert "again **NOT the same: local:parked:in_lane:blocked**" in text
     assert "with its static objects that joined after t = 0 (added_0) there from the start: **found again**" in text
     assert "| `nods:parked:in_lane:blocked` | 1 | 1 |" in text.split("## Static objects there from the start")[1]
+    # a record that counted with its late objects there from the start is drawn and replayed that way
+    (tmp_path / "records.jsonl").write_text(json.dumps({**rec, "late_statics": "from_start"}) + "\n")
+    assert findings.main([str(tmp_path), "--no-progress", "--out", str(tmp_path / "f1")]) == 0
+    text = (tmp_path / "f1" / "findings.md").read_text()
+    assert "jitter seed 0, its static objects there from the start (how it counted): again **the same**" in text
+    replay = yaml.safe_load(next((tmp_path / "f1").glob("*.replay.yaml")).read_text())
+    assert replay["added_at"] == {}
     # without a late object there is nothing to move
     rec["scenario_equivalent"] = replay_record(run.scenario, 0, None)
     (tmp_path / "records.jsonl").write_text(json.dumps(rec) + "\n")
