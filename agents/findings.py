@@ -87,24 +87,34 @@ def eval_feasible(folder: Path) -> Any:
         raise RecordError(f"{path}: field 'feasible': {first_line(err)}") from None
 
 
-def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None,
-               feasible: Any = None, statics_from_start: bool = False) -> tuple[Any, Any]:
-    """``(context, run)``: the record's failure simulated again with its jitter seed (on the ADS
-    config ``ads``, default: the default one; judged under ``feasible``, a
-    :class:`~deft_gym.search.feasible.FeasibleConfig`, default: the default one; its MCAP log in
-    ``out_dir`` when given); with ``statics_from_start`` its static objects that joined after
-    t = 0 are part of the scenario from the start
+def counted_equivalent(rec: dict[str, Any], statics_from_start: bool = False) -> dict[str, Any]:
+    """The record's failure scenario in the one shape (:func:`deft_gym.search.episode.replay_record`)
+    as it counted: a record that counted with its late static objects there from the start
+    (:func:`counted_from_start`), or any record with ``statics_from_start``, has its static objects
+    that joined after t = 0 in the scenario from the start
     (:func:`deft_gym.search.episode.statics_from_start`)."""
-    from deft_gym.search.context import ads_config, seed_context
-    from deft_gym.search.episode import run_scenario
+    from deft_gym.search.episode import replay_record
     from deft_gym.search.episode import statics_from_start as statics_from_start_of
 
-    ctx = seed_context(rec["scenario"], feasible, ads=ads_config(ads))
     data, added_at, jitter = split_equivalent(rec)
-    specs = data["participants"][len(ctx.scenario.participants):]
     if statics_from_start or counted_from_start(rec):
         added_at = statics_from_start_of(data["participants"], added_at)
-    return ctx, run_scenario(ctx, specs, jitter, out_dir, added_at=added_at)
+    return replay_record(data, jitter, added_at)
+
+
+def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None,
+               feasible: Any = None, statics_from_start: bool = False) -> tuple[Any, Any]:
+    """``(context, run)``: the record's failure (:func:`counted_equivalent`) simulated again with
+    its jitter seed (on the ADS config ``ads``, default: the default one; judged under
+    ``feasible``, a :class:`~deft_gym.search.feasible.FeasibleConfig`, default: the default one;
+    its MCAP log in ``out_dir`` when given)."""
+    from deft_gym.search.context import ads_config, seed_context
+    from deft_gym.search.episode import run_scenario
+
+    ctx = seed_context(rec["scenario"], feasible, ads=ads_config(ads))
+    eq = counted_equivalent(rec, statics_from_start)
+    specs = eq["scenario"]["participants"][len(ctx.scenario.participants):]
+    return ctx, run_scenario(ctx, specs, eq["jitter_seed"], out_dir, added_at=eq["added_at"] or None)
 
 
 def counted_from_start(rec: dict[str, Any]) -> bool:
@@ -321,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any]]],
           counts: dict[str, dict[str, int]], ads: str | None, feasible: Any = None) -> int:
-    from deft_gym.search.episode import read_replay, statics_from_start, write_replay
+    from deft_gym.search.episode import write_replay
 
     out.mkdir(parents=True, exist_ok=True)
     causes = sorted(by_cause, key=lambda c: (-len(by_cause[c]), c))
@@ -350,10 +360,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             same, got, m = judged_again(ctx, run, rec, cause)
             highlight = {m.ttc_actor} if oracle == "ttc" and m.ttc_actor else None
             name = f"{stem}.png"
-            eq = read_replay(rec.get("scenario_equivalent"), rec.get("jitter_seed"))
-            if eq is not None and counted_from_start(rec):
-                eq = {**eq, "added_at": statics_from_start(eq["scenario"]["participants"], eq["added_at"]) or {}}
-            replay = write_replay(out / f"{stem}.replay.yaml", eq)
+            replay = write_replay(out / f"{stem}.replay.yaml", counted_equivalent(rec))
             replay_cmd = f"deft-gym run {replay} --reruns 1" + (f" --ads-config {ads}" if ads else "")
             title = (f"{METHOD_LABELS.get(rec['method'], rec['method'])} {rec['placement']} on {rec['scenario']} "
                      f"(repeat {rec['repeat']}, #{rec['index']}): {got or 'none'}")
