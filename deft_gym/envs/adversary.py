@@ -68,6 +68,7 @@ from deft_gym.metrics.oracle import (
     COUNTED_ORACLES,
     ORACLES,
     findings_by_oracle,
+    rerun,
     run_metrics,
     seed_finding,
     severity,
@@ -570,8 +571,8 @@ class AdversaryEnv(gym.Env):
         specs = eq["scenario"]["participants"][len(self.ctx.scenario.participants):]
         if not late_statics(specs, eq["added_at"]):
             return decision, found, aimed
-        again = run_scenario(self.ctx, specs, self.jitter_seed, added_at=statics_from_start(specs, eq["added_at"]))
-        v, m = again.verdict, run_metrics(self.ctx, again.trace, again.verdict.collision_detail)
+        again, m = rerun(self.ctx, specs, self.jitter_seed, statics_from_start(specs, eq["added_at"]))
+        v = again.verdict
         paid = (decision and v.failure == verdict.failure and v.signature == verdict.signature,
                 {o: sig for o, sig in found.items() if seed_finding(self.ctx, v.valid, m, o) == sig},
                 aimed if aimed is not None and seed_finding(self.ctx, v.valid, m, self.cfg.oracle) == aimed else None)

@@ -172,6 +172,17 @@ def seed_finding(ctx: SeedContext, valid: bool, m: EpisodeMetrics, oracle: str) 
     return oracle_finding(valid, m, oracle, reference_signature(ctx, oracle))
 
 
+def rerun(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int,
+          added_at: dict[str, float] | None = None) -> tuple[Any, EpisodeMetrics]:
+    """``ctx``'s scenario with the added participants ``specs`` (those in ``added_at`` joining at
+    that sim time [s]) simulated on ``jitter_seed``: ``(run, its metrics)``, what every
+    confirmation judges."""
+    from deft_gym.search.episode import run_scenario
+
+    again = run_scenario(ctx, specs, jitter_seed, added_at=added_at)
+    return again, run_metrics(ctx, again.trace, again.verdict.collision_detail)
+
+
 def confirm_oracle(ctx: SeedContext, oracle: str, sig: str | None, specs: list[dict[str, Any]], jitter_seed: int,
                    added_at: dict[str, float] | None = None) -> tuple[bool | None, float, float]:
     """:func:`agents.search.confirm` for a metric oracle: the scenario again on another jitter
@@ -179,11 +190,8 @@ def confirm_oracle(ctx: SeedContext, oracle: str, sig: str | None, specs: list[d
     signature on ``oracle``; None when there is no finding to confirm."""
     if sig is None:
         return None, 0.0, 0.0
-    from deft_gym.search.episode import run_scenario
-
     w0, c0 = time.perf_counter(), time.process_time()
-    again = run_scenario(ctx, specs, jitter_seed, added_at=added_at)
-    m = run_metrics(ctx, again.trace, again.verdict.collision_detail)
+    again, m = rerun(ctx, specs, jitter_seed, added_at)
     same = seed_finding(ctx, again.verdict.valid, m, oracle) == sig
     return bool(same), time.perf_counter() - w0, time.process_time() - c0
 
@@ -200,10 +208,7 @@ def confirm_findings(ctx: SeedContext, found: dict[str, str], specs: list[dict[s
     ``jitter_seed``; ``({oracle: reproduced}, wall s, cpu s)``, nothing run when ``found`` is empty."""
     if not found:
         return {}, 0.0, 0.0
-    from deft_gym.search.episode import run_scenario
-
     w0, c0 = time.perf_counter(), time.process_time()
-    again = run_scenario(ctx, specs, jitter_seed, added_at=added_at)
-    m = run_metrics(ctx, again.trace, again.verdict.collision_detail)
+    again, m = rerun(ctx, specs, jitter_seed, added_at)
     same = {o: seed_finding(ctx, again.verdict.valid, m, o) == sig for o, sig in found.items()}
     return same, time.perf_counter() - w0, time.process_time() - c0
