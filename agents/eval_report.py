@@ -27,11 +27,10 @@ TRAINING_METHODS = ("rl",)  # methods trained before the evaluation (a second bu
 
 
 # -- summary --------------------------------------------------------------------------------------
-def rl_training(model: str | None) -> dict[str, Any] | None:
-    """``episodes`` (training scenarios simulated) and ``train_seconds`` [s] from the training
-    ``summary.json`` next to ``model`` (or in its run folder); None without one."""
-    if not model:
-        return None
+def _training_leg(model: str) -> dict[str, Any] | None:
+    """One training run's ``episodes``, ``train_seconds`` and ``cpu_seconds`` from the
+    ``summary.json`` next to ``model`` (or in its run folder), with the ``init_model`` its
+    ``config.yaml`` started from (None for a run from scratch); None without a summary."""
     p = Path(model)
     for d in (p.parent, p.parent.parent):
         f = d / "summary.json"
@@ -42,9 +41,44 @@ def rl_training(model: str | None) -> dict[str, Any] | None:
                 raise RecordError(f"{f}: not JSON ({err})") from None
             if not isinstance(data, dict) or not isinstance(data.get("episodes"), int):
                 raise RecordError(f"{f}: field 'episodes': expected an integer")
+            init = None
+            if (d / "config.yaml").exists():
+                import yaml
+
+                cfg = yaml.safe_load((d / "config.yaml").read_text())
+                init = cfg.get("init_model") if isinstance(cfg, dict) else None
             return {"episodes": data["episodes"], "train_seconds": data.get("train_seconds"),
-                    "cpu_seconds": data.get("cpu_seconds"), "summary": str(f)}
+                    "cpu_seconds": data.get("cpu_seconds"), "summary": str(f), "init_model": init}
     return None
+
+
+def rl_training(model: str | None) -> dict[str, Any] | None:
+    """``episodes`` (training scenarios simulated), ``train_seconds`` [s] and ``cpu_seconds`` [s]
+    of the training behind ``model``: its run's ``summary.json`` (next to it or in its run folder)
+    plus those of the runs it was fine-tuned from (each run's ``config.yaml`` ``init_model``, back
+    to a run from scratch), each run in ``legs``, newest first; a sum is None where a run lacks
+    it. None without a summary."""
+    from deft_gym.models import resolve_model
+
+    legs: list[dict[str, Any]] = []
+    seen: set[Path] = set()
+    path = model
+    while path:
+        leg = _training_leg(str(resolve_model(path)))
+        if leg is None or Path(leg["summary"]).resolve() in seen:
+            break
+        seen.add(Path(leg["summary"]).resolve())
+        path = leg.pop("init_model")
+        legs.append(leg)
+    if not legs:
+        return None
+
+    def total(key: str) -> float | None:
+        values = [leg[key] for leg in legs]
+        return None if any(v is None for v in values) else sum(values)
+
+    return {"episodes": sum(leg["episodes"] for leg in legs), "train_seconds": total("train_seconds"),
+            "cpu_seconds": total("cpu_seconds"), "summary": legs[0]["summary"], "legs": legs}
 
 
 def build_summary(records: list[dict[str, Any]], config: dict[str, Any], seeds: list[str], held_out: list[str],
@@ -131,7 +165,8 @@ def headline_markdown(summary: dict[str, Any]) -> str:
                "'incl. in-lane' counts them). Failures: valid mutations whose NoDS (grid IoU <= 0.6) or ego-at-fault "
                "collision reproduced with the same root cause on a second jitter seed, on seed, held-out and all "
                "scenarios; the other columns over all scenarios. Budget: simulated scenarios per scenario and "
-               "repeat; training episodes: scenarios simulated to train the method beforehand.")
+               "repeat; training episodes: scenarios simulated to train the method beforehand (with the runs "
+               "its model was fine-tuned from).")
     lines = [caption, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     groups = summary["groups"]
     for m, p in _rows(summary):
@@ -370,7 +405,8 @@ def table_markdown(summary: dict[str, Any]) -> str:
            "placed there from the start)" if cfg.get("late_statics", "as_placed") == "from_start" else "")
         + "; local NoDS and task failures "
         "(timeout/stuck of a valid mutation) are separate columns. Distinct: distinct root-cause signatures. "
-        "Training episodes: scenarios simulated to train the method before the evaluation (a second budget). "
+        "Training episodes: scenarios simulated to train the method before the evaluation, the runs its model "
+        "was fine-tuned from included (a second budget). "
         "`*`: scenarios or repeats missing in the cell."
         + (f" RL's actions: sampled from its policy at temperature {cfg['temperature']:g} (logits / "
            f"{cfg['temperature']:g})." if cfg.get("temperature", 1.0) != 1.0 and not cfg.get("deterministic")

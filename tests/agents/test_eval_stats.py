@@ -320,6 +320,23 @@ def test_rl_training_episodes_as_second_budget(tmp_path):
     assert eval_report.rl_training(str(tmp_path / "elsewhere" / "model.zip")) is None
 
 
+def test_rl_training_adds_the_runs_a_model_was_fine_tuned_from(tmp_path):
+    first, second = tmp_path / "first", tmp_path / "second"
+    for run, episodes, cpu, init in ((first, 1000, 100.0, None), (second, 200, 50.0, first / "model.zip")):
+        run.mkdir()
+        (run / "summary.json").write_text(json.dumps({"episodes": episodes, "train_seconds": cpu / 2,
+                                                      "cpu_seconds": cpu}))
+        (run / "config.yaml").write_text(f"init_model: {init}\n" if init else "timesteps: 5\n")
+    t = eval_report.rl_training(str(second / "model.zip"))
+    assert (t["episodes"], t["cpu_seconds"], t["train_seconds"]) == (1200, 150.0, 75.0)
+    assert [leg["episodes"] for leg in t["legs"]] == [200, 1000] and t["summary"] == str(second / "summary.json")
+    (first / "summary.json").write_text(json.dumps({"episodes": 1000}))  # a run without its CPU: no sum
+    t = eval_report.rl_training(str(second / "model.zip"))
+    assert t["episodes"] == 1200 and t["cpu_seconds"] is None
+    (first / "config.yaml").write_text(f"init_model: {second / 'model.zip'}\n")  # a loop ends at a run seen
+    assert eval_report.rl_training(str(second / "model.zip"))["episodes"] == 1200
+
+
 def test_bad_records_name_the_record_and_field():
     good = rec()
     for bad, pattern in (({"valid": None}, r"record 2: field 'valid': expected bool"),
