@@ -41,12 +41,17 @@ def _training_leg(model: str) -> dict[str, Any] | None:
                 raise RecordError(f"{f}: not JSON ({err})") from None
             if not isinstance(data, dict) or not isinstance(data.get("episodes"), int):
                 raise RecordError(f"{f}: field 'episodes': expected an integer")
-            init = None
-            if (d / "config.yaml").exists():
+            init, c = None, d / "config.yaml"
+            if c.exists():
                 import yaml
 
-                cfg = yaml.safe_load((d / "config.yaml").read_text())
+                try:
+                    cfg = yaml.safe_load(c.read_text())
+                except yaml.YAMLError as err:
+                    raise RecordError(f"{c}: not YAML ({str(err).splitlines()[0]})") from None
                 init = cfg.get("init_model") if isinstance(cfg, dict) else None
+                if init is not None and not isinstance(init, str):
+                    raise RecordError(f"{c}: field 'init_model': expected a model path or 'default', got {init!r}")
             return {"episodes": data["episodes"], "train_seconds": data.get("train_seconds"),
                     "cpu_seconds": data.get("cpu_seconds"), "summary": str(f), "init_model": init}
     return None

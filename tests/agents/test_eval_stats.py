@@ -335,6 +335,12 @@ def test_rl_training_adds_the_runs_a_model_was_fine_tuned_from(tmp_path):
     assert t["episodes"] == 1200 and t["cpu_seconds"] is None
     (first / "config.yaml").write_text(f"init_model: {second / 'model.zip'}\n")  # a loop ends at a run seen
     assert eval_report.rl_training(str(second / "model.zip"))["episodes"] == 1200
+    (second / "config.yaml").write_text("init_model: [1, 2]\n")
+    with pytest.raises(RecordError, match=r"config\.yaml: field 'init_model': expected a model path"):
+        eval_report.rl_training(str(second / "model.zip"))
+    (second / "config.yaml").write_text("init_model: [1, 2\n")
+    with pytest.raises(RecordError, match=r"config\.yaml: not YAML"):
+        eval_report.rl_training(str(second / "model.zip"))
 
 
 def test_bad_records_name_the_record_and_field():
