@@ -43,13 +43,12 @@ def _training_leg(model: str) -> dict[str, Any] | None:
                 raise RecordError(f"{f}: field 'episodes': expected an integer")
             init, c = None, d / "config.yaml"
             if c.exists():
-                import yaml
+                from deft_gym.config import ConfigError, load_mapping
 
                 try:
-                    cfg = yaml.safe_load(c.read_text())
-                except yaml.YAMLError as err:
-                    raise RecordError(f"{c}: not YAML ({str(err).splitlines()[0]})") from None
-                init = cfg.get("init_model") if isinstance(cfg, dict) else None
+                    init = load_mapping(c).get("init_model")
+                except ConfigError as err:
+                    raise RecordError(str(err)) from None
                 if init is not None and not isinstance(init, str):
                     raise RecordError(f"{c}: field 'init_model': expected a model path or 'default', got {init!r}")
             return {"episodes": data["episodes"], "train_seconds": data.get("train_seconds"),
@@ -70,9 +69,10 @@ def rl_training(model: str | None) -> dict[str, Any] | None:
     path = model
     while path:
         leg = _training_leg(str(resolve_model(path)))
-        if leg is None or Path(leg["summary"]).resolve() in seen:
+        summary = Path(leg["summary"]).resolve() if leg is not None else None
+        if summary is None or summary in seen:
             break
-        seen.add(Path(leg["summary"]).resolve())
+        seen.add(summary)
         path = leg.pop("init_model")
         legs.append(leg)
     if not legs:

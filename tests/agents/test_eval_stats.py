@@ -339,7 +339,7 @@ def test_rl_training_adds_the_runs_a_model_was_fine_tuned_from(tmp_path):
     with pytest.raises(RecordError, match=r"config\.yaml: field 'init_model': expected a model path"):
         eval_report.rl_training(str(second / "model.zip"))
     (second / "config.yaml").write_text("init_model: [1, 2\n")
-    with pytest.raises(RecordError, match=r"config\.yaml: not YAML"):
+    with pytest.raises(RecordError, match=r"config\.yaml: invalid YAML"):
         eval_report.rl_training(str(second / "model.zip"))
 
 
