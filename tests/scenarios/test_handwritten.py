@@ -57,6 +57,13 @@ def test_group_is_not_a_seed_and_expands_in_the_evaluation() -> None:
         load_eval_config(parse_args(["--scenarios", "handwritten/no_such_scenario", "--methods", "random"]))
 
 
+def _generated_file(spec: str) -> bool:
+    """A scenario file as `deft_gym.cli.generate --out runs/generated...` writes it."""
+    parts = Path(spec).parts
+    return (len(parts) == 3 and parts[0] == "runs" and parts[1].startswith("generated")
+            and parts[2].startswith("gen-") and parts[2].endswith(".yaml"))
+
+
 def test_training_never_uses_a_handwritten_scenario(tmp_path: Path) -> None:
     """Every shipped training config, the env's default list and the generated training seeds
     exclude the group; a training config that names one of them is refused."""
@@ -66,7 +73,8 @@ def test_training_never_uses_a_handwritten_scenario(tmp_path: Path) -> None:
         trained = set(cfg.env.scenarios)
         assert not trained & hand, path
         assert not any(is_group_scenario(s) for s in trained), path
-        assert all(parse_spec(s) is not None or s in SEED_SCENARIOS for s in trained), path
+        # seeds, specs (gen:<seed>, variants) or files the generator wrote (runs/generated*/gen-<seed>.yaml)
+        assert all(parse_spec(s) is not None or s in SEED_SCENARIOS or _generated_file(s) for s in trained), path
     assert not set(load_train_config().env.scenarios) & hand
     for spec in ("handwritten", HANDWRITTEN[0], f"{HANDWRITTEN[0]}~v3", str(FILES[0])):
         cfg = load_train_config(None, {"timesteps": 64})
