@@ -614,7 +614,8 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
 
         con.print(f"choosing {cfg.held_out} robust held-out generated scenario(s) ...")
         held_out += robust_generated(cfg.held_out, GEN_BASE, ads=ads)
-        trained = [parse_spec(s) for s in env.get("scenarios", []) if isinstance(s, str)]
+        # gen:<seed> of the default generator; gen:<seed>@<config> is another generator's scenario
+        trained = [parse_spec(s) for s in env.get("scenarios", []) if isinstance(s, str) and "@" not in s]
         try:
             disjoint([t for t in trained if t is not None], [parse_spec(h) for h in held_out])  # type: ignore[misc]
         except ValueError as err:

@@ -53,11 +53,14 @@ STUCK_TIME = 10.0
 
 def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRENGTH) -> Scenario:
     """A scenario from a name, a YAML path, ``gen:<seed>`` (a generated scenario,
-    :mod:`deft_gym.scenarios.generate`), ``<group>/<name>`` (a scenario of a group such as
+    :mod:`deft_gym.scenarios.generate`), ``gen:<seed>@<config.yaml>`` (the same with another
+    generator config, :func:`generated_with`), ``<group>/<name>`` (a scenario of a group such as
     ``handwritten``, ``configs/scenarios/<group>/<name>.yaml``) or ``<name>~v<seed>`` (a perturbed variant)."""
     if isinstance(spec, Scenario):
         return spec
     text = str(spec)
+    if text.startswith("gen:") and "@" in text:  # gen:<seed>@<generator config YAML>
+        return generated_with(text)
     generated = resolve_generated(text)  # gen:<seed>
     if generated is not None:
         return generated
@@ -84,6 +87,27 @@ def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRE
     return load_scenario(text)
 
 
+def generated_with(spec: str) -> Scenario:
+    """The scenario of ``gen:<seed>@<config.yaml>``: generator seed ``<seed>`` under the generator
+    config in that YAML file (:class:`~deft_gym.scenarios.generate.GeneratorConfig` fields; a
+    ``configs/...`` path also names a shipped one) - the scenario ``python -m
+    deft_gym.cli.generate --config <config.yaml> --seeds <seed>`` writes, without the file."""
+    from deft_gym.config import load_mapping, validate
+    from deft_gym.scenarios.generate import SPEC_PREFIX, GeneratorConfig, generate
+
+    seed_text, _, config = spec[len(SPEC_PREFIX):].partition("@")
+    if not seed_text.isdigit() or not config:
+        raise ConfigError(f"scenario {spec!r}: expected '{SPEC_PREFIX}<seed>@<generator config YAML>' with a seed >= 0")
+    path = resolve_config_path(config)
+    if not path.is_file():
+        raise ConfigError(f"scenario {spec!r}: generator config {config!r} is not a file")
+    cfg = _GEN_CONFIGS.get(str(path))
+    if cfg is None:
+        cfg = _GEN_CONFIGS[str(path)] = validate(GeneratorConfig, load_mapping(path), str(path))
+    return generate(int(seed_text), cfg)
+
+
+_GEN_CONFIGS: dict[str, Any] = {}
 _ADS: dict[str, AdsConfig] = {}
 
 

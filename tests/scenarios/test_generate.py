@@ -159,6 +159,23 @@ def test_resolve_and_spec_names() -> None:
     assert not [p for p in list_scenarios() if p.stem.startswith(("gen-", "gen:")) or ":" in p.stem]
 
 
+def test_spec_with_a_generator_config_is_the_scenario_its_file_holds(tmp_path: Path) -> None:
+    """``gen:<seed>@<config.yaml>`` (what a training config names) is, to the last float, the
+    scenario ``deft-gym generate --config <config.yaml> --seeds <seed>`` writes as a file, and
+    not the default config's ``gen:<seed>``."""
+    from deft_gym.cli.generate import main
+    from deft_gym.search.context import resolve_scenario
+
+    assert main(["--config", "configs/generate/merge.yaml", "--seeds", "4", "--out", str(tmp_path)]) == 0
+    spec = resolve_scenario("gen:4@configs/generate/merge.yaml")
+    assert scenario_to_dict(spec) == scenario_to_dict(load_scenario(tmp_path / "gen-4.yaml"))
+    assert scenario_to_dict(spec) != scenario_to_dict(generate(4))
+    for bad, why in (("gen:x@configs/generate/merge.yaml", "gen:<seed>@"), ("gen:4@", "gen:<seed>@"),
+                     ("gen:4@no/such.yaml", "is not a file")):
+        with pytest.raises(ConfigError, match=why):
+            resolve_scenario(bad)
+
+
 def test_held_out_seeds_are_disjoint_from_training() -> None:
     held = held_out_seeds(10)
     assert held[0] == HELD_OUT_BASE and len(held) == 10 and HELD_OUT_BASE not in TRAIN_SEEDS

@@ -57,11 +57,10 @@ def test_group_is_not_a_seed_and_expands_in_the_evaluation() -> None:
         load_eval_config(parse_args(["--scenarios", "handwritten/no_such_scenario", "--methods", "random"]))
 
 
-def _generated_file(spec: str) -> bool:
-    """A scenario file as `deft_gym.cli.generate --out runs/generated...` writes it."""
-    parts = Path(spec).parts
-    return (len(parts) == 3 and parts[0] == "runs" and parts[1].startswith("generated")
-            and parts[2].startswith("gen-") and parts[2].endswith(".yaml"))
+def _generated_with_config(spec: str) -> bool:
+    """``gen:<seed>@<generator config>`` naming a shipped generator config."""
+    seed, at, config = spec.removeprefix("gen:").partition("@")
+    return spec.startswith("gen:") and seed.isdigit() and bool(at) and config.startswith("configs/generate/")
 
 
 def test_training_never_uses_a_handwritten_scenario(tmp_path: Path) -> None:
@@ -73,8 +72,8 @@ def test_training_never_uses_a_handwritten_scenario(tmp_path: Path) -> None:
         trained = set(cfg.env.scenarios)
         assert not trained & hand, path
         assert not any(is_group_scenario(s) for s in trained), path
-        # seeds, specs (gen:<seed>, variants) or files the generator wrote (runs/generated*/gen-<seed>.yaml)
-        assert all(parse_spec(s) is not None or s in SEED_SCENARIOS or _generated_file(s) for s in trained), path
+        # seeds or generated scenarios (gen:<seed>, gen:<seed>@configs/generate/<config>.yaml)
+        assert all(s in SEED_SCENARIOS or _generated_with_config(s) or parse_spec(s) is not None for s in trained), path
     assert not set(load_train_config().env.scenarios) & hand
     for spec in ("handwritten", HANDWRITTEN[0], f"{HANDWRITTEN[0]}~v3", str(FILES[0])):
         cfg = load_train_config(None, {"timesteps": 64})
