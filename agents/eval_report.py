@@ -203,17 +203,32 @@ def group_markdown(summary: dict[str, Any], group: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def per_scenario_markdown(summary: dict[str, Any]) -> str:
-    """Counted failures per scenario (rows) and method x placement (columns), mean ± sd."""
+def per_scenario_markdown(summary: dict[str, Any], measure: str = "failures") -> str:
+    """``measure`` per scenario (rows) and method x placement (columns), mean ± sd: the counted
+    failures, or (``any_distinct``) the distinct findings of any oracle, then a column saying
+    whether any method found one in some repeat and a line naming the scenarios where none did
+    (where the search, as configured, finds nothing on this planner)."""
     rows = _rows(summary)
-    cols = ["scenario", "kind"] + [f"{_label(m)} ({p})" for m, p in rows]
+    any_oracle = measure == "any_distinct"
+    cols = ["scenario", "kind"] + [f"{_label(m)} ({p})" for m, p in rows] + (["any method"] if any_oracle else [])
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     kind_labels = {"seed": "seed", "held_out": "held-out", "handwritten": "hand-written"}
-    for s in summary["seeds"] + summary["held_out"] + summary.get("handwritten", []):
+    scenarios = summary["seeds"] + summary["held_out"] + summary.get("handwritten", [])
+    none_found = []
+    for s in scenarios:
         cells = [s, kind_labels.get(summary["scenario_kinds"].get(s, "held_out"), "held-out")]
-        cells += [fmt(summary["per_scenario"].get(m, {}).get(p, {}).get(s, {}).get("failures")) for m, p in rows]
+        cells += [fmt(summary["per_scenario"].get(m, {}).get(p, {}).get(s, {}).get(measure)) for m, p in rows]
+        if any_oracle:
+            found = any(_found_in(summary, m, p, s, measure) for m, p in rows)
+            cells.append("yes" if found else "**none**")
+            if not found:
+                none_found.append(s)
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    text = "\n".join(lines) + "\n"
+    if any_oracle:
+        text += (f"\nNo method found anything on {len(none_found)} of {len(scenarios)} scenarios"
+                 + (": " + ", ".join(f"`{s}`" for s in none_found) if none_found else "") + ".\n")
+    return text
 
 
 def statistics_markdown(rows: list[dict[str, Any]], where: str = "group") -> str:
@@ -445,8 +460,13 @@ def table_markdown(summary: dict[str, Any]) -> str:
                 text += [f"**{GROUP_TITLES[g]}**", "", table]
     for g in stats.shown_groups(summary):
         text += [f"## {GROUP_TITLES[g]}", "", group_markdown(summary, g)]
-    text += ["## Failures per scenario", "", per_scenario_markdown(summary),
-             "## Statistics", "",
+    text += ["## Failures per scenario", "", per_scenario_markdown(summary)]
+    if summary.get("config", {}).get("count_oracles"):
+        text += ["## Findings per scenario, any oracle", "",
+                 "Distinct findings of any oracle per repeat (mean ± sd), as in *Findings per oracle*; "
+                 "`any method`: whether some method found one in some repeat.", "",
+                 per_scenario_markdown(summary, "any_distinct")]
+    text += ["## Statistics", "",
              "Two-sided Mann-Whitney U on the per-repeat totals; A12 = P(X > Y) + 0.5 P(X = Y); X/Y: ratio of means.",
              "", statistics_markdown(summary["statistics"]["groups"], "group")]
     if summary["statistics"]["per_scenario"]:

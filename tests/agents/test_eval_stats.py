@@ -553,9 +553,15 @@ def test_counted_oracles_per_oracle_any_oracle_and_coverage(tmp_path):
     table = eval_report.write_report(recs, summary, tmp_path)
     assert "## Findings per oracle" in table
     assert "| RL | closest | 1.0 ± 0.0 | 0.5 ± 0.7 | 1.0 ± 0.0 | 0.0 ± 0.0 | 0.5 ± 0.7 | 2.5 ± 0.7 | 2.0 ± 0.0 | 2 of 3 |" in table
-    # without counted oracles the section is absent and the coverage by any oracle is not claimed
+    # per scenario: RL found something on a and b, the GA nowhere; c is where no method found anything
+    assert "| handwritten/a | hand-written | 1.0 ± 0.0 | 0.0 ± 0.0 | yes |" in table
+    assert "| handwritten/b | hand-written | 1.5 ± 0.7 | 0.0 ± 0.0 | yes |" in table
+    assert "| handwritten/c | hand-written | 0.0 ± 0.0 | 0.0 ± 0.0 | **none** |" in table
+    assert "No method found anything on 1 of 3 scenarios: `handwritten/c`." in table
+    # without counted oracles the sections are absent and the coverage by any oracle is not claimed
     plain = eval_report.build_summary(recs, {**cfg, "count_oracles": []}, hand, [])
     assert "Findings per oracle" not in eval_report.table_markdown(plain)
+    assert "any oracle" not in eval_report.table_markdown(plain).split("## Failures per scenario")[1]
     assert "coverage_any" not in eval_report.planner_targets(plain)
 
 
