@@ -610,12 +610,13 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
     if cfg.held_out:
         from deft_gym.scenarios.generate import HELD_OUT_BASE as GEN_BASE
         from deft_gym.scenarios.generate import disjoint, parse_spec
-        from deft_gym.search.context import robust_generated
+        from deft_gym.search.context import parse_config_spec, robust_generated
 
         con.print(f"choosing {cfg.held_out} robust held-out generated scenario(s) ...")
         held_out += robust_generated(cfg.held_out, GEN_BASE, ads=ads)
         # gen:<seed> of the default generator; gen:<seed>@<config> is another generator's scenario
-        trained = [parse_spec(s) for s in env.get("scenarios", []) if isinstance(s, str) and "@" not in s]
+        trained = [parse_spec(s) for s in env.get("scenarios", [])
+                   if isinstance(s, str) and parse_config_spec(s) is None]
         try:
             disjoint([t for t in trained if t is not None], [parse_spec(h) for h in held_out])  # type: ignore[misc]
         except ValueError as err:

@@ -19,6 +19,7 @@ from typing import Any
 from deft_gym.bus.ads import AdsConfig, load_ads_config
 from deft_gym.config import ConfigError, resolve_config_path
 from deft_gym.planner.base import import_object
+from deft_gym.scenarios.generate import SPEC_PREFIX
 from deft_gym.scenarios.generate import resolve as resolve_generated
 from deft_gym.scenarios.scenario import (
     SCENARIO_GROUPS,
@@ -59,9 +60,9 @@ def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRE
     if isinstance(spec, Scenario):
         return spec
     text = str(spec)
-    if text.startswith("gen:") and "@" in text:  # gen:<seed>@<generator config YAML>
-        return generated_with(text)
-    generated = resolve_generated(text)  # gen:<seed>
+    generated = generated_with(text)  # gen:<seed>@<generator config YAML>
+    if generated is None:
+        generated = resolve_generated(text)  # gen:<seed>
     if generated is not None:
         return generated
     if "~v" in text:
@@ -87,24 +88,37 @@ def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRE
     return load_scenario(text)
 
 
-def generated_with(spec: str) -> Scenario:
-    """The scenario of ``gen:<seed>@<config.yaml>``: generator seed ``<seed>`` under the generator
-    config in that YAML file (:class:`~deft_gym.scenarios.generate.GeneratorConfig` fields; a
-    ``configs/...`` path also names a shipped one) - the scenario ``python -m
-    deft_gym.cli.generate --config <config.yaml> --seeds <seed>`` writes, without the file."""
-    from deft_gym.config import load_mapping, validate
-    from deft_gym.scenarios.generate import SPEC_PREFIX, GeneratorConfig, generate
-
+def parse_config_spec(spec: str) -> tuple[int, str] | None:
+    """The seed and generator config path of ``gen:<seed>@<config.yaml>``, None for any other
+    string (``gen:<seed>`` included); ``ConfigError`` for a malformed one."""
+    if not spec.startswith(SPEC_PREFIX) or "@" not in spec:
+        return None
     seed_text, _, config = spec[len(SPEC_PREFIX):].partition("@")
     if not seed_text.isdigit() or not config:
         raise ConfigError(f"scenario {spec!r}: expected '{SPEC_PREFIX}<seed>@<generator config YAML>' with a seed >= 0")
+    return int(seed_text), config
+
+
+def generated_with(spec: str) -> Scenario | None:
+    """The scenario of ``gen:<seed>@<config.yaml>``: generator seed ``<seed>`` under the generator
+    config in that YAML file (:class:`~deft_gym.scenarios.generate.GeneratorConfig` fields; a
+    ``configs/...`` path also names a shipped one) - the scenario ``python -m
+    deft_gym.cli.generate --config <config.yaml> --seeds <seed>`` writes, without the file. None
+    for any other spec."""
+    parsed = parse_config_spec(spec)
+    if parsed is None:
+        return None
+    from deft_gym.config import load_mapping, validate
+    from deft_gym.scenarios.generate import GeneratorConfig, generate
+
+    seed, config = parsed
     path = resolve_config_path(config)
     if not path.is_file():
         raise ConfigError(f"scenario {spec!r}: generator config {config!r} is not a file")
     cfg = _GEN_CONFIGS.get(str(path))
     if cfg is None:
         cfg = _GEN_CONFIGS[str(path)] = validate(GeneratorConfig, load_mapping(path), str(path))
-    return generate(int(seed_text), cfg)
+    return generate(seed, cfg)
 
 
 _GEN_CONFIGS: dict[str, Any] = {}

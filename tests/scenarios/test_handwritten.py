@@ -19,7 +19,13 @@ from deft_gym.scenarios.scenario import (
     list_scenarios,
     load_scenario,
 )
-from deft_gym.search.context import SEED_SCENARIOS, resolve_scenario, robust, seed_context
+from deft_gym.search.context import (
+    SEED_SCENARIOS,
+    parse_config_spec,
+    resolve_scenario,
+    robust,
+    seed_context,
+)
 
 HANDWRITTEN = group_scenarios("handwritten")
 FILES = sorted((SCENARIO_DIR / "handwritten").glob("*.yaml"))
@@ -59,8 +65,8 @@ def test_group_is_not_a_seed_and_expands_in_the_evaluation() -> None:
 
 def _generated_with_config(spec: str) -> bool:
     """``gen:<seed>@<generator config>`` naming a shipped generator config."""
-    seed, at, config = spec.removeprefix("gen:").partition("@")
-    return spec.startswith("gen:") and seed.isdigit() and bool(at) and config.startswith("configs/generate/")
+    parsed = parse_config_spec(spec)
+    return parsed is not None and parsed[1].startswith("configs/generate/")
 
 
 def test_training_never_uses_a_handwritten_scenario(tmp_path: Path) -> None:
