@@ -32,7 +32,8 @@ cruise speed capped by the speed limits, the reference's curvature, a moving lea
 the ego's corridor and a light to stop for, each reached ``lag`` seconds early because the
 planner follows it with a lag),
 when to switch to stopping mode, and what to do when the planner finds no trajectory (the rest of
-the previous plan while the collision checker finds it free, else braking at ``fallback_decel``).
+the previous plan while the collision checker finds it free and it runs past no lane's end - the
+library's road boundary leaves lane ends open - else braking at ``fallback_decel``).
 Two mismatches inside the library are bridged: commonroad-clcs 2025 raises where the planner
 expects None outside the projection domain (the adapter's coordinate system returns None, so the
 sample is dropped as the planner intends instead of ending the cycle), and the lanelets of lanes
@@ -174,6 +175,9 @@ class CommonRoadParams(BaseModel):
                                     "adjacent lanes overlap (no slivers in the road boundary)")
     joint_overlap: float = Field(1.0, ge=0.0, description="[m] lanelets prolonged by this where a lane continues "
                                  "another (kinks at lane joints leave no notch in the road boundary)")
+    end_wall: float = Field(2.0, gt=0.0, description="[m] depth of the wall across the end of a lane that ends "
+                            "(no successor): the fallback's check of the previous plan closes lane ends that the "
+                            "library's road boundary leaves open")
     reference_back: float = Field(20.0, ge=0.0, description="[m] the reference path extended behind its first lane")
     reference_ahead: float = Field(50.0, ge=0.0, description="[m] ... and past its last lane")
     vectorised_kinematics: bool = Field(True, description="the library's kinematic check vectorised over samples "
@@ -246,6 +250,7 @@ class _MapModel:
         self.coords: dict[tuple[LaneKey, ...], Any] = {}
         self.planner = self._planner(p)
         self.boundary = self.planner.collision_checker  # holds the road boundary only
+        self.ends = self._ends(p)
 
     def _network(self, p: CommonRoadParams) -> Any:
         """The lanes as CommonRoad lanelets. The world frame has y pointing down on screen, so the
@@ -275,6 +280,22 @@ class _MapModel:
                 adjacent_left=self.ids.get(right_nb), adjacent_left_same_direction=True if right_nb in self.ids else None,
                 adjacent_right=self.ids.get(left_nb), adjacent_right_same_direction=True if left_nb in self.ids else None))
         return LaneletNetwork.create_from_lanelet_list(lanelets, cleanup_ids=False)
+
+    def _ends(self, p: CommonRoadParams) -> Any:
+        """A wall (``end_wall`` deep, as wide as the lanelet) across the end of every lane with no
+        successor on the map: the library's road boundary closes the road's sides only, so a plan
+        may run on past a road's end without colliding. Only the fallback checks against it: the
+        library's own collision check stays the library's."""
+        walls = pycrcc.CollisionChecker()
+        for ln in self.lanes.values():
+            if any(s in self.lanes for s in ln["succ"]):
+                continue
+            c = np.column_stack([ln["x"], ln["y"]])
+            u = _unit(c[-1] - c[-2])
+            mid = c[-1] + 0.5 * p.end_wall * u
+            walls.add_collision_object(pycrcc.RectOBB(0.5 * p.end_wall, 0.5 * ln["width"] + p.boundary_overlap,
+                                                      math.atan2(u[1], u[0]), float(mid[0]), float(mid[1])))
+        return walls
 
     def _planner(self, p: CommonRoadParams) -> Any:
         cfg = ReactivePlannerConfiguration()
@@ -437,7 +458,7 @@ class CommonRoadPlanner(Planner):
                 decision["result"] = "STANDSTILL"
             decision["d_end"] = float(result[2][-1][0]) if result[2] else 0.0
         else:  # none found (or the library failed): the previous plan while it stays collision-free, else braking
-            traj = self._previous(frame.time, cc) if cc is not None and decision["result"] != "HOLD" else None
+            traj = self._previous(frame.time, cc, model.ends) if cc is not None and decision["result"] != "HOLD" else None
             if traj is not None:
                 decision["fallback"] = "PREVIOUS"
             else:
@@ -715,10 +736,11 @@ class CommonRoadPlanner(Planner):
                 "v": [float(s.velocity) for s in states], "heading": h.tolist(),
                 "a": [float(s.acceleration) for s in states], "steering": [float(s.steering_angle) for s in states]}
 
-    def _previous(self, t0: float, cc: Any) -> dict[str, list[float]] | None:
+    def _previous(self, t0: float, cc: Any, ends: Any) -> dict[str, list[float]] | None:
         """The rest of the previous plan from ``t0`` on (at the planner's steps; braking at
         ``fallback_decel`` past its end) when it collides with nothing the collision checker now
-        holds, else None: what a reactive planner's host does while replanning finds nothing."""
+        holds and runs past no lane's end (``ends``: :meth:`_MapModel._ends`), else None: what a
+        reactive planner's host does while replanning finds nothing."""
         prev, p = self.state["prev"], self.p
         if prev is None or not prev["t"][0] <= t0 <= prev["t"][-1]:
             return None
@@ -739,7 +761,7 @@ class CommonRoadPlanner(Planner):
         hl, hw = 0.5 * p.ego_length, 0.5 * p.ego_width
         for k in range(n):
             box = pycrcc.RectOBB(hl, hw, float(out["heading"][k]), float(out["x"][k]), float(out["y"][k]))
-            if cc.time_slice(k).collide(box):
+            if cc.time_slice(k).collide(box) or ends.collide(box):
                 return None
         return {"t": tk.tolist(), **{k: [float(x) for x in v] for k, v in out.items()}}
 

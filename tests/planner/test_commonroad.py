@@ -211,6 +211,27 @@ def test_a_light_reached_all_but_stopped_is_not_run() -> None:
     assert late["stop"] == ""  # 5 m before the line at 11 m/s: too late to stop, it goes
 
 
+def test_the_fallback_follows_no_stale_plan_past_a_lanes_end() -> None:
+    """Found by the drivable-area metric on stopped_bus (v27): the library found no stopping
+    trajectory from the next lane, and the rest of the previous, cruising plan - free in the
+    library's road boundary, which closes a road's sides but not its end - took the ego 23.6 m past
+    the end of the road. A stale plan that runs past the end of a lane with no successor is not
+    followed now; the ego brakes instead."""
+    from commonroad_dc import pycrcc
+
+    planner = CommonRoadPlanner({})
+    frame = light_frame(100.0, 10.0, "GREEN")
+    assert planner.plan(frame)["decision"]["result"] == "OPTIMAL"
+    model = planner._model(frame.get("map"))
+    t = frame.time + 0.2
+    assert planner._previous(t, model.boundary.clone(), model.ends) is not None  # ends ~50 m before the road's end
+    prev = planner.state["prev"]
+    shift = 200.0 - max(prev["x"]) + 3.0  # the same plan, its last 3 m past the road's end (x = 200 m)
+    prev["x"] = [x + shift for x in prev["x"]]
+    assert planner._previous(t, model.boundary.clone(), pycrcc.CollisionChecker()) is not None  # the library's view
+    assert planner._previous(t, model.boundary.clone(), model.ends) is None
+
+
 def test_bad_params_fail_at_construction() -> None:
     with pytest.raises(ValueError, match="time_steps"):
         CommonRoadPlanner({}, time_steps=1)
