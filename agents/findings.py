@@ -103,18 +103,89 @@ def counted_equivalent(rec: dict[str, Any], statics_from_start: bool = False) ->
 
 
 def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None,
-               feasible: Any = None, statics_from_start: bool = False) -> tuple[Any, Any]:
+               feasible: Any = None, statics_from_start: bool = False,
+               watch: Any = None) -> tuple[Any, Any]:
     """``(context, run)``: the record's failure (:func:`counted_equivalent`) simulated again with
     its jitter seed (on the ADS config ``ads``, default: the default one; judged under
     ``feasible``, a :class:`~deft_gym.search.feasible.FeasibleConfig`, default: the default one;
-    its MCAP log in ``out_dir`` when given)."""
+    its MCAP log in ``out_dir`` when given; ``watch(sim)`` attached before it starts)."""
     from deft_gym.search.context import ads_config, seed_context
     from deft_gym.search.episode import run_scenario
 
     ctx = seed_context(rec["scenario"], feasible, ads=ads_config(ads))
     eq = counted_equivalent(rec, statics_from_start)
     specs = eq["scenario"]["participants"][len(ctx.scenario.participants):]
-    return ctx, run_scenario(ctx, specs, eq["jitter_seed"], out_dir, added_at=eq["added_at"] or None)
+    return ctx, run_scenario(ctx, specs, eq["jitter_seed"], out_dir, added_at=eq["added_at"] or None, watch=watch)
+
+
+class PredictedLaneChanges:
+    """The lane changes the ADS's prediction module predicted during a run (a bus tap; attach as
+    ``resimulate(..., watch=PredictedLaneChanges)``): for every prediction message, each obstacle
+    predicted to change lane (the payload's ``intent``) with its time [s] and the end of its
+    predicted path. The testbed's predictor predicts one for any vehicle more than
+    ``intent_offset`` off its lane centre (``modules/prediction.py``) - a rule of the testbed, not
+    of the planner under test, which plans around whatever it is given."""
+
+    def __init__(self, sim: Any) -> None:
+        self.topic = sim.ads.topic("prediction")
+        #: ``(t, perception id, x, y, heading)`` of each predicted lane change, the end of its path
+        self.changes: list[tuple[float, int, float, float, float]] = []
+        sim.bus.taps.append(self._on_message)
+
+    def _on_message(self, msg: Any) -> None:
+        if msg.topic != self.topic:
+            return
+        t = float(msg.payload["header"]["stamp"])
+        for ob in msg.payload["obstacles"]:
+            if ob.get("intent"):
+                self.changes.append((t, int(ob["id"]), float(ob["x"][-1]), float(ob["y"][-1]),
+                                     float(ob["heading"][-1])))
+
+
+def cut_ins(ctx: Any, trace: Any, changes: list[tuple[float, int, float, float, float]], t_event: float,
+            before: float = 10.0, after: float = 3.0, horizon: float = 6.0) -> dict[str, tuple[int, int]]:
+    """The predicted cut-ins around ``t_event`` [s] (from ``before`` s before it to ``after`` s
+    after): lane changes (:class:`PredictedLaneChanges`) whose predicted path ends in the lane the
+    ego was in then. Per participant id: ``(predictions, how many came true)`` - a prediction
+    comes true when the participant's centre is inside that lane within ``horizon`` s of it."""
+    rm = ctx.roadmap
+    by_num = {a.num: i for i, a in enumerate(trace.actors) if a.num >= 0}
+    out: dict[str, list[int]] = {}
+    tracks: dict[int, np.ndarray] = {}
+    for t, num, x, y, h in changes:
+        if not t_event - before <= t <= t_event + after or num not in by_num:
+            continue
+        k = min(int(np.searchsorted(trace.t, t)), len(trace.t) - 1)
+        ego = rm.locate(trace.xy[k], float(trace.ego[k, 2]))
+        end = rm.locate(np.array([x, y]), h)
+        if ego is None or end is None or end[0] != ego[0]:
+            continue
+        i = by_num[num]
+        track = tracks.get(i)
+        if track is None:
+            track = tracks[i] = trace.track(i)
+        rows = track[(track[:, 0] * trace.world_dt >= t) & (track[:, 0] * trace.world_dt <= t + horizon)]
+        g = rm.geom(end[0])
+        came = False
+        for r in rows[::5]:
+            s, d = g.frenet(r[1:3])
+            if 0.0 <= float(s) <= g.length and abs(float(d)) < 0.5 * g.width:
+                came = True
+                break
+        tally = out.setdefault(trace.actors[i].id, [0, 0])
+        tally[0] += 1
+        tally[1] += came
+    return {k: (v[0], v[1]) for k, v in out.items()}
+
+
+def cut_in_line(found: dict[str, tuple[int, int]]) -> str:
+    """The findings line of :func:`cut_ins`."""
+    if not found:
+        return "predicted cut-ins into the ego's lane around it: none"
+    parts = [f"{pid} in {n} prediction cycles, true in {came}" for pid, (n, came) in sorted(found.items())]
+    false = all(came == 0 for _, came in found.values())
+    return ("predicted cut-ins into the ego's lane around it: " + "; ".join(parts)
+            + (" - **none came true** (the testbed predictor's intent rule: see the end of this file)" if false else ""))
 
 
 def counted_from_start(rec: dict[str, Any]) -> bool:
@@ -188,14 +259,20 @@ def _failed_cases(junit_xml: str) -> list[str]:
             if case.find("failure") is not None or case.find("error") is not None]
 
 
+def left_path_at(trace: Any, dist: np.ndarray, half_lane: float) -> float:
+    """When [s] the ego first got ``half_lane`` off the optimal path (``dist``: each trace
+    point's distance to it [m]), or the run's end when it never did."""
+    off = np.flatnonzero(dist > half_lane)
+    return float(trace.t[off[0]]) if len(off) else float(trace.t[-1])
+
+
 def leaving_decision(trace: Any, dist: np.ndarray, half_lane: float) -> str:
     """The planner's decision when the ego first got half a lane off the optimal path (or its
     last one), in a line: reason, lane, blocked / tight lanes, refused changes."""
     timeline = trace.meta.get("timeline") or []
     if not timeline:
         return "-"
-    off = np.flatnonzero(dist > half_lane)
-    t = float(trace.t[off[0]]) if len(off) else float(trace.t[-1])
+    t = left_path_at(trace, dist, half_lane)
     e = [x for x in timeline if x["t"] <= t + 1e-9][-1:] or timeline[:1]
     e = e[0]
     reason = e["reason"] or "(no reason published)"
@@ -346,6 +423,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
         lines.append(f"| `{c}` | {len(by_cause[c])} | " + " | ".join(str(counts[c].get(m, 0) or "-")
                                                                for m in METHOD_LABELS) + " |")
     from_start: dict[str, tuple[int, int]] = {}
+    false_cut_ins = [0, 0]  # drawn failures with predicted cut-ins around them that never came, drawn
     with common.bar(args, len(sample), "failures simulated again") as b:
         current = None
         for n, (cause, rec) in enumerate(sample):
@@ -354,7 +432,9 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
                 current = cause
             stem = f"{n:03d}_{rec['method']}_{rec['scenario'].replace(':', '_').replace('/', '_')}_r{rec['repeat']}_{rec['index']}"
             log_dir = out / f"{stem}_log" if args.tests else None
-            ctx, run = resimulate(rec, ads, log_dir, feasible)
+            watched: list[PredictedLaneChanges] = []
+            ctx, run = resimulate(rec, ads, log_dir, feasible,
+                                  watch=lambda sim, into=watched: into.append(PredictedLaneChanges(sim)))
             v = run.verdict
             oracle = rec.get("_oracle")
             same, got, m = judged_again(ctx, run, rec, cause)
@@ -366,6 +446,10 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
                      f"(repeat {rec['repeat']}, #{rec['index']}): {got or 'none'}")
             draw(ctx, run, out / name, title, highlight)
             dist = ctx.oracle.distances(run.trace.xy)
+            half_lane = ctx.roadmap.spec.lane_width / 2
+            predicted = cut_ins(ctx, run.trace, watched[0].changes, left_path_at(run.trace, dist, half_lane))
+            false_cut_ins[0] += bool(predicted) and all(came == 0 for _, came in predicted.values())
+            false_cut_ins[1] += 1
             clear = v.finding.clearance if v.finding else None
             lines += [f"![{cause}]({name})", "",
                       f"- {rec['method']} / {rec['placement']} / {rec['scenario']} repeat {rec['repeat']} #{rec['index']}, "
@@ -375,7 +459,8 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
                       *([f"- {metric_line(m, oracle, run.trace)}"] if oracle else []),
                       f"- IoU {v.iou:.2f}, off the optimal path for {v.off_length:.0f} m, outcome {v.outcome}"
                       + (f", clearance of the trigger {clear:.2f} m" if clear is not None and math.isfinite(clear) else ""),
-                      f"- the planner when it left the path: {leaving_decision(run.trace, dist, ctx.roadmap.spec.lane_width / 2)}",
+                      f"- the planner when it left the path: {leaving_decision(run.trace, dist, half_lane)}",
+                      f"- {cut_in_line(predicted)}",
                       *([f"- {destination_line(ctx, run.trace)}"] if v.outcome != "completed" else []),
                       f"- replay: `{replay_cmd}`"]
             if args.tests:
@@ -386,6 +471,13 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             b.update(1)
     if args.statics_from_start:
         lines += from_start_summary(from_start)
+    lines += ["## Predicted cut-ins that never came", "",
+              f"{false_cut_ins[0]} of {false_cut_ins[1]} drawn failures had the ADS's prediction put a vehicle into "
+              "the ego's lane in the 10 s before it left the optimal path (or its run's end) and 3 s after, and none of "
+              "those predictions came true within 6 s. Such predictions come from the testbed predictor's intent rule (a "
+              "vehicle more than `intent_offset` off its lane centre is predicted to change lanes, "
+              "`modules/prediction.py`): a finding among them may rest on that designed-in threshold of the testbed "
+              "rather than on a choice of the planner under test - judge each by its lines above.", ""]
     write_atomic(out / "findings.md", "\n".join(lines) + "\n")
     con.print(f"{len(causes)} root causes, {len(sample)} failures drawn -> {out / 'findings.md'}")
     if args.statics_from_start:

@@ -29,12 +29,14 @@ class EpisodeRun:
 
 
 def run_scenario(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int,
-                 out_dir: Path | str | None = None, added_at: dict[str, float] | None = None) -> EpisodeRun:
+                 out_dir: Path | str | None = None, added_at: dict[str, float] | None = None,
+                 watch: Callable[[Simulation], Any] | None = None) -> EpisodeRun:
     """Simulate the seed plus ``specs`` with ``jitter_seed`` and judge it against the reference.
 
     ``added_at`` (participant id -> sim time [s]) adds those participants mid-run, in the order
     of ``specs``, as the adversary env did - so an env episode's equivalent scenario replays it
-    exactly; the others are part of the scenario from the start (the search baselines)."""
+    exactly; the others are part of the scenario from the start (the search baselines).
+    ``watch(sim)`` runs before the episode starts, after the trace recorder (another tap)."""
     t0, c0 = time.perf_counter(), time.process_time()
     added_at = added_at or {}
     data = with_participants(ctx.scenario, f"{ctx.name}+mut", [s for s in specs if s["id"] not in added_at])
@@ -44,6 +46,8 @@ def run_scenario(ctx: SeedContext, specs: list[dict[str, Any]], jitter_seed: int
         recorder.append(TraceRecorder(sim, {s["id"] for s in specs}))
         if sim.recorder is not None:  # the log says what the run is judged against (extraction's NoDS test)
             write_optimal_path(sim.recorder, ctx)
+        if watch is not None:
+            watch(sim)
 
     res = simulate(data, ctx.ads, jitter_seed, out_dir, [s for s in specs if s["id"] in added_at], added_at,
                    source=f"{ctx.name} (mutated)", attach=attach)

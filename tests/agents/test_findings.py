@@ -171,3 +171,31 @@ def test_statics_from_start_simulates_a_failure_again_with_its_late_objects_ther
     assert findings.main([str(tmp_path), "--no-progress", "--statics-from-start", "--out", str(tmp_path / "f2")]) == 0
     text = (tmp_path / "f2" / "findings.md").read_text()
     assert "- no static object joined after t = 0" in text and "No drawn failure has a static object" in text
+
+
+def _scripted(pid: str, points: list[tuple[float, float, float]]) -> dict:
+    return {"id": pid, "type": "scripted", "length": 4.8, "width": 2.0,
+            "waypoints": [{"t": t, "x": x, "y": y, **({"heading": 0.0} if k == 0 else {})}
+                          for k, (t, x, y) in enumerate(points)]}
+
+
+def test_predicted_cut_ins_are_told_apart_from_the_ones_that_come() -> None:
+    """The findings page names vehicles the ADS's prediction put into the ego's lane and says
+    whether they came: a car driving 1 m off its lane centre towards the ego is predicted to cut in
+    (the testbed's intent rule, ``intent_offset`` 0.6 m) again and again and never does; a car that
+    changes into the ego's lane comes."""
+    ctx = seed_context("lane_follow_static")  # the ego in lane 0 (y 0), lane 1 at y 3.5
+    drifter = _scripted("drifter", [(0.0, 40.0, 2.5), (8.0, 104.0, 2.5), (30.0, 280.0, 2.5)])
+    changer = _scripted("changer", [(0.0, 40.0, 3.5), (3.0, 70.0, 3.5), (6.0, 100.0, 0.0), (30.0, 340.0, 0.0)])
+    got = {}
+    for spec in (drifter, changer):
+        watched: list[findings.PredictedLaneChanges] = []
+        run = run_scenario(ctx, [spec], 0, watch=lambda sim, into=watched: into.append(findings.PredictedLaneChanges(sim)))
+        got[spec["id"]] = findings.cut_ins(ctx, run.trace, watched[0].changes, 5.0)
+    n, came = got["drifter"]["drifter"]
+    assert n >= 20 and came == 0
+    assert "**none came true**" in findings.cut_in_line(got["drifter"])
+    n, came = got["changer"]["changer"]
+    assert came >= 1 and came == n
+    assert "none came true" not in findings.cut_in_line(got["changer"])
+    assert findings.cut_in_line({}).endswith(": none")
