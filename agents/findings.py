@@ -146,19 +146,25 @@ def cut_ins(ctx: Any, trace: Any, changes: list[tuple[float, int, float, float, 
             before: float = 10.0, after: float = 3.0, horizon: float = 6.0) -> dict[str, tuple[int, int]]:
     """The predicted cut-ins around ``t_event`` [s] (from ``before`` s before it to ``after`` s
     after): lane changes (:class:`PredictedLaneChanges`) whose predicted path ends in the lane the
-    ego was in then. Per participant id: ``(predictions, how many came true)`` - a prediction
-    comes true when the participant's centre is inside that lane within ``horizon`` s of it."""
-    rm = ctx.roadmap
+    ego was in then, or in a lane the optimal (reference) path drove in within ``horizon`` s of
+    then (the lane the ego wanted). Per participant id: ``(predictions, how many came true)`` - a
+    prediction comes true when the participant's centre is inside that lane within ``horizon`` s."""
+    rm, ref = ctx.roadmap, ctx.ref
     by_num = {a.num: i for i, a in enumerate(trace.actors) if a.num >= 0}
     out: dict[str, list[int]] = {}
     tracks: dict[int, np.ndarray] = {}
     for t, num, x, y, h in changes:
         if not t_event - before <= t <= t_event + after or num not in by_num:
             continue
+        end = rm.locate(np.array([x, y]), h)
+        if end is None:
+            continue
         k = min(int(np.searchsorted(trace.t, t)), len(trace.t) - 1)
         ego = rm.locate(trace.xy[k], float(trace.ego[k, 2]))
-        end = rm.locate(np.array([x, y]), h)
-        if ego is None or end is None or end[0] != ego[0]:
+        k0, k1 = np.searchsorted(ref.t, [t, t + horizon])
+        wanted = {loc[0] for j in range(int(k0), min(int(k1), len(ref.t)), 10)
+                  if (loc := rm.locate(ref.xy[j], float(ref.ego[j, 2]))) is not None}
+        if end[0] not in wanted and (ego is None or end[0] != ego[0]):
             continue
         i = by_num[num]
         track = tracks.get(i)
@@ -181,10 +187,10 @@ def cut_ins(ctx: Any, trace: Any, changes: list[tuple[float, int, float, float, 
 def cut_in_line(found: dict[str, tuple[int, int]]) -> str:
     """The findings line of :func:`cut_ins`."""
     if not found:
-        return "predicted cut-ins into the ego's lane around it: none"
+        return "predicted cut-ins into the ego's or the optimal path's lane around it: none"
     parts = [f"{pid} in {n} prediction cycles, true in {came}" for pid, (n, came) in sorted(found.items())]
     false = all(came == 0 for _, came in found.values())
-    return ("predicted cut-ins into the ego's lane around it: " + "; ".join(parts)
+    return ("predicted cut-ins into the ego's or the optimal path's lane around it: " + "; ".join(parts)
             + (" - **none came true** (the testbed predictor's intent rule: see the end of this file)" if false else ""))
 
 
@@ -473,7 +479,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
         lines += from_start_summary(from_start)
     lines += ["## Predicted cut-ins that never came", "",
               f"{false_cut_ins[0]} of {false_cut_ins[1]} drawn failures had the ADS's prediction put a vehicle into "
-              "the ego's lane in the 10 s before it left the optimal path (or its run's end) and 3 s after, and none of "
+              "the ego's lane (or the optimal path's) in the 10 s before it left the optimal path (or its run's end) and 3 s after, and none of "
               "those predictions came true within 6 s. Such predictions come from the testbed predictor's intent rule (a "
               "vehicle more than `intent_offset` off its lane centre is predicted to change lanes, "
               "`modules/prediction.py`): a finding among them may rest on that designed-in threshold of the testbed "
