@@ -32,8 +32,9 @@ cruise speed capped by the speed limits, the reference's curvature, a moving lea
 the ego's corridor and a light to stop for, each reached ``lag`` seconds early because the
 planner follows it with a lag),
 when to switch to stopping mode, and what to do when the planner finds no trajectory (the rest of
-the previous plan while the collision checker finds it free and it runs past no lane's end - the
-library's road boundary leaves lane ends open - else braking at ``fallback_decel``).
+the previous plan while the collision checker finds it free and the ego could still brake short
+of every lane's end after following it - the library's road boundary leaves lane ends open - else
+braking at ``fallback_decel``).
 Two mismatches inside the library are bridged: commonroad-clcs 2025 raises where the planner
 expects None outside the projection domain (the adapter's coordinate system returns None, so the
 sample is dropped as the planner intends instead of ending the cycle), and the lanelets of lanes
@@ -178,6 +179,9 @@ class CommonRoadParams(BaseModel):
     end_wall: float = Field(2.0, gt=0.0, description="[m] depth of the wall across the end of a lane that ends "
                             "(no successor): the fallback's check of the previous plan closes lane ends that the "
                             "library's road boundary leaves open")
+    end_reaction: float = Field(0.5, ge=0.0, description="[s] a lane's end counts in the fallback's check once the "
+                                "previous plan reaches it within the braking distance at fallback_decel plus this "
+                                "long at the current speed")
     reference_back: float = Field(20.0, ge=0.0, description="[m] the reference path extended behind its first lane")
     reference_ahead: float = Field(50.0, ge=0.0, description="[m] ... and past its last lane")
     vectorised_kinematics: bool = Field(True, description="the library's kinematic check vectorised over samples "
@@ -739,8 +743,12 @@ class CommonRoadPlanner(Planner):
     def _previous(self, t0: float, cc: Any, ends: Any) -> dict[str, list[float]] | None:
         """The rest of the previous plan from ``t0`` on (at the planner's steps; braking at
         ``fallback_decel`` past its end) when it collides with nothing the collision checker now
-        holds and runs past no lane's end (``ends``: :meth:`_MapModel._ends`), else None: what a
-        reactive planner's host does while replanning finds nothing."""
+        holds and the ego could still stop short of every lane's end (``ends``:
+        :meth:`_MapModel._ends`) after following it, else None: what a reactive planner's host
+        does while replanning finds nothing. A lane's end counts where the plan reaches it within
+        the braking distance at ``fallback_decel`` plus ``end_reaction`` s at the current speed: a
+        plan whose far end runs past a lane's end is followed while there is room to brake (the
+        next cycle may find a plan), and not once there is not."""
         prev, p = self.state["prev"], self.p
         if prev is None or not prev["t"][0] <= t0 <= prev["t"][-1]:
             return None
@@ -758,10 +766,13 @@ class CommonRoadPlanner(Planner):
         out["y"] = out["y"] + ds * math.sin(h_end)
         out["v"] = np.where(tau > 0, np.maximum(v_end - p.fallback_decel * tau, 0.0), out["v"])
         out["a"] = np.where(tau > 0, np.where(tau < stop, -p.fallback_decel, 0.0), out["a"])
+        v0 = float(out["v"][0])
+        reach = v0 * v0 / (2.0 * p.fallback_decel) + v0 * p.end_reaction
+        along = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(out["x"]), np.diff(out["y"])))])
         hl, hw = 0.5 * p.ego_length, 0.5 * p.ego_width
         for k in range(n):
             box = pycrcc.RectOBB(hl, hw, float(out["heading"][k]), float(out["x"][k]), float(out["y"][k]))
-            if cc.time_slice(k).collide(box) or ends.collide(box):
+            if cc.time_slice(k).collide(box) or (along[k] <= reach and ends.collide(box)):
                 return None
         return {"t": tk.tolist(), **{k: [float(x) for x in v] for k, v in out.items()}}
 

@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import yaml
 
@@ -215,21 +216,32 @@ def test_the_fallback_follows_no_stale_plan_past_a_lanes_end() -> None:
     """Found by the drivable-area metric on stopped_bus (v27): the library found no stopping
     trajectory from the next lane, and the rest of the previous, cruising plan - free in the
     library's road boundary, which closes a road's sides but not its end - took the ego 23.6 m past
-    the end of the road. A stale plan that runs past the end of a lane with no successor is not
-    followed now; the ego brakes instead."""
+    the end of the road. A stale plan is followed while the ego could still brake short of a lane's
+    end after it (braking distance at fallback_decel plus end_reaction at its speed), and not once
+    it could not: the ego brakes instead."""
     from commonroad_dc import pycrcc
 
     planner = CommonRoadPlanner({})
     frame = light_frame(100.0, 10.0, "GREEN")
     assert planner.plan(frame)["decision"]["result"] == "OPTIMAL"
     model = planner._model(frame.get("map"))
+    p = planner.p
     t = frame.time + 0.2
-    assert planner._previous(t, model.boundary.clone(), model.ends) is not None  # ends ~50 m before the road's end
-    prev = planner.state["prev"]
-    shift = 200.0 - max(prev["x"]) + 3.0  # the same plan, its last 3 m past the road's end (x = 200 m)
-    prev["x"] = [x + shift for x in prev["x"]]
+    prev = dict(planner.state["prev"])
+    x_now = float(np.interp(t, prev["t"], prev["x"]))
+    reach = 10.0 ** 2 / (2 * p.fallback_decel) + 10.0 * p.end_reaction  # ~13 m at 10 m/s
+
+    def ends_ahead(gap: float) -> Any:
+        """The previous plan moved so that the road's end (x = 200 m) is ``gap`` m ahead of the ego's front now."""
+        shift = 200.0 - gap - (x_now + 0.5 * p.ego_length)
+        planner.state["prev"] = {**prev, "x": [x + shift for x in prev["x"]]}
+        return planner._previous(t, model.boundary.clone(), model.ends)
+
+    assert max(prev["x"]) - x_now > 30.0  # the plan runs on ~40 m
+    assert ends_ahead(reach + 5.0) is not None  # its far end past the road's end: room to brake, followed
+    assert ends_ahead(reach - 2.0) is None  # no room left: braking instead
+    planner.state["prev"] = {**prev, "x": [x + 200.0 - (x_now + 0.5 * p.ego_length) - reach + 2.0 for x in prev["x"]]}
     assert planner._previous(t, model.boundary.clone(), pycrcc.CollisionChecker()) is not None  # the library's view
-    assert planner._previous(t, model.boundary.clone(), model.ends) is None
 
 
 def test_bad_params_fail_at_construction() -> None:
