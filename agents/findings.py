@@ -119,12 +119,12 @@ def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None
 
 
 class PredictedLaneChanges:
-    """The lane changes the ADS's prediction module predicted during a run (a bus tap; attach as
-    ``resimulate(..., watch=PredictedLaneChanges)``): for every prediction message, each obstacle
-    predicted to change lane (the payload's ``intent``) with its time [s] and the end of its
-    predicted path. The testbed's predictor predicts one for any vehicle more than
-    ``intent_offset`` off its lane centre (``modules/prediction.py``) - a rule of the testbed, not
-    of the planner under test, which plans around whatever it is given."""
+    """The lane changes the ADS's prediction module predicted during a run (a bus tap, made by the
+    ``watch`` callable of :func:`resimulate`, which keeps the instance: :func:`_draw` does): for
+    every prediction message, each obstacle predicted to change lane (the payload's ``intent``)
+    with its time [s] and the end of its predicted path. The testbed's predictor predicts one for
+    any vehicle more than ``intent_offset`` off its lane centre (``modules/prediction.py``) - a rule
+    of the testbed, not of the planner under test, which plans around whatever it is given."""
 
     def __init__(self, sim: Any) -> None:
         self.topic = sim.ads.topic("prediction")
@@ -184,14 +184,19 @@ def cut_ins(ctx: Any, trace: Any, changes: list[tuple[float, int, float, float, 
     return {k: (v[0], v[1]) for k, v in out.items()}
 
 
+def never_came(found: dict[str, tuple[int, int]]) -> bool:
+    """Whether :func:`cut_ins` found predicted cut-ins and none of them came true."""
+    return bool(found) and all(came == 0 for _, came in found.values())
+
+
 def cut_in_line(found: dict[str, tuple[int, int]]) -> str:
     """The findings line of :func:`cut_ins`."""
     if not found:
         return "predicted cut-ins into the ego's or the optimal path's lane around it: none"
     parts = [f"{pid} in {n} prediction cycles, true in {came}" for pid, (n, came) in sorted(found.items())]
-    false = all(came == 0 for _, came in found.values())
     return ("predicted cut-ins into the ego's or the optimal path's lane around it: " + "; ".join(parts)
-            + (" - **none came true** (the testbed predictor's intent rule: see the end of this file)" if false else ""))
+            + (" - **none came true** (the testbed predictor's intent rule: see the end of this file)"
+               if never_came(found) else ""))
 
 
 def counted_from_start(rec: dict[str, Any]) -> bool:
@@ -429,7 +434,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
         lines.append(f"| `{c}` | {len(by_cause[c])} | " + " | ".join(str(counts[c].get(m, 0) or "-")
                                                                for m in METHOD_LABELS) + " |")
     from_start: dict[str, tuple[int, int]] = {}
-    false_cut_ins = [0, 0]  # drawn failures with predicted cut-ins around them that never came, drawn
+    false_cut_ins = 0  # drawn failures with predicted cut-ins around them, none of which came
     with common.bar(args, len(sample), "failures simulated again") as b:
         current = None
         for n, (cause, rec) in enumerate(sample):
@@ -454,8 +459,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             dist = ctx.oracle.distances(run.trace.xy)
             half_lane = ctx.roadmap.spec.lane_width / 2
             predicted = cut_ins(ctx, run.trace, watched[0].changes, left_path_at(run.trace, dist, half_lane))
-            false_cut_ins[0] += bool(predicted) and all(came == 0 for _, came in predicted.values())
-            false_cut_ins[1] += 1
+            false_cut_ins += never_came(predicted)
             clear = v.finding.clearance if v.finding else None
             lines += [f"![{cause}]({name})", "",
                       f"- {rec['method']} / {rec['placement']} / {rec['scenario']} repeat {rec['repeat']} #{rec['index']}, "
@@ -478,7 +482,7 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
     if args.statics_from_start:
         lines += from_start_summary(from_start)
     lines += ["## Predicted cut-ins that never came", "",
-              f"{false_cut_ins[0]} of {false_cut_ins[1]} drawn failures had the ADS's prediction put a vehicle into "
+              f"{false_cut_ins} of {len(sample)} drawn failures had the ADS's prediction put a vehicle into "
               "the ego's lane (or the optimal path's) in the 10 s before it left the optimal path (or its run's end) and 3 s after, and none of "
               "those predictions came true within 6 s. Such predictions come from the testbed predictor's intent rule (a "
               "vehicle more than `intent_offset` off its lane centre is predicted to change lanes, "
