@@ -51,6 +51,11 @@ def build_parser() -> common.Parser:
                    help="also simulate each drawn failure again with its static objects that joined after t = 0 "
                    "(the RL env adds objects every 2 s) there from the start, and say whether the same finding "
                    "comes back: does it rest on a parked car or cone appearing mid-run? (default: off)")
+    p.add_argument("--recount", action="store_true",
+                   help="instead: simulate every distinct finding the evaluation counted again and count apart those "
+                   "that rest on a false predicted cut-in (none of the predicted cut-ins around it came true, and with "
+                   "the predictor's intent rule off it is gone); writes recount.md and recount.jsonl, resumes the "
+                   "latter (agents/recount.py) (default: off)")
     common.add_ads_config(p, "the evaluation's (eval_config.json), else configs/ads/default.yaml")
     common.add_out(p, None, "output folder (default: FOLDER/findings)")
     common.add_output_flags(p)
@@ -394,6 +399,15 @@ def main(argv: list[str] | None = None) -> int:
             ads = json.loads((folder / "eval_config.json").read_text()).get("ads")
     except (RecordError, ValueError) as err:
         return common.cli_error(str(err))
+    if args.recount:
+        from agents.recount import recount
+
+        summary_path = folder / "summary.json"
+        summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+        groups = {"seed": summary.get("seeds", []), "held_out": summary.get("held_out", []),
+                  "handwritten": summary.get("handwritten", [])}
+        with common.locked_out(out):
+            return recount(args, con, out, rows, raw, ads, feasible, groups)
     by_cause: dict[str, list[dict[str, Any]]] = defaultdict(list)
     counts: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
     for r, full in zip(rows, raw):

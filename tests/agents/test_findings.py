@@ -6,12 +6,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+from pathlib import Path
 
 import matplotlib.pyplot as plt
 import pytest
 import yaml
 
-from agents import findings
+from agents import findings, recount
 from agents.search import record_of
 from deft_gym.search.context import seed_context
 from deft_gym.search.episode import run_scenario
@@ -199,3 +200,81 @@ def test_predicted_cut_ins_are_told_apart_from_the_ones_that_come() -> None:
     assert came >= 1 and came == n
     assert "none came true" not in findings.cut_in_line(got["changer"])
     assert findings.cut_in_line({}).endswith(": none")
+
+
+def test_without_the_intent_rule_the_predictor_predicts_no_cut_in() -> None:
+    """The recount's counterfactual (``agents.recount.without_intent``): the same context - scenario,
+    reference, oracle - whose predictor has no intent rule predicts no lane change for a car 1 m
+    off its lane centre, which the testbed's predictor predicts to cut in again and again."""
+    ctx = seed_context("lane_follow_static")
+    drifter = _scripted("drifter", [(0.0, 40.0, 2.5), (8.0, 104.0, 2.5), (30.0, 280.0, 2.5)])
+    bare = recount.without_intent(ctx)
+    assert bare.ref is ctx.ref and bare.oracle is ctx.oracle and bare.scenario is ctx.scenario
+    assert ctx.ads.prediction.params["intent_offset"] == 0.6  # the context itself is unchanged
+    counts = []
+    for c in (ctx, bare):
+        watched: list[findings.PredictedLaneChanges] = []
+        run_scenario(c, [drifter], 0, watch=lambda sim, into=watched: into.append(findings.PredictedLaneChanges(sim)))
+        counts.append(sum(1 for _, pid, *_ in watched[0].changes))
+    assert counts[0] >= 20 and counts[1] == 0
+
+
+def _rec(method: str, repeat: int, scenario: str, index: int, signature: str | None = None,
+         found: dict | None = None) -> dict:
+    return {"method": method, "placement": "uniform", "scenario": scenario, "scenario_kind": "handwritten",
+            "repeat": repeat, "index": index, "valid": True, "failure": "collision" if signature else None,
+            "confirmed": True if signature else None, "signature": signature,
+            "found_by_oracle": found or {}, "confirmed_by_oracle": {o: True for o in (found or {})}}
+
+
+def test_the_recount_counts_each_distinct_finding_once_as_the_evaluation_did() -> None:
+    """``counted_pairs`` takes the evaluation's ``any_distinct`` rule: a (scenario, root cause) pair
+    once per method, placement, group and repeat (its first record); a metric oracle's ``collision``
+    is the decision oracle's already. ``recount.md`` counts per repeat what remains once findings
+    that rest on a false predicted cut-in are left out, repeats that found nothing as 0."""
+    raw = [_rec("rl", 0, "h/a", 0, "collision:x", {"collision": "collision:x", "ttc": "metric:ttc:v"}),
+           _rec("rl", 0, "h/a", 1, "collision:x"),  # the same pair again: not counted twice
+           _rec("rl", 1, "h/a", 0, "collision:x"),  # another repeat: counted
+           _rec("rl", 2, "h/b", 0),  # a repeat that found nothing
+           _rec("decictor", 0, "h/b", 0, None, {"comfort": "metric:comfort:jerk"}),
+           _rec("decictor", 1, "h/b", 0)]
+    rows = [{**r, "placement": "uniform"} for r in raw]
+    pairs = recount.counted_pairs(rows, raw)
+    assert sorted(pairs) == [("decictor", "uniform", "handwritten", 0, "h/b", "metric:comfort:jerk"),
+                             ("rl", "uniform", "handwritten", 0, "h/a", "collision:x"),
+                             ("rl", "uniform", "handwritten", 0, "h/a", "metric:ttc:v"),
+                             ("rl", "uniform", "handwritten", 1, "h/a", "collision:x")]
+    assert pairs[("rl", "uniform", "handwritten", 0, "h/a", "metric:ttc:v")]["_oracle"] == "ttc"
+    rests = {("rl", "uniform", "handwritten", 0, "h/a", "collision:x")}
+    judged = {k: {"reproduced": True, "false_cut_ins": k in rests, "rests_on_false_cut_in": k in rests}
+              for k in pairs}
+    text = "\n".join(recount.recount_markdown(Path("x"), rows, judged, {"handwritten": ["h/a", "h/b", "h/c"]}))
+    assert "| RL | 1.0 ± 1.0 | 0.7 ± 0.6 | 1 of 3 |" in text  # repeats 2, 1, 0 as counted; 1, 1, 0 remain
+    assert "| Decictor-GA | 0.5 ± 0.7 | 0.5 ± 0.7 | 1 of 3 |" in text
+    assert "| all methods | | | 2 of 3 |" in text
+    assert "| h/a | rl: `collision:x`; rl: `metric:ttc:v` | `collision:x` |" in text
+
+
+def test_an_evaluations_findings_are_counted_again_and_the_recount_resumes(tmp_path, monkeypatch) -> None:
+    """``findings --recount`` simulates every counted distinct finding again and writes one line per
+    finding (reproduced, predicted cut-ins) and ``recount.md``; run again, it simulates nothing."""
+    from agents.search import search
+
+    recs = list(search("decictor", seed_context("handwritten/parked_street"), 2, seed=0, count=("ttc",)))
+    assert any(r["confirmed_by_oracle"].get("ttc") for r in recs)
+    lines = [json.dumps({"method": "decictor", "placement": "closest", "scenario": "handwritten/parked_street",
+                         "repeat": 0, **r}) for r in recs]
+    (tmp_path / "records.jsonl").write_text("\n".join(lines) + "\n")
+    assert findings.main([str(tmp_path), "--recount", "--no-progress"]) == 0
+    got = [json.loads(x) for x in (tmp_path / "findings" / "recount.jsonl").read_text().splitlines()]
+    assert got and all(d["reproduced"] for d in got)
+    assert all(d["rests_on_false_cut_in"] == (d["without_intent"] == "gone") for d in got)
+    md = (tmp_path / "findings" / "recount.md").read_text()
+    assert "## handwritten, closest placement" in md and "| Decictor-GA |" in md
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("a finding already counted again was simulated again")
+
+    monkeypatch.setattr(recount, "judge_one", no_simulation)
+    assert findings.main([str(tmp_path), "--recount", "--no-progress"]) == 0
+    assert (tmp_path / "findings" / "recount.md").read_text() == md

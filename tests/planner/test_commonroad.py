@@ -262,6 +262,16 @@ def test_its_ads_config_is_the_default_but_for_the_planner() -> None:
     assert planner_class(ads.planning.planner.cls) is CommonRoadPlanner
 
 
+def test_its_no_intent_config_is_its_own_but_for_the_predictors_intent_rule() -> None:
+    """``commonroad_no_intent.yaml``: the same ADS, with a predictor that predicts no lane change
+    from a vehicle's offset (docs/search.md, v32)."""
+    bare = load_ads_config(CONFIG_DIR / "ads" / "commonroad_no_intent.yaml").model_dump()
+    ours = load_ads_config(ADS).model_dump()
+    assert bare["prediction"]["params"].pop("intent_offset") == 1000.0
+    assert ours["prediction"]["params"].pop("intent_offset") == 0.6
+    assert bare == ours
+
+
 def test_the_code_fingerprint_leaves_it_out_and_the_cache_key_takes_its_source() -> None:
     """Adding (or editing) the adapter changes no fingerprint of runs that never use it; a run
     that does use it keys its caches by the adapter's source."""
