@@ -21,7 +21,8 @@ again with its jitter seed and asks two things:
 A finding for which both hold *rests on a false predicted cut-in*. ``recount.md`` gives, per
 method, the distinct findings per repeat as counted and without those, Mann-Whitney and A12 of RL
 against each baseline on what remains, and the scenarios where something remains.
-``recount.jsonl`` holds one line per finding (append-only: an interrupted recount resumes).
+``recount.jsonl`` holds one line per finding and the ADS config it ran on (append-only: an
+interrupted recount resumes; lines of another ADS config are not reused).
 """
 
 from __future__ import annotations
@@ -125,7 +126,8 @@ def recount(args: Any, con: Any, out: Path, rows: list[dict[str, Any]], raw: lis
         wanted = set(common.split_list(args.methods))
         pairs = {k: v for k, v in pairs.items() if k[0] in wanted}
     path = out / "recount.jsonl"
-    done = {tuple(d["key"]): d for d in (read_jsonl(path) if path.exists() else [])}
+    # lines of an earlier recount on the same ADS config (one on another config is done again)
+    done = {tuple(d["key"]): d for d in read_jsonl(path) if "key" in d and d.get("ads") == ads}
     # records of one scenario next to each other: its seed context is built once
     todo = [k for k in sorted(pairs, key=lambda k: (k[4], k[5], k[0], k[1], k[3])) if k not in done]
     runs: dict[tuple[Any, ...], Any] = {}  # the current scenario's simulations
@@ -134,7 +136,7 @@ def recount(args: Any, con: Any, out: Path, rows: list[dict[str, Any]], raw: lis
             rec = pairs[key]
             if runs and next(iter(runs))[1] != rec["scenario"]:
                 runs.clear()
-            line = {"key": list(key), "index": rec["index"], "oracle": rec.get("_oracle"),
+            line = {"key": list(key), "ads": ads, "index": rec["index"], "oracle": rec.get("_oracle"),
                     **judge_one(rec, key[5], ads, feasible, runs)}
             append_jsonl(path, line)
             done[key] = line
