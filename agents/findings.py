@@ -109,15 +109,18 @@ def counted_equivalent(rec: dict[str, Any], statics_from_start: bool = False) ->
 
 def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None,
                feasible: Any = None, statics_from_start: bool = False,
-               watch: Any = None) -> tuple[Any, Any]:
+               watch: Any = None, adjust: Any = None) -> tuple[Any, Any]:
     """``(context, run)``: the record's failure (:func:`counted_equivalent`) simulated again with
     its jitter seed (on the ADS config ``ads``, default: the default one; judged under
     ``feasible``, a :class:`~deft_gym.search.feasible.FeasibleConfig`, default: the default one;
-    its MCAP log in ``out_dir`` when given; ``watch(sim)`` attached before it starts)."""
+    its MCAP log in ``out_dir`` when given; ``watch(sim)`` attached before it starts; the seed
+    context replaced by ``adjust(context)`` when given, e.g. :func:`agents.recount.without_intent`)."""
     from deft_gym.search.context import ads_config, seed_context
     from deft_gym.search.episode import run_scenario
 
     ctx = seed_context(rec["scenario"], feasible, ads=ads_config(ads))
+    if adjust is not None:
+        ctx = adjust(ctx)
     eq = counted_equivalent(rec, statics_from_start)
     specs = eq["scenario"]["participants"][len(ctx.scenario.participants):]
     return ctx, run_scenario(ctx, specs, eq["jitter_seed"], out_dir, added_at=eq["added_at"] or None, watch=watch)

@@ -76,14 +76,12 @@ def judge_one(rec: dict[str, Any], cause: str, ads: str | None, feasible: Any,
     simulated once; the same jitter seed gives the same run)."""
     from agents.findings import (
         PredictedLaneChanges,
-        counted_equivalent,
         cut_ins,
         judged_again,
         left_path_at,
         never_came,
         resimulate,
     )
-    from deft_gym.search.episode import run_scenario
 
     runs = {} if runs is None else runs
     ident = (rec["method"], rec["scenario"], rec.get("placement"), rec["repeat"], rec["index"])
@@ -100,11 +98,7 @@ def judge_one(rec: dict[str, Any], cause: str, ads: str | None, feasible: Any,
                             "false_cut_ins": never_came(predicted), "without_intent": None}
     if line["false_cut_ins"]:
         if (*ident, "without intent") not in runs:
-            eq = counted_equivalent(rec)
-            bare = without_intent(ctx)
-            specs = eq["scenario"]["participants"][len(ctx.scenario.participants):]
-            runs[(*ident, "without intent")] = (bare, run_scenario(bare, specs, eq["jitter_seed"],
-                                                                   added_at=eq["added_at"] or None))
+            runs[(*ident, "without intent")] = resimulate(rec, ads, None, feasible, adjust=without_intent)
         bare, again = runs[(*ident, "without intent")]
         kept, got_bare, _ = judged_again(bare, again, rec, cause)
         line["without_intent"] = "found again" if kept else "gone"
@@ -141,9 +135,10 @@ def recount(args: Any, con: Any, out: Path, rows: list[dict[str, Any]], raw: lis
             append_jsonl(path, line)
             done[key] = line
             b.update(1)
-    lines = recount_markdown(args.folder, rows, {k: done[k] for k in pairs}, group_scenarios)
+    judged = {k: done[k] for k in pairs}
+    lines = recount_markdown(args.folder, rows, judged, group_scenarios)
     write_atomic(out / "recount.md", "\n".join(lines) + "\n")
-    rests = sum(d["rests_on_false_cut_in"] for d in done.values() if tuple(d["key"]) in pairs)
+    rests = sum(d["rests_on_false_cut_in"] for d in judged.values())
     con.print(f"{len(pairs)} distinct findings counted again, {rests} rest on a false predicted cut-in -> {out / 'recount.md'}")
     return 0
 
