@@ -489,10 +489,13 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
         specs = eq["scenario"]["participants"][len(env.ctx.scenario.participants):]
         late = job.get("late_statics", "as_placed")
         again_at = statics_from_start(specs, eq["added_at"]) if late == "from_start" else eq["added_at"]
-        confirmed, _, _ = confirm(env.ctx, v, specs, int(rng.integers(2**31 - 1)), again_at)
+        again = int(rng.integers(2**31 - 1))
+        confirmed, _, _ = confirm(env.ctx, v, specs, again, again_at)
         cols, _, _, n_o = oracle_columns(env.ctx, env.last_metrics, v.valid, env_cfg.oracle, specs, rng,
                                          again_at, tuple(job.get("count", ())), int(info["jitter_seed"]))
         cols["late_statics"] = late
+        if confirmed is not None:
+            cols["confirm_seed"] = again
         rec = record_of(v, i, time.perf_counter() - w0, time.process_time() - c0,
                         1 + (confirmed is not None) + n_o, confirmed, int(info["jitter_seed"]), int(info["added"]),
                         float(info["sim_time"]), cols)

@@ -97,14 +97,37 @@ def counted_equivalent(rec: dict[str, Any], statics_from_start: bool = False) ->
     as it counted: a record that counted with its late static objects there from the start
     (:func:`counted_from_start`), or any record with ``statics_from_start``, has its static objects
     that joined after t = 0 in the scenario from the start
-    (:func:`deft_gym.search.episode.statics_from_start`)."""
+    (:func:`deft_gym.search.episode.statics_from_start`); a record that counted that way is
+    replayed on its confirmation's jitter seed (:func:`confirmation_seed`), the one run of it
+    with those objects there from the start."""
     from deft_gym.search.episode import replay_record
     from deft_gym.search.episode import statics_from_start as statics_from_start_of
 
     data, added_at, jitter = split_equivalent(rec)
     if statics_from_start or counted_from_start(rec):
         added_at = statics_from_start_of(data["participants"], added_at)
+    if counted_from_start(rec):  # what counted is the confirmation's run: on its jitter seed where kept
+        jitter = confirmation_seed(rec) or jitter
     return replay_record(data, jitter, added_at)
+
+
+def confirmation_seed(rec: dict[str, Any]) -> int | None:
+    """The jitter seed of the run that confirmed the record's finding: the decision oracle's
+    (``confirm_seed``), the aimed metric oracle's (``oracle_confirm_seed``) or, for an oracle
+    counted besides (``found_by_oracle``), the one derived from the run's seed
+    (:func:`agents.search.count_confirm_seed`); the finding's oracle is ``rec["_oracle"]``
+    (none: the decision oracle's). None where the record does not keep it (written before
+    2026-11-28: the decision oracle's and the aimed oracle's seeds were drawn and not kept)."""
+    from agents.search import count_confirm_seed
+
+    oracle = rec.get("_oracle")
+    if not oracle:
+        return rec.get("confirm_seed")
+    if oracle == rec.get("oracle") and rec.get("oracle_signature") and rec.get("oracle_confirmed") is True:
+        return rec.get("oracle_confirm_seed")
+    if oracle in (rec.get("found_by_oracle") or {}):
+        return count_confirm_seed(int(rec["jitter_seed"]))
+    return None
 
 
 def resimulate(rec: dict[str, Any], ads: str | None = None, out_dir: Path | None = None,
@@ -468,7 +491,8 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             same, got, m = judged_again(ctx, run, rec, cause)
             highlight = {m.ttc_actor} if oracle == "ttc" and m.ttc_actor else None
             name = f"{stem}.png"
-            replay = write_replay(out / f"{stem}.replay.yaml", counted_equivalent(rec))
+            counted = counted_equivalent(rec)
+            replay = write_replay(out / f"{stem}.replay.yaml", counted)
             replay_cmd = f"deft-gym run {replay} --reruns 1" + (f" --ads-config {ads}" if ads else "")
             title = (f"{METHOD_LABELS.get(rec['method'], rec['method'])} {rec['placement']} on {rec['scenario']} "
                      f"(repeat {rec['repeat']}, #{rec['index']}): {got or 'none'}")
@@ -480,8 +504,9 @@ def _draw(args: Any, con: Any, out: Path, by_cause: dict[str, list[dict[str, Any
             clear = v.finding.clearance if v.finding else None
             lines += [f"![{cause}]({name})", "",
                       f"- {rec['method']} / {rec['placement']} / {rec['scenario']} repeat {rec['repeat']} #{rec['index']}, "
-                      f"jitter seed {rec['jitter_seed']}"
-                      + (", its static objects there from the start (how it counted)" if counted_from_start(rec) else "")
+                      f"jitter seed {counted['jitter_seed']}"
+                      + (", its static objects there from the start (how it counted: the confirmation's run)"
+                         if counted_from_start(rec) else "")
                       + f": again **{'the same' if same else 'NOT the same: ' + (got or 'no finding')}**",
                       *([f"- {metric_line(m, oracle, run.trace)}"] if oracle else []),
                       f"- IoU {v.iou:.2f}, off the optimal path for {v.off_length:.0f} m, outcome {v.outcome}"

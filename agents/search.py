@@ -104,6 +104,12 @@ def confirm(ctx: SeedContext, verdict: Verdict, specs: list[dict[str, Any]], jit
     return bool(same), time.perf_counter() - w0, time.process_time() - c0
 
 
+def count_confirm_seed(jitter_seed: int) -> int:
+    """The jitter seed on which the counted metric oracles' findings of a run on ``jitter_seed``
+    are confirmed (derived, so that counting them draws nothing from the method's generator)."""
+    return int(np.random.default_rng([jitter_seed, 15485863]).integers(2**31 - 1))
+
+
 def record_of(v: Verdict, index: int, seconds: float, cpu_seconds: float, sims: int,
               confirmed: bool | None, jitter_seed: int, added: int, sim_time: float,
               extra: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -133,16 +139,18 @@ def oracle_columns(ctx: SeedContext, m: EpisodeMetrics, valid: bool, oracle: str
     n = 0
     if count:
         found = findings_by_oracle(ctx, valid, m, count)
-        again = int(np.random.default_rng([jitter_seed, 15485863]).integers(2**31 - 1))
-        ok_by, w, c = confirm_findings(ctx, found, specs, again, added_at)
+        ok_by, w, c = confirm_findings(ctx, found, specs, count_confirm_seed(jitter_seed), added_at)
         cols = {**cols, "counted_oracles": list(count), "found_by_oracle": found, "confirmed_by_oracle": ok_by}
         n = int(bool(found))
     if oracle in DECISION_ORACLES:  # the decision oracle's findings are the record's own
         return ({**cols, "oracle": oracle} if oracle != "default" else cols), w, c, n
     sig = seed_finding(ctx, valid, m, oracle)
-    ok, w2, c2 = confirm_oracle(ctx, oracle, sig, specs, int(rng.integers(2**31 - 1)), added_at)
-    return ({**cols, "oracle": oracle, "oracle_signature": sig, "oracle_confirmed": ok}, w + w2, c + c2,
-            n + int(ok is not None))
+    again = int(rng.integers(2**31 - 1))
+    ok, w2, c2 = confirm_oracle(ctx, oracle, sig, specs, again, added_at)
+    cols = {**cols, "oracle": oracle, "oracle_signature": sig, "oracle_confirmed": ok}
+    if ok is not None:
+        cols["oracle_confirm_seed"] = again
+    return cols, w + w2, c + c2, n + int(ok is not None)
 
 
 def _run_record(ctx: SeedContext, run: EpisodeRun, index: int, t_mut: float, c_mut: float, rng: np.random.Generator,
@@ -150,9 +158,12 @@ def _run_record(ctx: SeedContext, run: EpisodeRun, index: int, t_mut: float, c_m
                 count: tuple[str, ...] = ()) -> dict[str, Any]:
     v = run.verdict
     specs = extra.pop("specs")
-    confirmed, w_c, c_c = confirm(ctx, v, specs, int(rng.integers(2**31 - 1)))
+    again = int(rng.integers(2**31 - 1))
+    confirmed, w_c, c_c = confirm(ctx, v, specs, again)
     cols, w_o, c_o, n_o = oracle_columns(ctx, m, v.valid, oracle, specs, rng, count=count,
                                          jitter_seed=run.result.jitter_seed)
+    if confirmed is not None:
+        cols["confirm_seed"] = again
     rec = record_of(v, index, t_mut + run.seconds + w_c + w_o, c_mut + run.cpu_seconds + c_c + c_o,
                     1 + (confirmed is not None) + n_o, confirmed, run.result.jitter_seed,
                     sum(1 for a in run.trace.actors if a.added), run.result.sim_time, {**extra, **cols})

@@ -163,15 +163,35 @@ def test_statics_from_start_simulates_a_failure_again_with_its_late_objects_ther
     (tmp_path / "records.jsonl").write_text(json.dumps({**rec, "late_statics": "from_start"}) + "\n")
     assert findings.main([str(tmp_path), "--no-progress", "--out", str(tmp_path / "f1")]) == 0
     text = (tmp_path / "f1" / "findings.md").read_text()
-    assert "jitter seed 0, its static objects there from the start (how it counted): again **the same**" in text
+    assert "jitter seed 0, its static objects there from the start (how it counted: the confirmation's run): " \
+        "again **the same**" in text
     replay = yaml.safe_load(next((tmp_path / "f1").glob("*.replay.yaml")).read_text())
     assert replay["added_at"] == {}
+    # ... on the confirmation's jitter seed where the record keeps it
+    (tmp_path / "records.jsonl").write_text(json.dumps({**rec, "late_statics": "from_start", "confirm_seed": 5}) + "\n")
+    assert findings.main([str(tmp_path), "--no-progress", "--out", str(tmp_path / "f3")]) == 0
+    assert "jitter seed 5, its static objects there from the start" in (tmp_path / "f3" / "findings.md").read_text()
+    assert yaml.safe_load(next((tmp_path / "f3").glob("*.replay.yaml")).read_text())["jitter_seed"] == 5
     # without a late object there is nothing to move
     rec["scenario_equivalent"] = replay_record(run.scenario, 0, None)
     (tmp_path / "records.jsonl").write_text(json.dumps(rec) + "\n")
     assert findings.main([str(tmp_path), "--no-progress", "--statics-from-start", "--out", str(tmp_path / "f2")]) == 0
     text = (tmp_path / "f2" / "findings.md").read_text()
     assert "- no static object joined after t = 0" in text and "No drawn failure has a static object" in text
+
+
+def test_a_finding_counted_from_the_start_is_replayed_on_its_confirmations_seed() -> None:
+    """What counted of an online method's finding under ``late_statics: from_start`` is the
+    confirmation's run (its objects there from the start, another jitter seed): the decision
+    oracle's kept seed, the aimed metric oracle's, or a counted oracle's derived from the run's."""
+    from agents.search import count_confirm_seed
+
+    base = {"jitter_seed": 11, "oracle": "ttc", "oracle_signature": "ttc:vehicle", "oracle_confirmed": True,
+            "oracle_confirm_seed": 22, "confirm_seed": 33, "found_by_oracle": {"comfort": "comfort:lon_jerk"}}
+    assert findings.confirmation_seed(base) == 33
+    assert findings.confirmation_seed({**base, "_oracle": "ttc"}) == 22
+    assert findings.confirmation_seed({**base, "_oracle": "comfort"}) == count_confirm_seed(11) != 11
+    assert findings.confirmation_seed({"jitter_seed": 11}) is None  # written before the seeds were kept
 
 
 def _scripted(pid: str, points: list[tuple[float, float, float]]) -> dict:

@@ -75,6 +75,7 @@ def test_search_records_carry_the_schema_and_recheck_failures(ctx) -> None:
                 "signature", "seconds", "cpu_seconds", "sims"} <= set(r)
         checked = r["failure"] is not None or r["task_failure"] is not None
         assert (r["confirmed"] is not None) == checked and r["sims"] == 1 + checked
+        assert ("confirm_seed" in r) == checked  # the confirmation's jitter seed, to replay what counted
         assert r["cpu_seconds"] > 0.0
 
 
