@@ -609,8 +609,9 @@ class CommonRoadPlanner(Planner):
         the destination) once it is within ``stop_engage`` or half the horizon at the current speed
         (past a light's stop position: where ``yellow_decel`` stops it; "hold" there below
         ``red_hold_speed``), else velocity keeping at the
-        cruise speed capped by the speed limits, the curves, a moving leader and the lights it stops
-        for (as for a standing leader at the stop position)."""
+        cruise speed capped by the speed limits, the curves, a moving leader, the lights it stops
+        for and a destination with an obstacle beyond it within the horizon's reach (as for a
+        standing leader at the stop position)."""
         p = self.p
         s_ego = self._s_of(co, *self._rear(frame))
         to_front = p.wb_rear_axle + 0.5 * p.ego_length
@@ -654,7 +655,14 @@ class CommonRoadPlanner(Planner):
         if dkey in chain:
             s_dest = self._s_along(model, co, dkey, float(dest["s"]))
             if s_dest is not None:
-                stops.append((s_dest - p.wb_rear_axle, "DESTINATION"))
+                s_stop = s_dest - p.wb_rear_axle
+                stops.append((s_stop, "DESTINATION"))
+                # the route ends there: what stands beyond it, within the plans' reach, is no reason to pull
+                # out (plans that keep the cruise speed up to the stop run past it and swerve round it); it
+                # is then approached as a standing leader, as a red light is
+                reach = max(v0, v_des) * p.dt * p.time_steps
+                if any(s_stop - s_ego <= gap <= reach and not moving for gap, _, _, moving, _ in ahead):
+                    v_des = min(v_des, math.sqrt(max(2.0 * p.comfort_decel * (s_stop - s_ego - v0 * p.lag), 0.0)))
         if stops:
             s_stop, what = min(stops)
             gap = s_stop - s_ego

@@ -196,6 +196,22 @@ def test_a_red_light_is_approached_as_a_standing_leader() -> None:
     assert gone["stop"] != "RED_LIGHT"
 
 
+def test_what_stands_past_the_destination_makes_it_a_standing_leader() -> None:
+    """Found by the search (v32; the slow test below replays it): plans that kept the cruise speed up
+    to the destination's stop ran past it, and a car parked beyond it made them swerve out of the
+    lane. With an obstacle past the destination within the horizon's reach, the desired speed now
+    falls towards the destination as towards a red light; with none, nothing changes."""
+    cruise = ROUTING["cruise_speed"]
+    frame = light_frame(160.0, 10.0, "GREEN")  # 30 m before the destination (s = 190)
+    free = CommonRoadPlanner({}).plan(frame)["decision"]
+    parked = {"id": 1, "type": "STATIC_VEHICLE", "length": 4.8, "width": 2.0, "is_static": True, "t0": frame.time,
+              "dt": 0.2, "x": [200.0], "y": [0.0], "heading": [0.0], "v": 0.0}
+    pred = dict(frame.get("prediction"), obstacles=[parked])
+    beyond = CommonRoadPlanner({}).plan(Frame(frame.time, {**frame.inputs, "prediction": pred}))["decision"]
+    assert (free["mode"], free["desired_speed"]) == ("velocity_keeping", cruise)
+    assert beyond["mode"] == "velocity_keeping" and beyond["desired_speed"] < 0.5 * cruise
+
+
 def test_a_light_reached_all_but_stopped_is_not_run() -> None:
     """Found on the unseen gen:2000032 (one rerun of two): stopping for a yellow light, the ego
     reached its stop position (1 m before the line) at 1.1 m/s; the yellow was then dropped as
@@ -392,6 +408,21 @@ def test_it_can_be_seeded_from_a_recorded_state(episode) -> None:
     fresh.load_state(live.export_state())
     expected = {k2: res.planning[k][k2] for k2 in ("trajectory", "decision")}
     assert fresh.plan(frames[k]) == expected
+
+
+@pytest.mark.slow
+def test_a_car_parked_past_the_destination_is_not_swerved_round() -> None:
+    """The search's finding replayed (tests/support/data/cr_unprotected_left_parked_beyond.replay.yaml,
+    random actions on handwritten/unprotected_left against CommonRoad without the intent rule): a
+    car parked 11.7 m past the destination; the ego, at 10 m/s 25 m before it, swerved 3 m into the
+    oncoming lane and stopped there. It now stays in its lane on the west road (centre y = -1.75)."""
+    from deft_gym.search.episode import load_replay, replay
+
+    eq = load_replay(Path(__file__).parents[1] / "support" / "data" / "cr_unprotected_left_parked_beyond.replay.yaml")
+    res = replay(eq, load_ads_config(CONFIG_DIR / "ads" / "commonroad_no_intent.yaml"))
+    assert res.outcome.outcome == "completed" and res.outcome.collision is None
+    west = [y for p in res.planning for x, y in zip(p["trajectory"]["x"], p["trajectory"]["y"]) if x < -20.0]
+    assert west and max(west) < -0.75, max(west)
 
 
 @pytest.mark.slow
