@@ -33,7 +33,7 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from agents.stats import METHOD_LABELS, compare, counted_failure, describe
+from agents.stats import DECISION_ORACLES_OWN, METHOD_LABELS, compare, counted_findings, describe
 from deft_gym.files import append_jsonl, read_jsonl, write_atomic
 
 #: the prediction parameter the counterfactual switches off (modules/prediction.py)
@@ -45,17 +45,14 @@ def counted_pairs(rows: list[dict[str, Any]], raw: list[dict[str, Any]]) -> dict
     ``(method, placement, group, repeat, scenario, signature) -> first record`` (the record carries
     ``_oracle`` for a metric oracle's finding, as :func:`agents.findings.main` does): a decision
     oracle's counted failure, or a valid record's confirmed finding of a counted metric oracle but
-    ``collision`` (the decision oracle's already) - :meth:`agents.stats.Tally.add`'s rule."""
+    ``collision`` (the decision oracle's already) - ``any_distinct``'s rule
+    (:func:`agents.stats.counted_findings`, :data:`agents.stats.DECISION_ORACLES_OWN`)."""
     pairs: dict[tuple[str, str, str, int, str, str], dict[str, Any]] = {}
     for r, full in zip(rows, raw):
         cell = (r["method"], r["placement"], r["scenario_kind"], int(r["repeat"]), r["scenario"])
-        kind = counted_failure(r)
-        if kind:
-            pairs.setdefault((*cell, r["signature"] or f"<unsigned {kind}>"), full)
-        if r["valid"]:
-            for oracle, sig in r["found_by_oracle"].items():
-                if oracle != "collision" and r["confirmed_by_oracle"].get(oracle) is True:
-                    pairs.setdefault((*cell, sig), {**full, "_oracle": oracle})
+        for oracle, sig in counted_findings(r):
+            if oracle not in DECISION_ORACLES_OWN:
+                pairs.setdefault((*cell, sig), full if oracle is None else {**full, "_oracle": oracle})
     return pairs
 
 

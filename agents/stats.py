@@ -162,6 +162,22 @@ def counted_failure(rec: dict[str, Any]) -> str | None:
     return rec["failure"] if rec["failure"] and rec["valid"] and rec["confirmed"] is True else None
 
 
+#: counted oracles whose findings ``any_distinct`` leaves to the decision oracle: a counted
+#: collision is its already (the same fault analysis)
+DECISION_ORACLES_OWN = frozenset({"collision"})
+
+
+def counted_findings(rec: dict[str, Any]) -> list[tuple[str | None, str]]:
+    """A record's counted findings as ``(oracle, signature)``: the decision oracle's counted failure
+    (oracle None; one without a signature named by its kind) and, on a valid record, each counted
+    metric oracle's confirmed finding (``found_by_oracle``, ``confirmed_by_oracle``)."""
+    kind = counted_failure(rec)
+    out: list[tuple[str | None, str]] = [(None, rec["signature"] or f"<unsigned {kind}>")] if kind else []
+    if rec["valid"]:
+        out += [(o, sig) for o, sig in rec["found_by_oracle"].items() if rec["confirmed_by_oracle"].get(o) is True]
+    return out
+
+
 # -- per-repeat tallies ---------------------------------------------------------------------------
 @dataclass
 class Tally:
@@ -189,10 +205,12 @@ class Tally:
         if r.get("oracle_signature") and r["valid"] and r.get("oracle_confirmed") is True:
             c["oracle_findings"] += 1
             self.oracle_causes.add(r["oracle_signature"])
-        if r["valid"]:
-            for o, sig in r["found_by_oracle"].items():
-                if r["confirmed_by_oracle"].get(o) is True:
-                    self.found[o].add((r["scenario"], sig))
+        for o, sig in counted_findings(r):
+            if o is None:
+                self.signatures.add((r["scenario"], sig))
+                (self.causes_in_lane if r["band"] == IN_LANE else self.causes).add(sig)
+            else:
+                self.found[o].add((r["scenario"], sig))
         kind = counted_failure(r)
         c["simulated"] += 1
         c["sims"] += r["sims"]
@@ -200,9 +218,6 @@ class Tally:
         if kind:
             c["failures"] += 1
             c["nods" if kind == "nods" else "collisions"] += 1
-            sig = r["signature"] or f"<unsigned {kind}>"
-            self.signatures.add((r["scenario"], sig))
-            (self.causes_in_lane if r["band"] == IN_LANE else self.causes).add(sig)
         elif r["failure"] and r["valid"]:
             c["unconfirmed"] += 1
         c["nods_local"] += int(bool(r["nods_local"] and r["valid"]))
@@ -239,8 +254,8 @@ class Tally:
                 "cpu_seconds": cpu, "distinct_per_cpu_hour": distinct / (cpu / 3600.0) if cpu else None,
                 "metric_score": float(np.mean(self.scores)) if self.scores else None,
                 "oracle_findings": float(c["oracle_findings"]), "oracle_root_causes": float(len(self.oracle_causes)),
-                # a counted collision is the decision oracle's already (the same fault analysis)
-                "any_distinct": float(len(self.signatures.union(*(v for o, v in self.found.items() if o != "collision")))),
+                "any_distinct": float(len(self.signatures.union(
+                    *(v for o, v in self.found.items() if o not in DECISION_ORACLES_OWN)))),
                 "safety_distinct": float(len(self.signatures.union(*(self.found.get(o, set()) for o in SAFETY_ORACLES)))),
                 **{f"found_{o}": float(len(self.found.get(o, ()))) for o in FOUND_ORACLES},
                 **{f"viol_{v}": c[f"viol_{v}"] / len(self.scores) if self.scores else None for v in METRIC_VIOLATIONS}}
