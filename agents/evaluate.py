@@ -494,11 +494,9 @@ def _run_rl(job: dict[str, Any], env_cfg: Any, progress: Any) -> list[dict[str, 
         cols, _, _, n_o = oracle_columns(env.ctx, env.last_metrics, v.valid, env_cfg.oracle, specs, rng,
                                          again_at, tuple(job.get("count", ())), int(info["jitter_seed"]))
         cols["late_statics"] = late
-        if confirmed is not None:
-            cols["confirm_seed"] = again
         rec = record_of(v, i, time.perf_counter() - w0, time.process_time() - c0,
                         1 + (confirmed is not None) + n_o, confirmed, int(info["jitter_seed"]), int(info["added"]),
-                        float(info["sim_time"]), cols)
+                        float(info["sim_time"]), cols, again)
         if model is not None:
             rec["temperature"] = temperature
         if v.failure or v.task_failure or cols.get("oracle_signature") or cols.get("found_by_oracle"):

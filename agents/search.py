@@ -112,13 +112,16 @@ def count_confirm_seed(jitter_seed: int) -> int:
 
 def record_of(v: Verdict, index: int, seconds: float, cpu_seconds: float, sims: int,
               confirmed: bool | None, jitter_seed: int, added: int, sim_time: float,
-              extra: dict[str, Any] | None = None) -> dict[str, Any]:
+              extra: dict[str, Any] | None = None, confirm_seed: int | None = None) -> dict[str, Any]:
     """One line of a method's log: the verdict of one simulated scenario (the evaluation's record
-    schema; see agents/evaluate.py)."""
+    schema; see agents/evaluate.py); ``confirm_seed``, the jitter seed of the confirming run, is
+    kept when there was one (``confirmed`` not None)."""
     rec = {"index": index, **{k: val for k, val in v.as_dict().items() if k != "collision_detail"},
            "confirmed": confirmed, "added": added, "sim_time": round(sim_time, 3),
            "seconds": round(seconds, 4), "cpu_seconds": round(cpu_seconds, 4), "sims": sims,
            "jitter_seed": jitter_seed}
+    if confirmed is not None and confirm_seed is not None:
+        rec["confirm_seed"] = confirm_seed
     if v.failure:
         rec["collision_detail"] = v.collision_detail
     return {**rec, **(extra or {})}
@@ -162,11 +165,9 @@ def _run_record(ctx: SeedContext, run: EpisodeRun, index: int, t_mut: float, c_m
     confirmed, w_c, c_c = confirm(ctx, v, specs, again)
     cols, w_o, c_o, n_o = oracle_columns(ctx, m, v.valid, oracle, specs, rng, count=count,
                                          jitter_seed=run.result.jitter_seed)
-    if confirmed is not None:
-        cols["confirm_seed"] = again
     rec = record_of(v, index, t_mut + run.seconds + w_c + w_o, c_mut + run.cpu_seconds + c_c + c_o,
                     1 + (confirmed is not None) + n_o, confirmed, run.result.jitter_seed,
-                    sum(1 for a in run.trace.actors if a.added), run.result.sim_time, {**extra, **cols})
+                    sum(1 for a in run.trace.actors if a.added), run.result.sim_time, {**extra, **cols}, again)
     if v.failure or v.task_failure or cols.get("oracle_signature") or cols.get("found_by_oracle"):
         rec["scenario_equivalent"] = replay_record(run.scenario, run.result.jitter_seed)
     return rec
