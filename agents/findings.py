@@ -107,7 +107,8 @@ def counted_equivalent(rec: dict[str, Any], statics_from_start: bool = False) ->
     if statics_from_start or counted_from_start(rec):
         added_at = statics_from_start_of(data["participants"], added_at)
     if counted_from_start(rec):  # what counted is the confirmation's run: on its jitter seed where kept
-        jitter = confirmation_seed(rec) or jitter
+        kept = confirmation_seed(rec)
+        jitter = jitter if kept is None else kept
     return replay_record(data, jitter, added_at)
 
 

@@ -192,6 +192,10 @@ def test_a_finding_counted_from_the_start_is_replayed_on_its_confirmations_seed(
     assert findings.confirmation_seed({**base, "_oracle": "ttc"}) == 22
     assert findings.confirmation_seed({**base, "_oracle": "comfort"}) == count_confirm_seed(11) != 11
     assert findings.confirmation_seed({"jitter_seed": 11}) is None  # written before the seeds were kept
+    # a kept seed of 0 is a seed (it is falsy)
+    rec = {"jitter_seed": 11, "late_statics": "from_start", "confirm_seed": 0,
+           "scenario_equivalent": {"scenario": {"name": "x", "participants": []}, "jitter_seed": 11}}
+    assert findings.counted_equivalent(rec)["jitter_seed"] == 0
 
 
 def _scripted(pid: str, points: list[tuple[float, float, float]]) -> dict:
