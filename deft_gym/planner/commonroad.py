@@ -29,8 +29,9 @@ but the planner interface; everything comes from the frame (docs/planner.md has 
 
 What the library leaves to its user, the adapter sets as a user would: the desired velocity (the
 cruise speed capped by the speed limits, the reference's curvature, a moving leader ahead in
-the ego's corridor and a light to stop for, each reached ``lag`` seconds early because the
-planner follows it with a lag),
+the ego's corridor, a light to stop for and a destination with a standing obstacle at or past it,
+each reached ``lag`` seconds early because the planner follows it with a lag), where to stop for
+the destination (before such an obstacle, as before a red light's queue),
 when to switch to stopping mode, and what to do when the planner finds no trajectory (the rest of
 the previous plan while the collision checker finds it free and the ego could still brake short
 of every lane's end after following it - the library's road boundary leaves lane ends open - else
@@ -80,7 +81,7 @@ import json
 import math
 import weakref
 from collections.abc import Iterator, Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -157,6 +158,11 @@ class CommonRoadParams(BaseModel):
                               "this far behind it (at comfort_decel)")
     stop_engage: float = Field(10.0, ge=0.0, description="[m] a stop point this near (or within half the "
                                "horizon at the current speed) switches to stopping mode")
+    destination_room: float = Field(10.0, ge=0.0, description="[m] a standing obstacle in the ego's corridor that ends "
+                                    "less than this before the ego's front at the destination's stop, or reaches past "
+                                    "it, is stopped behind (the destination's stop is moved to its rear, as a queue "
+                                    "moves a red light's): there is no room to pass it and return to the lane before "
+                                    "the route ends")
     max_lat_accel: float = Field(2.0, gt=0.0, description="[m/s^2] the desired speed is capped ahead of curves "
                                  "of the reference so that lateral acceleration stays below this")
     comfort_decel: float = Field(1.0, gt=0.0, description="[m/s^2] how early the desired speed drops before a "
@@ -188,6 +194,17 @@ class CommonRoadParams(BaseModel):
                                         "and time steps, and each bundle's lateral polynomials built once, bit for bit "
                                         "its results (commonroad_kinematics.py); false: the library's own code (plans "
                                         "take ~3.5-3.8x the CPU)")
+
+
+class _Ahead(NamedTuple):
+    """An obstacle in the ego's corridor ahead (``CommonRoadPlanner._corridor``)."""
+
+    gap: float  #: [m] from the ego's front to the obstacle's rear along the reference (0 where they overlap)
+    id: int
+    v: float  #: [m/s] its predicted speed
+    moving: bool
+    kind: str  #: its type ("VEHICLE", "STATIC_VEHICLE", ...)
+    far: float  #: [m] from the ego's front to the obstacle's front along the reference
 
 
 class _StepClock:
@@ -606,23 +623,23 @@ class CommonRoadPlanner(Planner):
         """``(mode, what it stops for, desired stop position [s of the rear axle], desired speed,
         leader id or -1)``: stopping mode for the nearest stop point on the reference (a red light,
         or the rear of the queue before it; a yellow one it can still stop before at ``yellow_decel``;
-        the destination) once it is within ``stop_engage`` or half the horizon at the current speed
-        (past a light's stop position: where ``yellow_decel`` stops it; "hold" there below
-        ``red_hold_speed``), else velocity keeping at the
-        cruise speed capped by the speed limits, the curves, a moving leader, the lights it stops
-        for and a destination with an obstacle beyond it within the horizon's reach (as for a
-        standing leader at the stop position)."""
+        the destination, or the rear of a standing obstacle at or just before it) once it is within
+        ``stop_engage`` or half the horizon at the current speed (past a light's stop position: where
+        ``yellow_decel`` stops it; "hold" there below ``red_hold_speed``), else velocity keeping at
+        the cruise speed capped by the speed limits, the curves, a moving leader, the lights it
+        stops for and a destination with a standing obstacle at or beyond it within the horizon's
+        reach (as for a standing leader at the stop position)."""
         p = self.p
         s_ego = self._s_of(co, *self._rear(frame))
         to_front = p.wb_rear_axle + 0.5 * p.ego_length
         ahead = self._corridor(frame, co, s_ego + to_front)
         v_des = self._desired_speed(model, routing, chain, co, s_ego, v0)
         leader = -1
-        for gap, ob_id, v_ob, moving, _ in ahead:  # the nearest moving obstacle ahead in the corridor
-            if moving:
-                cap = math.sqrt(max(v_ob * v_ob + 2.0 * p.comfort_decel * (gap - p.follow_gap - v0 * p.lag), 0.0))
+        for ob in ahead:  # the nearest moving obstacle ahead in the corridor
+            if ob.moving:
+                cap = self._approach_cap(ob.gap - p.follow_gap, v0, ob.v)
                 if cap < v_des:
-                    v_des, leader = cap, ob_id
+                    v_des, leader = cap, ob.id
                 break
         colours = {lt["id"]: lt["color"] for lt in (frame.get("traffic_light") or {}).get("lights", [])}
         stops: list[tuple[float, str]] = []
@@ -636,7 +653,7 @@ class CommonRoadPlanner(Planner):
             if s_line is None:
                 continue
             s_stop = s_line - to_front - p.stop_gap
-            queue = [g for g, _, _, _, kind in ahead if kind == "VEHICLE" and s_ego + to_front + g < s_line]
+            queue = [ob.gap for ob in ahead if ob.kind == "VEHICLE" and s_ego + to_front + ob.gap < s_line]
             if queue:
                 s_stop = min(s_stop, s_ego + queue[0] - p.stop_gap)
             gap = s_stop - s_ego
@@ -649,20 +666,26 @@ class CommonRoadPlanner(Planner):
                 continue  # past it
             stops.append((s_stop, "RED_LIGHT" if colour == "RED" else "YELLOW_LIGHT"))
             if colour == "RED":  # approached as a standing leader: the desired speed falls to 0 at the stop
-                v_des = min(v_des, math.sqrt(max(2.0 * p.comfort_decel * (gap - v0 * p.lag), 0.0)))
+                v_des = min(v_des, self._approach_cap(gap, v0))
         dest = routing["destination"]
         dkey = tuple(dest["lane"])
         if dkey in chain:
             s_dest = self._s_along(model, co, dkey, float(dest["s"]))
             if s_dest is not None:
                 s_stop = s_dest - p.wb_rear_axle
-                stops.append((s_stop, "DESTINATION"))
-                # the route ends there: what stands beyond it, within the plans' reach, is no reason to pull
-                # out (plans that keep the cruise speed up to the stop run past it and swerve round it); it
-                # is then approached as a standing leader, as a red light is
+                # the route ends there: what stands at or beyond it, within the plans' reach, is no reason to
+                # pull out (plans that keep the cruise speed up to the stop run past it and swerve round it,
+                # and there is no room to pass what stands at it and return to the lane before the end); the
+                # stop moves to the rear of the first such obstacle, as a queue moves a red light's, and is
+                # approached as a standing leader
                 reach = max(v0, v_des) * p.dt * p.time_steps
-                if any(s_stop - s_ego <= gap <= reach and not moving for gap, _, _, moving, _ in ahead):
-                    v_des = min(v_des, math.sqrt(max(2.0 * p.comfort_decel * (s_stop - s_ego - v0 * p.lag), 0.0)))
+                front_at_stop = s_stop - s_ego  # [m] from the ego's front now to its front at the stop
+                standing = [ob.gap for ob in ahead
+                            if not ob.moving and ob.gap <= reach and ob.far >= front_at_stop - p.destination_room]
+                if standing:  # stop_gap behind its rear, less the library's stop samples' reach past the stop
+                    s_stop = min(s_stop, s_ego + standing[0] - p.stop_gap - p.s_max)
+                    v_des = min(v_des, self._approach_cap(s_stop - s_ego, v0))
+                stops.append((s_stop, "DESTINATION"))
         if stops:
             s_stop, what = min(stops)
             gap = s_stop - s_ego
@@ -676,10 +699,17 @@ class CommonRoadPlanner(Planner):
                 return "stopping", what, max(s_stop, reach), 0.0, leader
         return "velocity_keeping", "", None, v_des, leader
 
-    def _corridor(self, frame: Frame, co: Any, s_front: float) -> list[tuple[float, int, float, bool, str]]:
-        """Predicted obstacles now in the ego's corridor along the reference ahead of its front:
-        ``(gap from the ego's front to their rear [m], id, speed, moving, type)``, nearest first
-        (vehicles waiting before a red light form its queue; parked ones and cones do not)."""
+    def _approach_cap(self, gap: float, v0: float, v_leader: float = 0.0) -> float:
+        """[m/s] The desired speed that reaches ``v_leader`` [m/s] ``gap`` [m] ahead at
+        ``comfort_decel``, ``lag`` seconds early at the current speed ``v0`` [m/s]: a leader, a red
+        light or a stop approached as a standing leader (``v_leader`` 0)."""
+        p = self.p
+        return math.sqrt(max(v_leader * v_leader + 2.0 * p.comfort_decel * (gap - v0 * p.lag), 0.0))
+
+    def _corridor(self, frame: Frame, co: Any, s_front: float) -> list[_Ahead]:
+        """Predicted obstacles now in the ego's corridor along the reference ahead of its front,
+        nearest first (vehicles waiting before a red light form its queue; parked ones and cones do
+        not)."""
         p = self.p
         out = []
         for ob in (frame.get("prediction") or {}).get("obstacles", []):
@@ -692,7 +722,8 @@ class CommonRoadPlanner(Planner):
             gap = float(s_o) - 0.5 * float(ob["length"]) - s_front
             if gap > -0.5 * float(ob["length"]):
                 moving = not ob.get("is_static") and len(ob["x"]) > 1 and float(ob["v"]) > 1.0
-                out.append((max(gap, 0.0), int(ob["id"]), float(ob["v"]), moving, str(ob.get("type", ""))))
+                out.append(_Ahead(max(gap, 0.0), int(ob["id"]), float(ob["v"]), moving, str(ob.get("type", "")),
+                                  gap + float(ob["length"])))
         return sorted(out)
 
     def _desired_speed(self, model: _MapModel, routing: Mapping[str, Any], chain: tuple[LaneKey, ...], co: Any,

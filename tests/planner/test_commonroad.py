@@ -212,6 +212,32 @@ def test_what_stands_past_the_destination_makes_it_a_standing_leader() -> None:
     assert beyond["mode"] == "velocity_keeping" and beyond["desired_speed"] < 0.5 * cruise
 
 
+def test_what_stands_at_the_destination_is_stopped_behind() -> None:
+    """Found by the GA (v33, unprotected_left): a vehicle standing at the destination, its rear
+    2.4 m before the ego's front at the stop. The stop stayed at the destination, the plans swerved
+    round the vehicle into the oncoming lane. A standing obstacle ending less than
+    ``destination_room`` before the ego's front at the stop, or reaching past it, now moves the stop
+    behind it; one farther back is passed as before."""
+    def decision(x: float, ego_x: float = 160.0, v: float = 10.0) -> dict[str, Any]:
+        frame = light_frame(ego_x, v, "GREEN")  # the destination: s = 190, where the ego's centre stops
+        ob = {"id": 1, "type": "STATIC_VEHICLE", "length": 4.8, "width": 2.0, "is_static": True, "t0": frame.time,
+              "dt": 0.2, "x": [x], "y": [0.0], "heading": [0.0], "v": 0.0}
+        pred = dict(frame.get("prediction"), obstacles=[ob])
+        return CommonRoadPlanner({}).plan(Frame(frame.time, {**frame.inputs, "prediction": pred}))["decision"]
+
+    p = CommonRoadParams()
+    front_at_stop = 190.0 + 0.5 * p.ego_length  # [m] along the lane
+    rear = front_at_stop - 2.4  # a car centred where the ego's front would stop
+    at = decision(front_at_stop)
+    assert at["mode"] == "velocity_keeping" and at["desired_speed"] < 0.5 * ROUTING["cruise_speed"], at
+    near = decision(front_at_stop, ego_x=rear - 12.0, v=3.0)
+    assert (near["mode"], near["stop"]) == ("stopping", "DESTINATION"), near
+    # the stop (s of the rear axle on the reference, which starts reference_back before the lane): behind it
+    assert near["stop_s"] - p.reference_back + p.wb_rear_axle + 0.5 * p.ego_length <= rear - p.stop_gap
+    far_back = decision(front_at_stop - p.destination_room - 10.0)  # ends 12.4 m before the ego's front at the stop
+    assert far_back["mode"] == "velocity_keeping" and far_back["desired_speed"] == ROUTING["cruise_speed"]
+
+
 def test_a_light_reached_all_but_stopped_is_not_run() -> None:
     """Found on the unseen gen:2000032 (one rerun of two): stopping for a yellow light, the ego
     reached its stop position (1 m before the line) at 1.1 m/s; the yellow was then dropped as
@@ -421,6 +447,23 @@ def test_a_car_parked_past_the_destination_is_not_swerved_round() -> None:
     eq = load_replay(Path(__file__).parents[1] / "support" / "data" / "cr_unprotected_left_parked_beyond.replay.yaml")
     res = replay(eq, load_ads_config(CONFIG_DIR / "ads" / "commonroad_no_intent.yaml"))
     assert res.outcome.outcome == "completed" and res.outcome.collision is None
+    west = [y for p in res.planning for x, y in zip(p["trajectory"]["x"], p["trajectory"]["y"]) if x < -20.0]
+    assert west and max(west) < -0.75, max(west)
+
+
+@pytest.mark.slow
+def test_a_car_standing_at_the_destination_is_stopped_behind() -> None:
+    """The GA's v33 finding of the same family, rebuilt from its measurements (the record was not
+    kept): the car of the replay above moved to stand at the destination, its rear 2.4 m before the
+    ego's front at the stop (tests/support/data/cr_unprotected_left_parked_at_destination.replay.yaml).
+    The ego swerved into the oncoming lane (y = +1.27 m) and stopped there, 'completed'; it now
+    stops behind the car in its lane, and the destination is not reached."""
+    from deft_gym.search.episode import load_replay, replay
+
+    eq = load_replay(Path(__file__).parents[1] / "support" / "data" /
+                     "cr_unprotected_left_parked_at_destination.replay.yaml")
+    res = replay(eq, load_ads_config(CONFIG_DIR / "ads" / "commonroad_no_intent.yaml"))
+    assert res.outcome.collision is None and res.outcome.outcome == "stuck"
     west = [y for p in res.planning for x, y in zip(p["trajectory"]["x"], p["trajectory"]["y"]) if x < -20.0]
     assert west and max(west) < -0.75, max(west)
 
