@@ -436,18 +436,26 @@ def test_it_can_be_seeded_from_a_recorded_state(episode) -> None:
     assert fresh.plan(frames[k]) == expected
 
 
+def _unprotected_left_replay(name: str) -> tuple[Any, list[float]]:
+    """A replay of handwritten/unprotected_left (tests/support/data/NAME) run against CommonRoad
+    without the intent rule: its result and the y [m] of every planned point on the west road
+    (x < -20 m; the ego's lane there is centred on y = -1.75)."""
+    from deft_gym.search.episode import load_replay, replay
+
+    eq = load_replay(Path(__file__).parents[1] / "support" / "data" / name)
+    res = replay(eq, load_ads_config(CONFIG_DIR / "ads" / "commonroad_no_intent.yaml"))
+    west = [y for p in res.planning for x, y in zip(p["trajectory"]["x"], p["trajectory"]["y"]) if x < -20.0]
+    return res, west
+
+
 @pytest.mark.slow
 def test_a_car_parked_past_the_destination_is_not_swerved_round() -> None:
     """The search's finding replayed (tests/support/data/cr_unprotected_left_parked_beyond.replay.yaml,
     random actions on handwritten/unprotected_left against CommonRoad without the intent rule): a
     car parked 11.7 m past the destination; the ego, at 10 m/s 25 m before it, swerved 3 m into the
     oncoming lane and stopped there. It now stays in its lane on the west road (centre y = -1.75)."""
-    from deft_gym.search.episode import load_replay, replay
-
-    eq = load_replay(Path(__file__).parents[1] / "support" / "data" / "cr_unprotected_left_parked_beyond.replay.yaml")
-    res = replay(eq, load_ads_config(CONFIG_DIR / "ads" / "commonroad_no_intent.yaml"))
+    res, west = _unprotected_left_replay("cr_unprotected_left_parked_beyond.replay.yaml")
     assert res.outcome.outcome == "completed" and res.outcome.collision is None
-    west = [y for p in res.planning for x, y in zip(p["trajectory"]["x"], p["trajectory"]["y"]) if x < -20.0]
     assert west and max(west) < -0.75, max(west)
 
 
@@ -458,13 +466,8 @@ def test_a_car_standing_at_the_destination_is_stopped_behind() -> None:
     ego's front at the stop (tests/support/data/cr_unprotected_left_parked_at_destination.replay.yaml).
     The ego swerved into the oncoming lane (y = +1.27 m) and stopped there, 'completed'; it now
     stops behind the car in its lane, and the destination is not reached."""
-    from deft_gym.search.episode import load_replay, replay
-
-    eq = load_replay(Path(__file__).parents[1] / "support" / "data" /
-                     "cr_unprotected_left_parked_at_destination.replay.yaml")
-    res = replay(eq, load_ads_config(CONFIG_DIR / "ads" / "commonroad_no_intent.yaml"))
+    res, west = _unprotected_left_replay("cr_unprotected_left_parked_at_destination.replay.yaml")
     assert res.outcome.collision is None and res.outcome.outcome == "stuck"
-    west = [y for p in res.planning for x, y in zip(p["trajectory"]["x"], p["trajectory"]["y"]) if x < -20.0]
     assert west and max(west) < -0.75, max(west)
 
 
