@@ -94,8 +94,8 @@ def test_participant_form_checks() -> None:
 def test_an_ads_config_can_build_on_another(tmp_path: Path) -> None:
     """``base:`` names a config (relative to the file) that the file's keys are deep-merged onto:
     the shipped legacy testbeds are the default and CommonRoad configs with the control law and
-    the steering limit changed back, nothing else; a missing base, a loop or a base that is no path is
-    one clear error naming the file."""
+    the steering limit changed back (and CommonRoad's planner given the library's default car again),
+    nothing else; a missing base, a loop or a base that is no path is one clear error naming the file."""
     from deft_gym.config import CONFIG_DIR
 
     for name, base in (("legacy", "default"), ("commonroad_legacy", "commonroad")):
@@ -103,6 +103,10 @@ def test_an_ads_config_can_build_on_another(tmp_path: Path) -> None:
         assert theirs.max_steering_deg == 50.0 and theirs.control.params["lateral"] == "curvature"
         want = theirs.model_copy(update={"max_steering_deg": 35.0, "control": theirs.control.model_copy(
             update={"params": {**theirs.control.params, "lateral": "pure_pursuit"}})})
+        if name == "commonroad_legacy":
+            car = {"wb_front_axle": 1.1561957064, "wb_rear_axle": 1.4227170936, "delta_max": 1.066, "v_delta_max": 0.4}
+            planner = theirs.planning.planner.model_copy(update={"params": car})
+            want = want.model_copy(update={"planning": theirs.planning.model_copy(update={"planner": planner})})
         assert ours.model_dump() == want.model_dump()
     (tmp_path / "a.yaml").write_text("base: b.yaml\n")
     (tmp_path / "b.yaml").write_text("base: a.yaml\n")
