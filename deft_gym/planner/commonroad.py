@@ -25,7 +25,8 @@ but the planner interface; everything comes from the frame (docs/planner.md has 
 - ``traffic_light``: a red light (or a yellow one it can stop for) at a stop line on the
   reference is a desired stop position before the line, or behind the vehicles queued there;
   a red one is approached as a standing leader (the desired speed falls to reach 0 there); an ego
-  all but stopped at or past a light's stop position holds (a braking plan, ``HOLD``).
+  all but stopped at or past a light's or the destination's stop position holds (a braking plan,
+  ``HOLD``).
 
 What the library leaves to its user, the adapter sets as a user would: the desired velocity (the
 cruise speed capped by the speed limits, the reference's curvature, a moving leader ahead in
@@ -173,8 +174,10 @@ class CommonRoadParams(BaseModel):
     yellow_decel: float = Field(3.0, gt=0.0, description="[m/s^2] a yellow light is stopped for when this "
                                 "suffices")
     red_hold_speed: float = Field(1.0, ge=0.0, description="[m/s] an ego this slow at or past a red light's stop "
-                                  "position (past the line by less than its length) holds: a braking plan, not the "
-                                  "library's, whose stop samples reach 1 m on (it crept over the line)")
+                                  "position (past the line by less than its length) or the destination's holds: a "
+                                  "braking plan, not the library's, whose stop samples reach 1 m on (it crept over "
+                                  "the line; it crept up to a car standing at the destination, each cycle's stop "
+                                  "moved to where it stood)")
     fallback_decel: float = Field(6.0, gt=0.0, description="[m/s^2] braking of the fallback plan")
     stitch_distance: float = Field(1.0, ge=0.0, description="[m] the previous plan's acceleration and steering "
                                    "start the next one while the ego is this close to it")
@@ -625,7 +628,7 @@ class CommonRoadPlanner(Planner):
         or the rear of the queue before it; a yellow one it can still stop before at ``yellow_decel``;
         the destination, or the rear of a standing obstacle at or just before it) once it is within
         ``stop_engage`` or half the horizon at the current speed (past a light's stop position: where
-        ``yellow_decel`` stops it; "hold" there below ``red_hold_speed``), else velocity keeping at
+        ``yellow_decel`` stops it; "hold" at or past any stop below ``red_hold_speed``), else velocity keeping at
         the cruise speed capped by the speed limits, the curves, a moving leader, the lights it
         stops for and a destination with a standing obstacle at or beyond it within the horizon's
         reach (as for a standing leader at the stop position)."""
@@ -690,7 +693,7 @@ class CommonRoadPlanner(Planner):
             s_stop, what = min(stops)
             gap = s_stop - s_ego
             light = what in ("RED_LIGHT", "YELLOW_LIGHT")
-            if light and gap <= 0.0 and v0 < p.red_hold_speed:
+            if gap <= 0.0 and v0 < p.red_hold_speed:  # a light's or the destination's
                 return "hold", what, s_ego, 0.0, leader  # the library's stop samples reach 1 m on: it would creep
             if gap <= max(p.stop_engage, 0.5 * v0 * p.dt * p.time_steps):
                 # past the stop position, still rolling: stop where yellow_decel brings it (the library
