@@ -309,7 +309,7 @@ def test_it_plans_for_the_simulated_egos_geometry() -> None:
     """The shipped configs give the library the simulated ego's vehicle: highway-env's bicycle (axles
     half the car's length either side of its centre, the centre's course the heading plus the slip)
     and the ADS's steering limit. With the library's default car (wheelbase 2.58 m) each plan began
-    from the ego's heading taken as its own rear axle's course, 0.09 rad off in a 13 m turn, and the ego
+    from the ego's heading taken as its own rear axle's course, 0.08 rad off in a 13 m turn, and the ego
     drifted 1.1 m out of left_turn (docs/planner.md, v36); the legacy config keeps that car."""
     from deft_gym.modules.control import WHEELBASE_HALF
     from deft_gym.world.world import EgoVehicle
@@ -507,7 +507,7 @@ def test_a_left_turn_entered_at_its_steering_speed_is_made() -> None:
     the previous plan - the library's straight-on prolongation of a short sample - carries it across
     the junction and it drives north past the road's end (y down to -40 m, 0.46 m from an oncoming
     car), 'stuck' there. Planned for the simulated ego's own geometry (v36: the library's default car
-    had each plan start 0.09 rad off the ego's course in a turn, and the ego drifted out of it), it
+    had each plan start 0.08 rad off the ego's course in a turn, and the ego drifted out of it), it
     makes the turn: 5 cycles (0.5 s) without a trajectory at 9.0 s, the previous plan followed, then
     a trajectory at every cycle; never north of the junction (y > -5 m); arrival."""
     res, _ = _unprotected_left_replay("cr_unprotected_left_car_at_junction_edge.replay.yaml")
