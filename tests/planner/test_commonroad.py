@@ -321,6 +321,7 @@ def test_it_plans_for_the_simulated_egos_geometry() -> None:
         assert (p.ego_length, p.ego_width) == (EgoVehicle.LENGTH, EgoVehicle.WIDTH)
         assert p.delta_max == pytest.approx(math.radians(ads.max_steering_deg), abs=1e-4), name
     legacy = CommonRoadParams(**load_ads_config(CONFIG_DIR / "ads" / "commonroad_legacy.yaml").planning.planner.params)
+    assert legacy == CommonRoadParams()  # the library's default car (wheelbase 2.58 m)
     assert legacy.wb_front_axle + legacy.wb_rear_axle == pytest.approx(2.578912800)
 
 

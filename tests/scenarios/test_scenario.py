@@ -103,8 +103,10 @@ def test_an_ads_config_can_build_on_another(tmp_path: Path) -> None:
         assert theirs.max_steering_deg == 50.0 and theirs.control.params["lateral"] == "curvature"
         want = theirs.model_copy(update={"max_steering_deg": 35.0, "control": theirs.control.model_copy(
             update={"params": {**theirs.control.params, "lateral": "pure_pursuit"}})})
-        if name == "commonroad_legacy":
-            car = {"wb_front_axle": 1.1561957064, "wb_rear_axle": 1.4227170936, "delta_max": 1.066, "v_delta_max": 0.4}
+        if name == "commonroad_legacy":  # the library's default car: CommonRoadParams' defaults
+            from deft_gym.planner.commonroad import CommonRoadParams
+
+            car = {k: CommonRoadParams.model_fields[k].default for k in theirs.planning.planner.params}
             planner = theirs.planning.planner.model_copy(update={"params": car})
             want = want.model_copy(update={"planning": theirs.planning.model_copy(update={"planner": planner})})
         assert ours.model_dump() == want.model_dump()
