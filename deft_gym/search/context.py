@@ -163,7 +163,8 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
     scenario's reference run does not complete (then it is no optimal-decision seed). The
     context's scenario lasts at most ``TIME_FACTOR`` x the reference run's time + ``TIME_SLACK``
     and calls an ego standing for ``STUCK_TIME`` stuck: every mutated run (search baselines, the
-    env, confirmations, robustness) ends there."""
+    env, confirmations, robustness) ends there. A scenario whose own duration ends its runs before
+    ``TIME_FACTOR`` x the reference's time makes its timeouts no task failures (``Verdict.cut_short``)."""
     sc = resolve_scenario(spec)
     ads = ads or load_ads_config()
     feasible = feasible or FeasibleConfig()
@@ -178,6 +179,9 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
         # mutated runs end when the ego has clearly failed to finish: an ego that needs more than
         # TIME_FACTOR x the reference run's time + TIME_SLACK has timed out (task failure)
         limit = round(min(sc.duration, ref.sim_time * TIME_FACTOR + TIME_SLACK), 3)
+        # a scenario written to end sooner (slow_truck: 70 s for a 67 s reference) ends its runs
+        # before an ego has needed TIME_FACTOR x the reference's time: its timeouts are no task failures
+        timeouts_count = limit >= ref.sim_time * TIME_FACTOR
         stuck = min(sc.stuck_time, STUCK_TIME)
         if limit < sc.duration or stuck < sc.stuck_time:
             sc = sc.model_copy(update={"duration": limit, "stuck_time": stuck})
@@ -188,7 +192,7 @@ def seed_context(spec: str | Path | Scenario, feasible: FeasibleConfig | None = 
         oracle = DecisionOracle(ref, rm, threshold=threshold, grid_kind=grid,  # type: ignore[arg-type]
                                 clearance=feasible.margin, window=(feasible.early_window, feasible.late_window),
                                 spawn_distance=feasible.spawn_distance, static_clearance=feasible.static_margin,
-                                ego_lanes=areas.ego_lanes, reserved=reserved)
+                                ego_lanes=areas.ego_lanes, reserved=reserved, timeouts_count=timeouts_count)
         if len(_CTX) > 256:
             _CTX.clear()
         ctx = _CTX[key] = SeedContext(sc, ads, ref, rm, areas, RefPath(ref, rm), oracle, feasible)

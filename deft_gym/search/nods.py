@@ -541,6 +541,7 @@ class Verdict:
     nods_local: bool = False  # completed with off_length >= the local length (separate column)
     invasive_why: dict[str, str] = field(default_factory=dict)  # id -> path | spawn | seed
     finding: Finding | None = None
+    cut_short: bool = False  # a timeout of the scenario's own duration, before the time rule (no task failure)
 
     @property
     def failure(self) -> str | None:
@@ -555,8 +556,11 @@ class Verdict:
     @property
     def task_failure(self) -> str | None:
         """'timeout' | 'stuck' of a valid mutation (the ego never finished: its own column), or
-        None."""
-        return self.outcome if self.valid and self.outcome in ("timeout", "stuck") else None
+        None; a timeout the scenario's own duration ended before the time rule (``cut_short``) is
+        none: it says only that the ego was slower than the scenario allowed, not that it failed."""
+        if not self.valid or self.outcome not in ("timeout", "stuck") or (self.cut_short and self.outcome == "timeout"):
+            return None
+        return self.outcome
 
     def as_dict(self) -> dict[str, Any]:
         f = self.finding
@@ -564,7 +568,7 @@ class Verdict:
                 "nods": self.nods,
                 "iou": round(self.iou, 4), "f_p": round(self.f_p, 4), "f_b": round(self.f_b, 4),
                 "valid": self.valid, "invasive": self.invasive, "invasive_why": self.invasive_why,
-                "failure": self.failure, "task_failure": self.task_failure, "off_length": round(self.off_length, 2),
+                "failure": self.failure, "task_failure": self.task_failure, "cut_short": self.cut_short, "off_length": round(self.off_length, 2),
                 "nods_local": self.nods_local, "signature": self.signature,
                 "trigger": f.trigger if f else None, "band": f.band if f else None,
                 "clearance": None if not f or f.clearance is None or not math.isfinite(f.clearance)
@@ -580,8 +584,12 @@ class DecisionOracle:
                  grid_kind: Literal["lane", "world"] = "lane", clearance: float = CLEARANCE,
                  local_length: float = LOCAL_LENGTH, window: tuple[float, float] = (EARLY_WINDOW, LATE_WINDOW),
                  spawn_distance: float = SPAWN_DISTANCE, static_clearance: float = STATIC_CLEARANCE,
-                 ego_lanes: shapely.Geometry | None = None, reserved: Trace | None = None) -> None:
+                 ego_lanes: shapely.Geometry | None = None, reserved: Trace | None = None,
+                 timeouts_count: bool = True) -> None:
         self.ref, self.roadmap = ref, roadmap
+        # False: the episodes end at the scenario's own duration before the time rule's (see
+        # ``context.seed_context``), so a timeout is no task failure
+        self.timeouts_count = timeouts_count
         self.reserved = ref if reserved is None else reserved  # what validity reserves (:func:`reserved_path`)
         self.threshold, self.grid, self.grid_kind = threshold, grid, grid_kind
         self.clearance, self.static_clearance, self.local_length = clearance, static_clearance, local_length
@@ -664,9 +672,9 @@ class DecisionOracle:
         fault, how = collision_fault(trace, collision, self.road_heading) if is_collision and collision else (False, "")
         v = Verdict(outcome, is_collision, nods, io, fp, fb, not why, list(why), collision_detail=collision,
                     ego_at_fault=fault, off_length=off, nods_local=outcome == "completed" and off >= self.local_length,
-                    invasive_why=why)
+                    invasive_why=why, cut_short=outcome == "timeout" and not self.timeouts_count)
         kind = ("collision" if v.collision else "nods" if v.nods else "local" if v.nods_local
-                else v.outcome if v.outcome in ("timeout", "stuck") else None)
+                else v.outcome if v.outcome in ("timeout", "stuck") and not v.cut_short else None)
         if kind is not None:
             v.finding = self.explain(trace, kind, dist, clear, collision, how)
             v.signature = v.finding.key(kind)

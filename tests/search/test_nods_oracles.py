@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -353,3 +354,23 @@ def test_a_reference_that_arrives_from_beside_its_destinations_lane_is_no_seed(c
         why = arrival_problem(dataclasses.replace(ctx, ref=dataclasses.replace(ctx.ref, ego=ego)))
         assert (why is not None) is refused, why
         assert not refused or f"arrives {beside:.2f} m beside its destination's lane" in why
+
+
+def test_a_timeout_the_scenarios_own_duration_ended_early_is_no_task_failure(ctx):
+    """Mutated runs end at the time rule (1.5 x the reference's time + 10 s) or the scenario's own
+    duration, whichever comes first. Where the scenario's comes first, before the ego needed 1.5 x
+    the reference's time (slow_truck on CommonRoad's planner: 70 s for a 67 s reference), a
+    timeout says only that the ego was slower than the scenario allowed: no task failure, no
+    signature, while a timeout at the time rule stays one."""
+    slow = dataclasses.replace(ctx.ref, outcome="timeout")
+    assert ctx.oracle.timeouts_count and ctx.scenario.duration >= 1.5 * ctx.ref.sim_time
+    at_rule = ctx.oracle.judge(slow)
+    assert at_rule.task_failure == "timeout" and at_rule.signature.startswith("timeout:") and not at_rule.cut_short
+    early = copy.copy(ctx.oracle)
+    early.timeouts_count = False
+    cut = early.judge(slow)
+    assert cut.cut_short and cut.task_failure is None and cut.signature == "" and cut.as_dict()["cut_short"]
+    assert early.judge(dataclasses.replace(ctx.ref, outcome="stuck")).task_failure == "stuck"
+    # the context decides it from the scenario's duration against the reference's time
+    short = ctx.scenario.model_copy(update={"duration": round(1.4 * ctx.ref.sim_time, 1)})
+    assert not seed_context(short).oracle.timeouts_count
