@@ -58,7 +58,8 @@ class ScriptedVehicle(Vehicle):
 
     Between waypoints it moves in a straight line at constant speed; its heading is the
     direction of motion (kept when it stands still). Before the first waypoint time it is absent;
-    after the last one it stays parked at the last waypoint."""
+    after the last one it stays parked at the last waypoint. It starts with its first segment's
+    speed, so that a vehicle moving from the start is perceived moving in the first frame."""
 
     obstacle_type = "VEHICLE"
 
@@ -66,7 +67,10 @@ class ScriptedVehicle(Vehicle):
                  length: float = 4.8, width: float = 2.0) -> None:
         self.LENGTH, self.WIDTH = length, width
         self.set_waypoints(waypoints, heading0)
-        super().__init__(road, self.wp_xy[0].copy(), heading0, 0.0)
+        # its speed until the first place(): perception's first frame comes before it (at 0, a
+        # truck driving at 6 m/s was perceived standing and predicted parked for static_hold)
+        speed0 = math.hypot(*self.seg_v[0]) if len(self.seg_v) else 0.0
+        super().__init__(road, self.wp_xy[0].copy(), heading0, speed0)
         self.check_collisions = False
         self.spawn_time = self.wp_t[0]
 

@@ -364,3 +364,22 @@ def test_a_run_that_arrives_a_lane_over_says_so_in_its_summary() -> None:
     s = run_episode(scenario_from_dict(data, source="parked on the destination"), jitter_seed=1,
                     keep_planning=False).summary()
     assert (s["outcome"], s.get("arrival")) == ("completed", "a lane over"), s
+
+
+def test_a_scripted_vehicle_moving_from_the_start_is_perceived_moving_in_the_first_frame() -> None:
+    """Perception's first frame comes before the first step places the scripted vehicles: one that
+    drives from t = 0 starts with its first segment's speed (it was 0, so slow_truck's truck at
+    6 m/s was predicted parked for prediction's static_hold, and both planners pulled out round it);
+    one that waits at its first waypoint starts standing."""
+    from deft_gym.world.participants import ScriptedVehicle
+
+    road = Road(shared_roadmap(MapSpec(type="highway")).network)
+    moving = ScriptedVehicle(road, np.array([[0.0, 0.0, 0.0], [10.0, 60.0, 0.0]]), 0.0)
+    assert moving.speed == pytest.approx(6.0)
+    moving.place(5.0)
+    assert moving.speed == pytest.approx(6.0) and moving.position[0] == pytest.approx(30.0)
+    waiting = ScriptedVehicle(road, np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [10.0, 30.0, 0.0]]), 0.0)
+    assert waiting.speed == 0.0
+    world = build_world(load_scenario("handwritten/slow_truck"))  # the world perception's first frame reads
+    truck = next(p.obj for p in world.participants if p.id == "truck")
+    assert truck.speed == pytest.approx(6.0)
