@@ -628,6 +628,11 @@ def metric_line(m: Any, oracle: str, trace: Any = None) -> str:
         return line
     if oracle == "comfort":
         return "out of bounds: " + ", ".join(f"{k} {m.comfort[k]:.2f}" for k in m.uncomfortable)
+    if oracle == "headway":
+        if m.min_headway is None:
+            return "never following"
+        return (f"{m.headway_below_max_s:.1f} s at a stretch below a 0.8 s time gap behind {m.headway_actor} "
+                f"({m.headway_trigger}), down to {m.min_headway:.2f} s")
     if oracle == "standstill":
         return f"standing unheld for {m.standstill_max_s:.1f} s at a stretch ({m.standstill_s:.1f} s in all)"
     if oracle == "drivable_area":

@@ -43,14 +43,14 @@ MEASURES = ("root_causes", "root_causes_in_lane", "failures", "nods", "collision
 # the driving-quality metric oracles a record's metric_violations may name (deft_gym.metrics.oracle);
 # each gets a measure viol_<name>: the share of simulated scenarios that violated it
 METRIC_VIOLATIONS = ("collision", "ttc", "drivable_area", "direction", "red_light", "comfort", "speed_limit",
-                     "standstill")
+                     "standstill", "headway")
 MEASURES = MEASURES + tuple(f"viol_{v}" for v in METRIC_VIOLATIONS)
 # the metric oracles an evaluation may count beside the aimed one (count_oracles; the metric
 # oracles but score, deft_gym.metrics.oracle.COUNTED_ORACLES): found_<name> is the distinct
 # (scenario, signature) pairs of its confirmed findings; any_distinct the same over every oracle,
 # the decision oracle's counted failures included
 FOUND_ORACLES = ("collision", "ttc", "drivable_area", "direction", "red_light", "progress", "comfort",
-                 "speed_limit", "standstill")
+                 "speed_limit", "standstill", "headway")
 #: the metric oracles whose findings were judged genuine when drawn (near misses, leaving the road;
 #: docs/search.md v13-v14): safety_distinct is the decision oracle's distinct failures and theirs
 SAFETY_ORACLES = ("ttc", "drivable_area")

@@ -17,6 +17,8 @@ from typing import Any
 from deft_gym.metrics.episode import (
     COMFORT_BOUNDS,
     DIRECTION_BAD,
+    HEADWAY_BOUND,
+    HEADWAY_HOLD,
     STANDSTILL_BOUND,
     TTC_BOUND,
     EpisodeMetrics,
@@ -29,7 +31,7 @@ from deft_gym.search.trace import Trace
 #: the oracles a config may name (``default``: the decision oracle, no metric; ``any``: the
 #: decision oracle and every counted metric oracle together)
 ORACLES = ("default", "any", "collision", "ttc", "drivable_area", "direction", "red_light", "progress", "comfort",
-           "speed_limit", "standstill", "score")
+           "speed_limit", "standstill", "headway", "score")
 #: what ``count_oracles: all`` counts beside the aimed oracle: every metric oracle but ``score``
 #: (a weighted sum of the others, so it would count their findings twice)
 COUNTED_ORACLES = tuple(o for o in ORACLES if o not in ("default", "any", "score"))
@@ -73,6 +75,11 @@ def severity(m: EpisodeMetrics, oracle: str) -> float:
         return 1.0 - m.speed_score
     if oracle == "standstill":
         return min(1.0, m.standstill_max_s / (2 * STANDSTILL_BOUND))
+    if oracle == "headway":  # half way at the bound held for the hold, 1 at a standing gap
+        if m.min_headway is None:
+            return 0.0
+        near = 1.0 - min(m.min_headway, 2 * HEADWAY_BOUND) / (2 * HEADWAY_BOUND)
+        return min(1.0, 0.5 * near + 0.5 * min(1.0, m.headway_below_max_s / HEADWAY_HOLD))
     if oracle == "score":
         return 1.0 - m.score
     raise ValueError(f"unknown oracle {oracle!r}; expected one of {ORACLES[1:]}")
@@ -85,6 +92,7 @@ def signature(m: EpisodeMetrics, oracle: str) -> str | None:
     if not violated(m, oracle):
         return None
     detail = {"collision": m.collision_how or "unknown", "ttc": m.ttc_trigger or "unknown",
+              "headway": m.headway_trigger or "unknown",
               "red_light": ",".join(sorted({r["light"] for r in m.red_lights})),
               "comfort": m.uncomfortable[0] if m.uncomfortable else "",
               "score": "+".join(v for v in m.violations() if v != "standstill") or "low"}.get(oracle, oracle)
@@ -119,7 +127,8 @@ def record_columns(m: EpisodeMetrics) -> dict[str, Any]:
             "metric_off_road_max": d["off_road_max"], "metric_wrong_way_m": d["wrong_way_m"],
             "metric_red_lights": len(d["red_lights"]), "metric_progress_ratio": d["progress_ratio"],
             "metric_uncomfortable": d["uncomfortable"], "metric_overspeed_integral": d["overspeed_integral"],
-            "metric_standstill_s": d["standstill_s"], "metric_violations": d["violations"],
+            "metric_standstill_s": d["standstill_s"], "metric_min_headway": d["min_headway"],
+            "metric_headway_below_s": d["headway_below_max_s"], "metric_violations": d["violations"],
             "metric_cpu_s": d["cpu_s"]}
 
 

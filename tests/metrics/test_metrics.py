@@ -233,3 +233,31 @@ def test_standstill_unless_queued(highway: MetricsContext) -> None:
     parts = np.array([[k, 0, 20.0 + 2.4 + 3.0 + 2.25, 0.0, 0.0] for k in range(len(ego))], dtype=float)
     queued = episode_metrics(trace_of(ego, actors=[car], parts=parts), highway)
     assert queued.standstill_s == 0.0 and queued.min_ttc is None  # a standing ego has no TTC
+
+
+def test_headway_catches_a_tailgater_ttc_misses(highway: MetricsContext) -> None:
+    """The ego follows a car at its speed, 6 m/s, 1 m behind its rear bumper for 10 s: nothing
+    closes, so no TTC, but the time gap is 1 / 6 = 0.17 s - below ISO 15622's 0.8 s for longer than
+    3 s, a headway violation named after the leader's kind. The same car 9 m ahead (1.5 s), a car
+    standing ahead, or one oncoming are no headway violation."""
+    ego = straight(0.0, 0.0, 6.0, 10.0)
+    lead = Actor("truck", "scripted", "vehicle", 12.0, 2.5, added=True)
+    k = np.arange(len(ego))
+
+    def ahead(gap: float, v: float = 6.0, heading: float = 0.0) -> np.ndarray:
+        return np.column_stack([k, np.zeros(len(k)), ego[:, 0] + 2.4 + gap + 6.0 + (v - 6.0) * k * DT,
+                                np.zeros(len(k)), np.full(len(k), heading)]).astype(float)
+
+    m = episode_metrics(trace_of(ego, actors=[lead], parts=ahead(1.0)), highway)
+    assert m.min_ttc is None and "ttc" not in m.violations()
+    assert m.min_headway == pytest.approx(1.0 / 6.0, rel=1e-3)
+    assert m.headway_below_max_s == pytest.approx(10.0, abs=2 * DT) and "headway" in m.violations()
+    assert m.headway_actor == "truck" and signature(m, "headway") == "metric:headway:vehicle"
+    assert severity(m, "headway") > 0.9 and m.as_dict()["min_headway"] == pytest.approx(0.1667, abs=1e-4)
+    far = episode_metrics(trace_of(ego, actors=[lead], parts=ahead(9.0)), highway)
+    assert far.min_headway == pytest.approx(1.5, rel=1e-3) and far.headway_below_max_s == 0.0
+    assert "headway" not in far.violations() and severity(far, "headway") < 0.1
+    short = episode_metrics(trace_of(ego[:50], actors=[lead], parts=ahead(1.0)[:50]), highway)  # 2.45 s
+    assert short.headway_below_max_s < 3.0 and "headway" not in short.violations()
+    for parts in (ahead(20.0, v=6.0 - 6.0), ahead(40.0, v=-6.0, heading=np.pi)):  # standing; oncoming
+        assert episode_metrics(trace_of(ego, actors=[lead], parts=parts), highway).min_headway is None
