@@ -47,6 +47,7 @@ HEADWAY_HOLD = 3.0  # [s] ... for longer than this at a stretch: a violation
 HEADWAY_MIN_SPEED = 2.0  # [m/s] no headway for a slower ego (queues, stopping behind a car)
 LEADER_SPEED = 1.0  # [m/s] a leader moves along the ego's heading at least this fast
 LEADER_ALIGN = 0.7  # cos of the largest heading difference of a leader to the ego
+HEADWAY_OPENING = 1.0  # [m/s] a leader pulling away faster than this (a car that merged ahead) is no tailgating
 SMOOTH = 0.5  # [s] moving-average window of the comfort signals
 STARTUP = 1.0  # [s] comfort ignores the start, before the ADS's first control command took hold
 # nuPlan ego_is_comfortable bounds: [m/s^2], [m/s^3], [rad/s], [rad/s^2]
@@ -263,8 +264,8 @@ def episode_metrics(trace: Trace, ctx: MetricsContext, collision: dict[str, Any]
             return h if loc is None else float(ctx.roadmap.geom(loc[0]).heading_point(loc[1]))
 
         m.at_fault_collision, m.collision_how = collision_fault(trace, collision, road_heading)
-    lead_gap, follow_gap, follow_actor = _ttc(trace, m, dt)
-    _headway(trace, ego, follow_gap, follow_actor, m, dt)
+    lead_gap, follow_gap, follow_v, follow_actor = _ttc(trace, m, dt)
+    _headway(trace, ego, follow_gap, follow_v, follow_actor, m, dt)
     _drivable(ego, ctx, m, dt)
     limits = _lanes(ego, ctx, m, dt)
     _red_lights(ego, t, ctx, m)
@@ -278,18 +279,19 @@ def episode_metrics(trace: Trace, ctx: MetricsContext, collision: dict[str, Any]
     return m
 
 
-def _ttc(trace: Trace, m: EpisodeMetrics, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _ttc(trace: Trace, m: EpisodeMetrics, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Longitudinal TTC to participants ahead in the ego's path (ego-at-fault direction only):
     gap along the ego's heading over the closing speed, constant velocities. Returns, at every
     step, the gap [m] to the nearest participant in the path (inf: none), the gap [m] to the
     nearest leader in it (moving along the ego's heading: :data:`LEADER_SPEED`,
-    :data:`LEADER_ALIGN`) and that leader's actor index (-1: none)."""
+    :data:`LEADER_ALIGN`), that leader's speed [m/s] along the ego's heading and its actor index
+    (-1: none)."""
     ego, parts = trace.ego, trace.parts
     n = len(ego)
     gap_ahead = np.full(n, np.inf)
-    follow_gap, follow_actor = np.full(n, np.inf), np.full(n, -1)
+    follow_gap, follow_v, follow_actor = np.full(n, np.inf), np.zeros(n), np.full(n, -1)
     if not len(parts):
-        return gap_ahead, follow_gap, follow_actor
+        return gap_ahead, follow_gap, follow_v, follow_actor
     order = np.lexsort((parts[:, 0], parts[:, 1]))
     p = parts[order]
     same = np.r_[False, (p[1:, 1] == p[:-1, 1])]
@@ -314,12 +316,14 @@ def _ttc(trace: Trace, m: EpisodeMetrics, dt: float) -> tuple[np.ndarray, np.nda
         ttc = np.where(gap <= 0.0, 0.0, gap / closing)
     ttc = np.where(in_path & (closing > 1e-3) & (ev > STOPPED_SPEED), ttc, np.inf)
     np.minimum.at(gap_ahead, i[in_path], np.maximum(gap[in_path], 0.0))
-    lead = np.flatnonzero(in_path & (np.cos(dh) > LEADER_ALIGN) & (vx * c + vy * s > LEADER_SPEED))
+    along = vx * c + vy * s
+    lead = np.flatnonzero(in_path & (np.cos(dh) > LEADER_ALIGN) & (along > LEADER_SPEED))
     if len(lead):  # the nearest leader at each step: rows sorted by gap, the first of each step kept
         lead = lead[np.lexsort((gap[lead], i[lead]))]
-        first = np.r_[True, i[lead][1:] != i[lead][:-1]]
-        follow_gap[i[lead][first]] = np.maximum(gap[lead][first], 0.0)
-        follow_actor[i[lead][first]] = idx[lead][first]
+        first = lead[np.r_[True, i[lead][1:] != i[lead][:-1]]]
+        follow_gap[i[first]] = np.maximum(gap[first], 0.0)
+        follow_v[i[first]] = along[first]
+        follow_actor[i[first]] = idx[first]
     near = np.flatnonzero(ttc < 2 * TTC_BOUND)  # (only these: a longer TTC is no violation, and the check costs)
     ttc[near[~_came_close(trace, p, i, idx, near, length, width, dt)]] = np.inf
     per_step = np.full(n, np.inf)
@@ -331,15 +335,16 @@ def _ttc(trace: Trace, m: EpisodeMetrics, dt: float) -> tuple[np.ndarray, np.nda
         actor = trace.actors[int(idx[k])]
         m.ttc_actor = actor.id
         m.ttc_trigger = trigger_type(actor)
-    return gap_ahead, follow_gap, follow_actor
+    return gap_ahead, follow_gap, follow_v, follow_actor
 
 
-def _headway(trace: Trace, ego: np.ndarray, follow_gap: np.ndarray, follow_actor: np.ndarray, m: EpisodeMetrics,
-             dt: float) -> None:
+def _headway(trace: Trace, ego: np.ndarray, follow_gap: np.ndarray, follow_v: np.ndarray, follow_actor: np.ndarray,
+             m: EpisodeMetrics, dt: float) -> None:
     """Time headway [s] to the leader (bumper gap over the ego's speed, an ego faster than
     :data:`HEADWAY_MIN_SPEED`): its minimum, and the longest stretch below :data:`HEADWAY_BOUND`
-    (ISO 15622's shortest steady-state time gap of an ACC). TTC misses a tailgater: at the
-    leader's speed nothing closes."""
+    (ISO 15622's shortest steady-state time gap of an ACC) while the leader does not pull away
+    (:data:`HEADWAY_OPENING`: a faster car that merged in ahead opens the gap by itself). TTC
+    misses a tailgater: at the leader's speed nothing closes."""
     v = ego[:, 3]
     ok = np.isfinite(follow_gap) & (v > HEADWAY_MIN_SPEED)
     if not ok.any():
@@ -347,7 +352,7 @@ def _headway(trace: Trace, ego: np.ndarray, follow_gap: np.ndarray, follow_actor
     hw = np.where(ok, follow_gap / np.maximum(v, 1e-9), np.inf)
     k = int(np.argmin(hw))
     m.min_headway = float(hw[k])
-    close = (hw < HEADWAY_BOUND).astype(np.int8)
+    close = ((hw < HEADWAY_BOUND) & (follow_v - v < HEADWAY_OPENING)).astype(np.int8)
     edges = np.flatnonzero(np.diff(np.r_[0, close, 0]))
     if len(edges):
         runs = edges[1::2] - edges[::2]

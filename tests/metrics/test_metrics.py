@@ -238,8 +238,9 @@ def test_standstill_unless_queued(highway: MetricsContext) -> None:
 def test_headway_catches_a_tailgater_ttc_misses(highway: MetricsContext) -> None:
     """The ego follows a car at its speed, 6 m/s, 1 m behind its rear bumper for 10 s: nothing
     closes, so no TTC, but the time gap is 1 / 6 = 0.17 s - below ISO 15622's 0.8 s for longer than
-    3 s, a headway violation named after the leader's kind. The same car 9 m ahead (1.5 s), a car
-    standing ahead, or one oncoming are no headway violation."""
+    3 s, a headway violation named after the leader's kind. The same car 9 m ahead (1.5 s), one that
+    merged in 0.5 m ahead but drives 2 m/s faster (the gap opens by itself), a car standing ahead, or
+    one oncoming are no headway violation."""
     ego = straight(0.0, 0.0, 6.0, 10.0)
     lead = Actor("truck", "scripted", "vehicle", 12.0, 2.5, added=True)
     k = np.arange(len(ego))
@@ -259,5 +260,7 @@ def test_headway_catches_a_tailgater_ttc_misses(highway: MetricsContext) -> None
     assert "headway" not in far.violations() and severity(far, "headway") < 0.1
     short = episode_metrics(trace_of(ego[:50], actors=[lead], parts=ahead(1.0)[:50]), highway)  # 2.45 s
     assert short.headway_below_max_s < 3.0 and "headway" not in short.violations()
+    opening = episode_metrics(trace_of(ego, actors=[lead], parts=ahead(0.5, v=8.0)), highway)  # merged in, faster
+    assert opening.min_headway < 0.2 and "headway" not in opening.violations()  # (its speed known from step 1)
     for parts in (ahead(20.0, v=6.0 - 6.0), ahead(40.0, v=-6.0, heading=np.pi)):  # standing; oncoming
         assert episode_metrics(trace_of(ego, actors=[lead], parts=parts), highway).min_headway is None
