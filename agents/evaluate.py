@@ -387,12 +387,14 @@ def run_job(job: dict[str, Any], progress: Any = None) -> list[dict[str, Any]]:
             recs.append({**base, **rec})
             if progress is not None:
                 progress.put(1)
+    from deft_gym.metrics.oracle import oracle_code
     from deft_gym.search.trace import code_fingerprint
 
     code = code_fingerprint()  # the simulation code this job ran (a changed planner shows here)
     key = scenario_key(scenario, env_cfg.ads)  # and the scenario's content (an edited scenario file shows
-    # here), the ADS config and the source of a planner the fingerprint does not hash
-    return [{**base, **r, "code": code, "scenario_key": key} for r in recs]
+    # here), the ADS config and the source of a planner the fingerprint does not hash; "judge": the
+    # oracles' code (an edited oracle or metric shows here)
+    return [{**base, **r, "code": code, "judge": oracle_code(), "scenario_key": key} for r in recs]
 
 
 def scenario_key(spec: str, ads: str | None = None) -> str:
@@ -634,24 +636,25 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
     done: dict[tuple[str, str, str, int], int] = defaultdict(int)
     records: list[dict[str, Any]] = []
     earlier: list[dict[str, Any]] = []  # what the journal held before this run
-    if rec_path.exists():  # resume: keep what earlier runs simulated with the same simulation code
+    if rec_path.exists():  # resume: keep what earlier runs simulated and judged with the same code
+        from deft_gym.metrics.oracle import oracle_code
         from deft_gym.search.trace import code_fingerprint
 
-        code = code_fingerprint()
+        code, judge = code_fingerprint(), oracle_code()
         keys = {name: scenario_key(name, env.get("ads")) for name in seeds + held_out}
         records = read_jsonl(rec_path)
         earlier = list(records)
-        stale = sum(1 for r in records if r.get("code") != code
+        stale = sum(1 for r in records if r.get("code") != code or r.get("judge") != judge
                     or (r["scenario"] in keys and r.get("scenario_key") != keys[r["scenario"]]))
         oracle = env.get("oracle", "default")  # records of another oracle count other findings
         records = [r for r in records if r["index"] < cfg.budget and r.get("code") == code
-                   and r.get("oracle", "default") == oracle and r.get("counted_oracles", []) == cfg.count_oracles
+                   and r.get("judge") == judge and r.get("oracle", "default") == oracle and r.get("counted_oracles", []) == cfg.count_oracles
                    and (r["method"] != "rl" or r.get("temperature", 1.0) == cfg.temperature)
                    and (r["method"] not in ONLINE or r.get("late_statics", "as_placed") == cfg.late_statics)
                    and r["scenario"] in keys and r.get("scenario_key") == keys[r["scenario"]]]
         if stale:
             con.print(f"{stale} earlier record(s) ran other simulation code or another version of their "
-                      "scenario: simulating them again")
+                      "scenario, or were judged by other oracle code: simulating them again")
         for r in records:
             done[(r["method"], r.get("placement", "closest"), r["scenario"], r["repeat"])] += 1
     # a scenario is a seed only where the planner under test completes it unmutated: check each

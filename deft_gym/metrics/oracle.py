@@ -10,8 +10,10 @@ collisions, docs/search.md).
 
 from __future__ import annotations
 
+import functools
 import math
 import time
+from pathlib import Path
 from typing import Any
 
 from deft_gym.metrics.episode import (
@@ -25,7 +27,7 @@ from deft_gym.metrics.episode import (
     MetricsContext,
     episode_metrics,
 )
-from deft_gym.search.context import SeedContext
+from deft_gym.search.context import SeedContext, judge_hash
 from deft_gym.search.trace import Trace
 
 #: the oracles a config may name (``default``: the decision oracle, no metric; ``any``: the
@@ -97,6 +99,19 @@ def signature(m: EpisodeMetrics, oracle: str) -> str | None:
               "comfort": m.uncomfortable[0] if m.uncomfortable else "",
               "score": "+".join(v for v in m.violations() if v != "standstill") or "low"}.get(oracle, oracle)
     return f"metric:{oracle}:{detail}"
+
+
+@functools.cache
+def oracle_code() -> str:
+    """8 hex digits of the code that judges a run beyond simulating it - the decision oracle and the
+    trace (``search/nods.py``, ``search/trace.py``, less their cache plumbing) and the metrics
+    (``metrics/episode.py``, this file) - as syntax trees (:func:`~deft_gym.search.context.judge_hash`).
+    ``code_fingerprint`` leaves them out, so that cached reference runs outlive an oracle's edit;
+    an evaluation's records keep this beside it, and a resume judges again what other rules judged."""
+    search = Path(judge_hash.__code__.co_filename).parent
+    here = Path(__file__).parent
+    return judge_hash([(search / "nods.py").read_bytes(), (search / "trace.py").read_bytes(),
+                       (here / "episode.py").read_bytes(), (here / "oracle.py").read_bytes()])
 
 
 _CONTEXTS: dict[int, tuple[Any, MetricsContext]] = {}

@@ -161,6 +161,28 @@ def test_evaluation_resume_simulates_again_what_an_edited_scenario_file_made(
     assert read_jsonl(tmp_path / "ev" / "records.set_aside.jsonl") == before  # set aside, not deleted
 
 
+
+def test_evaluation_resume_judges_again_what_other_oracle_code_judged(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """Records carry the oracles' code (``judge``; the metrics and the decision oracle are outside
+    the simulation's fingerprint): a record judged by other oracle code is simulated again, not
+    counted with today's rules."""
+    from agents import evaluate
+    from deft_gym.files import read_jsonl, write_atomic
+    from deft_gym.metrics.oracle import oracle_code
+
+    args = ["--methods", "random", "--budget", "1", "--scenarios", "lane_follow_static", "--placements", "closest",
+            "--held-out", "0", "--repeats", "1", "--no-progress", "--workers", "1", "--out", str(tmp_path / "ev")]
+    assert evaluate.main(args) == 0
+    rec = read_jsonl(tmp_path / "ev" / "records.jsonl")
+    assert [r["judge"] for r in rec] == [oracle_code()]
+    write_atomic(tmp_path / "ev" / "records.jsonl", json.dumps({**rec[0], "judge": "0ld0rac1"}) + "\n")
+    capsys.readouterr()
+    assert evaluate.main(args) == 0
+    assert "1 earlier record(s) ran other simulation code" in capsys.readouterr().out
+    assert [r["judge"] for r in read_jsonl(tmp_path / "ev" / "records.jsonl")] == [oracle_code()]
+
+
 def test_rl_evaluation_records_do_not_depend_on_what_the_worker_ran_before(tmp_path: Path) -> None:
     """The policy samples its actions with torch's RNG: each episode seeds it, so an RL job gives
     the same records whichever jobs its worker process ran before (it did not: the evaluation's RL
