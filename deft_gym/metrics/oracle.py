@@ -108,10 +108,10 @@ def oracle_code() -> str:
     (``metrics/episode.py``, this file) - as syntax trees (:func:`~deft_gym.search.context.judge_hash`).
     ``code_fingerprint`` leaves them out, so that cached reference runs outlive an oracle's edit;
     an evaluation's records keep this beside it, and a resume judges again what other rules judged."""
-    search = Path(judge_hash.__code__.co_filename).parent
-    here = Path(__file__).parent
-    return judge_hash([(search / "nods.py").read_bytes(), (search / "trace.py").read_bytes(),
-                       (here / "episode.py").read_bytes(), (here / "oracle.py").read_bytes()])
+    from deft_gym.metrics import episode
+    from deft_gym.search import nods, trace
+
+    return judge_hash([Path(m.__file__).read_bytes() for m in (nods, trace, episode)] + [Path(__file__).read_bytes()])
 
 
 _CONTEXTS: dict[int, tuple[Any, MetricsContext]] = {}

@@ -558,9 +558,7 @@ class Verdict:
         """'timeout' | 'stuck' of a valid mutation (the ego never finished: its own column), or
         None; a timeout the scenario's own duration ended before the time rule (``cut_short``) is
         none: it says only that the ego was slower than the scenario allowed, not that it failed."""
-        if not self.valid or self.outcome not in ("timeout", "stuck") or (self.cut_short and self.outcome == "timeout"):
-            return None
-        return self.outcome
+        return self.outcome if self.valid and self.outcome in ("timeout", "stuck") and not self.cut_short else None
 
     def as_dict(self) -> dict[str, Any]:
         f = self.finding

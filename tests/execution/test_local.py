@@ -161,7 +161,6 @@ def test_evaluation_resume_simulates_again_what_an_edited_scenario_file_made(
     assert read_jsonl(tmp_path / "ev" / "records.set_aside.jsonl") == before  # set aside, not deleted
 
 
-
 def test_evaluation_resume_judges_again_what_other_oracle_code_judged(tmp_path: Path,
                                                                       capsys: pytest.CaptureFixture[str]) -> None:
     """Records carry the oracles' code (``judge``; the metrics and the decision oracle are outside
