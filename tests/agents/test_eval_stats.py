@@ -576,6 +576,13 @@ def test_count_oracles_config(tmp_path):
     assert load_eval_config(parse_args([*base, "--count-oracles", "ttc", "ttc", "comfort"])).count_oracles == \
         ["ttc", "comfort"]
     assert stats.FOUND_ORACLES == COUNTED_ORACLES  # the stats' copy of the list (no import of the metrics)
+    # and of every metric an episode can violate (EpisodeMetrics.violations, each forced over its bound)
+    from deft_gym.metrics.episode import EpisodeMetrics
+
+    worst = EpisodeMetrics(at_fault_collision=True, ttc_below_s=1.0, off_road_max=9.0, wrong_way_max_1s=9.0,
+                           red_lights=[{"light": "l"}], uncomfortable=["lon_accel"], max_overspeed=9.0,
+                           standstill_max_s=999.0, headway_below_max_s=999.0)
+    assert tuple(worst.violations()) == stats.METRIC_VIOLATIONS
     with pytest.raises(ConfigError, match="--count-oracles: unknown \\['default'\\]"):
         load_eval_config(parse_args([*base, "--count-oracles", "default"]))
 
