@@ -48,6 +48,7 @@ def build_parser() -> common.Parser:
                    help="planner publishes the sequence numbers of its inputs (debug.input_seqs)")
     p.add_argument("--compress", action="store_true", help="zstd-compressed MCAP chunks (slower, smaller)")
     common.add_watchdog(p)
+    common.add_workers(p, "parallel processes of a suite, one scenario each (the results are the same for any number)")
     common.add_output_flags(p)
     return p
 
@@ -149,21 +150,34 @@ def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[st
     """Every scenario of a suite into ``out/<name>/``, then one row per scenario: outcomes, the
     metrics every rerun violated, the mean score and, for a failing one, the plot of its first
     rerun (unless ``--render none``) (``out/suite.json``)."""
+    from deft_gym.execution import Backend, Executor
+    from deft_gym.record.recorder import init_pool_worker
+
     names: dict[str, int] = {}
-    rows = []
-    for k, (scenario, eq) in enumerate(runs):
+    folders, todo = [], []
+    for scenario, eq in runs:
         n = names[scenario.name] = names.get(scenario.name, 0) + 1
         folder = out / (scenario.name if n == 1 else f"{scenario.name}~{n}")
-        done = _done_before(folder / "summary.json", scenario, ads, args)
-        console.print(f"[{k + 1}/{len(runs)}] {scenario.name}" + (" (done before with the same code and config: kept)" if done else ""),
-                      highlight=False)
-        if done is None:
-            _reruns(args, console, scenario, ads, folder, eq, verbose=False)
-            done = json.loads((folder / "summary.json").read_text())
-        row = suite_row(done, folder)
-        if row["failing"] and args.render != "none":
-            row["plot"] = _draw_failure(folder / "0" / "episode.mcap")
-        rows.append(row)
+        folders.append(folder)
+        if _done_before(folder / "summary.json", scenario, ads, args) is None:
+            todo.append((scenario, eq, folder))
+    workers = min(args.workers, max(len(todo), 1))
+    # in the workers: no progress bars of their own (the suite's shows whole scenarios)
+    item_args = argparse.Namespace(**{**vars(args), "no_progress": workers > 1 or args.no_progress})
+    rows = []
+    with Executor(Backend("local", workers), initializer=init_pool_worker, initargs=(workers,)) as ex:
+        ran = ex.map(_suite_item, [(item_args, ads, *item) for item in todo])
+        for k, ((scenario, _), folder) in enumerate(zip(runs, folders, strict=True)):
+            fresh = bool(todo) and todo[0][2] == folder
+            if fresh:  # run now (the next result of the map, in order)
+                todo.pop(0)
+                next(ran)
+            console.print(f"[{k + 1}/{len(runs)}] {scenario.name}" + ("" if fresh else " (done before with the same code and config: kept)"),
+                          highlight=False)
+            row = suite_row(json.loads((folder / "summary.json").read_text()), folder)
+            if row["failing"] and args.render != "none":
+                row["plot"] = _draw_failure(folder / "0" / "episode.mcap")
+            rows.append(row)
     doc = {"scenarios": rows, "reruns": args.reruns, "jitter_seed": args.jitter_seed,
            "ads_config": str(args.ads_config or ""), "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
     write_atomic(out / "suite.json", json.dumps(doc, indent=2))
@@ -172,6 +186,13 @@ def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[st
     console.print(f"{failing} of {len(rows)} scenarios failed in every rerun (an outcome other than completed, or a "
                   f"violated metric but comfort); wrote {common.shown(out / 'suite.json')}", soft_wrap=True)
     return 0
+
+
+def _suite_item(item: tuple[argparse.Namespace, Any, Any, dict[str, Any] | None, Path]) -> str:
+    """One scenario of a suite, its reruns into its folder (in a worker process or in this one)."""
+    args, ads, scenario, eq, folder = item
+    _reruns(args, common.console(args), scenario, ads, folder, eq, verbose=False)
+    return str(folder)
 
 
 def _draw_failure(log: Path) -> str | None:

@@ -66,3 +66,26 @@ def test_a_row_confirms_only_what_every_rerun_violated(tmp_path: Path) -> None:
     assert row["comfort_every_rerun"] and row["failed_every_rerun"] and row["mean_score"] == 0.4
     summary["reruns"][1]["outcome"] = "completed"
     assert not suite_row(summary, tmp_path)["failed_every_rerun"]
+
+
+def test_a_suite_gives_the_same_results_on_any_number_of_workers(tmp_path: Path) -> None:
+    """``--workers 2`` runs the scenarios in two processes; every row and every rerun's summary
+    (outcome, metrics, divergence, jitter seed) is what one process gives, timings aside."""
+    from deft_gym.execution import without_timings
+
+    def run(workers: int) -> tuple[list[dict], list[dict]]:
+        out = tmp_path / f"w{workers}"
+        assert main(["lane_follow_static", "gen:1000001", "--reruns", "2", "--jitter-seed", "3", "--render", "none",
+                     "--workers", str(workers), "--out", str(out), "--no-progress"]) == 0
+        rows = json.loads((out / "suite.json").read_text())["scenarios"]
+        summaries = [json.loads((Path(r["folder"]) / "summary.json").read_text()) for r in rows]
+        drop = {"folder", "created", "sim_speed", "log", "truth"}
+
+        def clean(doc: dict) -> dict:
+            return {k: [{f: x for f, x in r.items() if f not in drop} for r in v] if k == "reruns" else v
+                    for k, v in without_timings(doc).items() if k not in drop}
+        return [clean(r) for r in rows], [clean(s) for s in summaries]
+
+    one, two = run(1), run(2)
+    assert [r["scenario"] for r in one[0]] == ["lane_follow_static", "gen-1000001"]
+    assert one == two
