@@ -8,11 +8,13 @@ One cycle:
 3. **Lattice.** Lateral quintics in time to the lane centre, nudges inside the lane, and lane
    changes where allowed; longitudinal quartics to several cruise speeds and quintics that stop
    at walls (red/yellow stop lines, the destination, dead ends), slow down for curves or keep a
-   gap to a leader. Every lateral x longitudinal pair is one candidate.
+   gap to a leader (where it will be after 2, 4 and 6 s). Every lateral x longitudinal pair is one
+   candidate.
 4. **Evaluation, vectorised** over candidates x time x obstacles: hard constraints (collision
    with predicted obstacles plus a hard buffer, walls, road edges, lateral acceleration) and a
    cost (speed, lateral offset, lane changes, route preference, comfort, a soft safety buffer
-   around obstacles, and hysteresis against the previous decision).
+   around obstacles, closing in on a leader below a 1 s time gap, and hysteresis against the
+   previous decision).
 5. **Fallback.** No feasible candidate -> emergency stop in the current lane.
 
 It sees only its frame: routing, localization, traffic lights and predicted obstacles. It is
@@ -112,6 +114,15 @@ class LatticeParams(BaseModel):
     w_lat_accel: float = 0.05
     w_obstacle: float = 1.0
     w_hysteresis: float = 1.0
+    w_closing: float = Field(4.0, ge=0.0, description="cost of closing in on a moving leader ahead in the ego's "
+                             "band below headway_time: the mean over the horizon of the growth of the gap's shortfall "
+                             "from max(follow_gap, headway_time x speed), as a fraction of it (0: off, the planner before v38)")
+    headway_time: float = Field(1.0, ge=0.0, description="[s] the time gap below which closing in costs w_closing "
+                                "(ISO 15622's shortest ACC gap is 0.8 s)")
+    follow_times: tuple[float, ...] = Field((2.0, 4.0, 6.0), description="[s] durations of the FOLLOW profiles: each "
+                                            "reaches the gap behind a moving leader where the leader is predicted "
+                                            "then, at its speed (empty: one target at the leader's position at the "
+                                            "end of the horizon, reached after stop_time_factors, the planner before v38)")
     ref_step: float = 0.25
     publish_debug: bool = False
     # lane-level decisions (deft_gym.planner.decision): path bounds, comfort, gap acceptance, home lane
@@ -382,7 +393,7 @@ class LatticePlanner(Planner):
         # a wall the ego is already past (it stopped a little late) holds it where it is, rather
         # than leaving no feasible plan
         walls = np.maximum(walls, s0) if isinstance(walls, np.ndarray) else max(walls, s0)
-        lon = self._longitudinal(s0, vs0, as0, v_des, ref, wall_s, obs, lat, blocked_s)
+        lon = self._longitudinal(s0, vs0, as0, v_des, ref, wall_s, obs, lat, blocked_s, d0)
         best, cost, poses = self._evaluate(ref, lat, lat_d, lon, obs, walls, v_des, c_route)
         if best is None:
             s, v, acc = lon["sva"][:, -1]  # the emergency brake, the last profile
@@ -714,28 +725,29 @@ class LatticePlanner(Planner):
     # -- longitudinal profiles ----------------------------------------------------------------
     def _longitudinal(self, s0: float, v0: float, a0: float, v_des: float, ref: _Ref,
                       wall_s: list[float], obs: dict[str, Any] | None, lat: _Lateral,
-                      blocked_s: set[float] = frozenset()) -> dict[str, Any]:  # type: ignore[assignment]
+                      blocked_s: set[float] = frozenset(), d0: float = 0.0) -> dict[str, Any]:  # type: ignore[assignment]
         """Speed profiles: cruise quartics, and quintics reaching (s, v) targets - stops at walls
         (``wall_s``; those in ``blocked_s`` are in front of a blocked lane's obstacles and cost
         like stopping behind a static leader), slowing for curves, keeping a gap behind leaders -
         plus an emergency brake."""
         p = self.p
         v_des = min(v_des, ref.min_vlim(s0, s0 + 8.0))
-        targets = [(lim, 0.0, "BLOCKED" if lim in blocked_s else "STOP") for lim in wall_s]
+        targets: list[tuple[float, float, str, float | None]] = [
+            (lim, 0.0, "BLOCKED" if lim in blocked_s else "STOP", None) for lim in wall_s]
         s_c, v_c = self._curve_target(ref, s0, v0)
         if s_c is not None:
-            targets.append((s_c, v_c, "CRUISE"))
+            targets.append((s_c, v_c, "CRUISE", None))
         if obs is not None:
             targets += self._leaders(obs, lat, s0)
         labels = ["CRUISE"] * self._n_cruise
         ds, rv, ti = [], [], []
         last_T = len(self._reach_T) - 1
-        for s_e, v_e, label in targets:
+        for s_e, v_e, label, T_fixed in targets:
             dist = s_e - s0
             if dist <= 0.05:
                 continue
-            for f in p.stop_time_factors:
-                T = f * 2.0 * dist / max(v0 + v_e, 0.5)
+            for f in p.stop_time_factors if T_fixed is None else (None,):
+                T = f * 2.0 * dist / max(v0 + v_e, 0.5) if T_fixed is None else T_fixed
                 ti.append(_grid_index((T - 1.0) * 10.0, last_T))  # nearest grid T
                 ds.append(dist)
                 rv.append(v_e)
@@ -747,6 +759,8 @@ class LatticePlanner(Planner):
                                                  a0, v_des, p.emergency_decel, self.tk):
             self._profiles_numpy(sva, ti, ds, rv, s0, v0, a0, v_des)
         penalty = np.array([self._penalty.get(x, 0.0) for x in labels])
+        if obs is not None and p.w_closing > 0.0:
+            penalty += self._closing_cost(obs, s0, d0, v0, sva)
         labels = ["STOP" if x in self._penalty else x for x in labels]
         return {"sva": sva, "label": labels, "n": len(labels),
                 "penalty": penalty}
@@ -770,9 +784,12 @@ class LatticePlanner(Planner):
             sva[0, n_c:-1] += s0
         sva[0, -1], sva[1, -1], sva[2, -1] = _brake(s0, v0, self.p.emergency_decel, self.tk)
 
-    def _leaders(self, obs: dict[str, Any], lat: _Lateral, s0: float) -> list[tuple[float, float, str]]:
-        """Per distinct lateral target centre, a target behind the nearest obstacle ahead in its
-        band: a standstill gap behind a static one, a time gap behind a moving one."""
+    def _leaders(self, obs: dict[str, Any], lat: _Lateral, s0: float) -> list[tuple[float, float, str, float | None]]:
+        """Per distinct lateral target centre, targets ``(s, v, label, duration or None)`` behind the
+        nearest obstacle ahead in its band: a standstill gap behind a static one; behind a moving one
+        its gap (``max(follow_gap, time_gap x v)``) at its predicted position after each of
+        ``follow_times``, at its speed (its rear moving linearly from now to the end of the
+        horizon and on)."""
         p = self.p
         half = p.ego_length / 2
         margin = p.ego_width / 2 + 0.3
@@ -789,11 +806,49 @@ class LatticePlanner(Planner):
                 continue
             vl = vs[m]
             if vl < 0.5:
-                targets.append((fs[m][0] - fes[m][0] - half - p.static_gap, 0.0, "BLOCKED"))
-            else:
-                rear_end = fs[m][1] - fes[m][1] - half
-                targets.append((rear_end - max(p.follow_gap, p.time_gap * vl), vl, "FOLLOW"))
+                targets.append((fs[m][0] - fes[m][0] - half - p.static_gap, 0.0, "BLOCKED", None))
+                continue
+            gap = max(p.follow_gap, p.time_gap * vl)
+            rear_end = fs[m][1] - fes[m][1] - half
+            if not p.follow_times:
+                targets.append((rear_end - gap, vl, "FOLLOW", None))
+                continue
+            rear_now = fs[m][0] - fes[m][0] - half
+            rate = (rear_end - rear_now) / float(self.tk[-1])  # [m/s] along the reference
+            targets += [(rear_now + rate * T - gap, vl, "FOLLOW", T) for T in p.follow_times]
         return targets
+
+    def _closing_cost(self, obs: dict[str, Any], s0: float, d0: float, v0: float,
+                      sva: np.ndarray) -> np.ndarray | float:
+        """Per speed profile: ``w_closing`` x the mean over the horizon of how much the gap to the
+        nearest moving leader ahead in the ego's own band (its rear moving linearly from now to its
+        predicted end) falls further short of ``max(follow_gap, headway_time x v(t))`` than it does
+        now, as a fraction of that (0 for a profile that keeps the gap or does not close in). Without
+        it the speed term pulled the ego in to the hard buffer behind a slow leader (1 m behind a
+        6 m/s truck for a minute, docs/metrics.md ``headway``); a gap already short (a cut-in, a
+        lane change behind a car) costs nothing, so the ego is not made to brake to open it. Zero
+        for an obstacle not moving on ahead of the ego (oncoming, crossing)."""
+        p = self.p
+        half = p.ego_length / 2
+        margin = p.ego_width / 2 + 0.3
+        fs, fes, fd, fed, vs = obs["fs"], obs["fes"], obs["fd"], obs["fed"], obs["v"]
+        m, rear_now = -1, math.inf
+        for o in range(obs["n"]):
+            rear = fs[o][0] - fes[o][0]
+            if rear > s0 + half - 0.5 and vs[o] >= 0.5 and abs(fd[o] - d0) < fed[o] + margin and rear < rear_now:
+                m, rear_now = o, rear
+        if m < 0:
+            return 0.0
+        t_end = float(self.tk[-1])
+        rear_end = fs[m][1] - fes[m][1]
+        if rear_end - rear_now < 0.5 * t_end:  # slower than 0.5 m/s along the ego's reference
+            return 0.0
+        rear_t = rear_now + (rear_end - rear_now) / t_end * self.tk  # (K,)
+        need = np.maximum(p.follow_gap, p.headway_time * sva[1])
+        short = np.maximum(need - (rear_t - sva[0] - half), 0.0) / need
+        need_now = max(p.follow_gap, p.headway_time * v0)
+        short_now = max(need_now - (rear_now - s0 - half), 0.0) / need_now
+        return p.w_closing * np.maximum(short - short_now, 0.0).mean(axis=-1)
 
     def _curve_target(self, ref: _Ref, s0: float, v0: float) -> tuple[float | None, float]:
         """Where a curve ahead needs a lower speed than ``v0``, and that speed."""
