@@ -94,8 +94,9 @@ def test_participant_form_checks() -> None:
 def test_an_ads_config_can_build_on_another(tmp_path: Path) -> None:
     """``base:`` names a config (relative to the file) that the file's keys are deep-merged onto:
     the shipped legacy testbeds are the default and CommonRoad configs with the control law and
-    the steering limit changed back (and CommonRoad's planner given the library's default car again),
-    nothing else; a missing base, a loop or a base that is no path is one clear error naming the file."""
+    the steering limit changed back (CommonRoad's planner given the library's default car again, the
+    reference planner its following before v38), nothing else; a missing base, a loop or a base that
+    is no path is one clear error naming the file."""
     from deft_gym.config import CONFIG_DIR
 
     for name, base in (("legacy", "default"), ("commonroad_legacy", "commonroad")):
@@ -106,9 +107,11 @@ def test_an_ads_config_can_build_on_another(tmp_path: Path) -> None:
         if name == "commonroad_legacy":  # the library's default car: CommonRoadParams' defaults
             from deft_gym.planner.commonroad import CommonRoadParams
 
-            car = {k: CommonRoadParams.model_fields[k].default for k in theirs.planning.planner.params}
-            planner = theirs.planning.planner.model_copy(update={"params": car})
-            want = want.model_copy(update={"planning": theirs.planning.model_copy(update={"planner": planner})})
+            params = {k: CommonRoadParams.model_fields[k].default for k in theirs.planning.planner.params}
+        else:  # the reference planner's following before v38 (docs/planner.md, "Following")
+            params = {**theirs.planning.planner.params, "w_closing": 0.0, "follow_times": []}
+        planner = theirs.planning.planner.model_copy(update={"params": params})
+        want = want.model_copy(update={"planning": theirs.planning.model_copy(update={"planner": planner})})
         assert ours.model_dump() == want.model_dump()
     (tmp_path / "a.yaml").write_text("base: b.yaml\n")
     (tmp_path / "b.yaml").write_text("base: a.yaml\n")
