@@ -167,10 +167,10 @@ def _suite(args: argparse.Namespace, console: Any, runs: list[tuple[Any, dict[st
     rows = []
     with Executor(Backend("local", workers), initializer=init_pool_worker, initargs=(workers,)) as ex:
         ran = ex.map(_suite_item, [(item_args, ads, *item) for item in todo])
+        fresh_folders = {folder for _, _, folder in todo}
         for k, ((scenario, _), folder) in enumerate(zip(runs, folders, strict=True)):
-            fresh = bool(todo) and todo[0][2] == folder
-            if fresh:  # run now (the next result of the map, in order)
-                todo.pop(0)
+            fresh = folder in fresh_folders
+            if fresh:  # run now: the map yields in the order of todo, which is the suite's
                 next(ran)
             console.print(f"[{k + 1}/{len(runs)}] {scenario.name}" + ("" if fresh else " (done before with the same code and config: kept)"),
                           highlight=False)

@@ -746,8 +746,9 @@ class LatticePlanner(Planner):
             dist = s_e - s0
             if dist <= 0.05:
                 continue
-            for f in p.stop_time_factors if T_fixed is None else (None,):
-                T = f * 2.0 * dist / max(v0 + v_e, 0.5) if T_fixed is None else T_fixed
+            durations = [f * 2.0 * dist / max(v0 + v_e, 0.5) for f in p.stop_time_factors] if T_fixed is None \
+                else [T_fixed]
+            for T in durations:
                 ti.append(_grid_index((T - 1.0) * 10.0, last_T))  # nearest grid T
                 ds.append(dist)
                 rv.append(v_e)
