@@ -61,6 +61,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
     wrong_way = (header.get("oracle") or {}).get("wrong_way")
     stall = (header.get("oracle") or {}).get("stall")
     off_road = (header.get("oracle") or {}).get("off_road")
+    near_miss = (header.get("oracle") or {}).get("near_miss")
     coll = summary.get("collision")
     outcome = summary.get("outcome") or "unknown"
     if coll:
@@ -86,6 +87,11 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
         o = off_road
         lines.append(f"P_off_road: frame {o['index']} (t={o['time']:.3f} s) plans the ego's box {o['depth']:.2f} m outside "
                      f"the drivable area (limit {o['limit']:.2f} m) where the ego left it at t={o['left_at']:.2f} s")
+    if near_miss:
+        n = near_miss
+        lines.append(f"P_near_miss: frame {n['index']} (t={n['time']:.3f} s) plans the ego's box {n['gap']:.2f} m from "
+                     f"{n['participant']} at t={n['point_time']:.2f} s (clearance {n['clearance']:.2f} m); the ego "
+                     f"passed it {n['close_gap']:.2f} m away at t={n['close_at']:.2f} s")
     if stall:
         lines.append(f"P_stall : frame {stall['index']} (t={stall['time']:.3f} s) plans {stall['travel']:.3f} m of path "
                      f"(limit {stall['limit']:.2f} m), the first of the {stall['standing_plans']} standing plans that "
@@ -137,7 +143,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
             problem = EPISODE.faulty_hit(index)
             assert problem is None, problem
         '''
-    for oracle, test, doc in _more_failure_tests(departure, stall, wrong_way, off_road):
+    for oracle, test, doc in _more_failure_tests(departure, stall, wrong_way, off_road, near_miss):
         src += f'''
 
         @pytest.mark.parametrize("index", EPISODE.{oracle}_cases())
@@ -151,7 +157,8 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
 
 def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] | None,
                         wrong_way: dict[str, Any] | None,
-                        off_road: dict[str, Any] | None) -> list[tuple[str, str, str]]:
+                        off_road: dict[str, Any] | None,
+                        near_miss: dict[str, Any] | None) -> list[tuple[str, str, str]]:
     """``(oracle, test name, docstring)`` of each failure test but P_faulty's that the episode has
     (its ``EpisodeReplay`` methods are ``<oracle>_cases`` and ``<oracle>_problem``)."""
     tests = []
@@ -177,4 +184,11 @@ def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] 
                       f"            {off_road['limit']:g} m outside the road where the system-level run left it (P_off_road, the\n"
                       f"            plan that took it there; points within {off_road['radius']:g} m of that place); passes once\n"
                       "            the plan keeps on the road there."))
+    if near_miss:
+        tests.append(("near_miss", "keeps_its_distance",
+                      "Near miss: fails while the planner still plans the ego's box within\n"
+                      f"            {near_miss['clearance']:g} m of the participant the system-level run passed that close, faster\n"
+                      f"            than {near_miss['speed']:g} m/s relative to it (P_near_miss, the first plan of the run that\n"
+                      "            put it there; the participant at its recorded positions); passes once the plan keeps\n"
+                      "            its distance. Whether the ego could have kept it is the reader's call."))
     return tests

@@ -31,6 +31,7 @@ from extract.oracle import (
     ego_size,
     find_departure,
     find_faulty,
+    find_near_miss,
     find_off_road,
     find_stall,
     find_wrong_way,
@@ -38,6 +39,7 @@ from extract.oracle import (
     map_lanes,
     optimal_path,
     participant_track,
+    participant_tracks,
 )
 from extract.runtime import FORMAT, finite_or_none
 from extract.search import FrameChoice, InputSearch, SearchConfig
@@ -189,7 +191,8 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     for key, found in (("departure", _departure(elog, mp, outputs)),
                        ("stall", {"stall": find_stall(outputs)} if stuck else None),
                        ("wrong_way", _wrong_way(elog, mp, outputs)),
-                       ("off_road", _off_road(elog, mp, outputs, ego))):
+                       ("off_road", _off_road(elog, mp, outputs, ego)),
+                       ("near_miss", _near_miss(elog, mp, outputs, ego, outcome))):
         if found is None or found[key] is None:
             continue
         target = found[key]
@@ -467,19 +470,21 @@ def map_payload(elog: EpisodeLog, mp: TopicMapping) -> dict[str, Any] | None:
 
 def ego_poses(elog: EpisodeLog, mp: TopicMapping) -> dict[str, list[float]] | None:
     """The ego's poses from the log's ``localization`` role: ``t`` (the pose's ``header.stamp``,
-    sim time [s] as the frame times, not the log's time), ``x``, ``y`` [m], ``heading`` [rad];
-    poses without them are skipped. None when the log has no such topic."""
+    sim time [s] as the frame times, not the log's time), ``x``, ``y`` [m], ``heading`` [rad], ``v``
+    [m/s] (0 where a pose has none); poses without the others are skipped. None when the log has
+    no such topic."""
     locs = elog.topics.get(mp.topic("localization") or "")
     if locs is None:
         return None
-    poses: dict[str, list[float]] = {"t": [], "x": [], "y": [], "heading": []}
+    poses: dict[str, list[float]] = {"t": [], "x": [], "y": [], "heading": [], "v": []}
     for i in range(len(locs)):
         pose = locs.payload(i)
         try:
-            txyh = [float(pose["header"]["stamp"]), float(pose["x"]), float(pose["y"]), float(pose["heading"])]
-        except (KeyError, TypeError, ValueError):
+            values = [float(pose["header"]["stamp"]), float(pose["x"]), float(pose["y"]), float(pose["heading"]),
+                      float(pose.get("v") or 0.0)]
+        except (KeyError, TypeError, ValueError, AttributeError):
             continue
-        for key, v in zip(("t", "x", "y", "heading"), txyh):
+        for key, v in zip(poses, values):
             poses[key].append(v)
     return poses
 
@@ -499,6 +504,26 @@ def _off_road(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float
         return None
     return {"off_road": found, "off_road_map": {"lanes": [
         {k: lane[k] for k in ("x", "y", "width", "junction") if k in lane} for lane in payload["lanes"]]}}
+
+
+def _near_miss(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]], ego: tuple[float, float],
+               outcome: Any) -> dict[str, Any] | None:
+    """The oracle of passing a participant too close (``near_miss``, P_near_miss, with the
+    participant's perceived track) when the log holds the ego's poses and the perceived obstacles
+    (the mapping's ``localization`` and ``perception_obstacles`` roles) and the ego's box came
+    within :data:`~extract.oracle.NEAR_MISS_CLEARANCE` m of a participant's, faster than
+    :data:`~extract.oracle.NEAR_MISS_SPEED` m/s relative to it, where the plans before had put it;
+    the participant the run collided with is P_faulty's, not this oracle's; else None."""
+    poses = ego_poses(elog, mp)
+    topic = elog.topics.get(mp.topic("perception_obstacles") or "")
+    if poses is None or topic is None:
+        return None
+    tracks = participant_tracks(topic.payload(i) for i in range(len(topic)))
+    coll = outcome.get("collision") if isinstance(outcome, dict) else None
+    if isinstance(coll, dict):
+        tracks.pop(coll.get("participant_num"), None)
+    found = find_near_miss(outputs, poses, tracks.values(), ego)
+    return {"near_miss": found} if found is not None else None
 
 
 def _summary(elog: EpisodeLog, log_path: Path, scenario: str, meta: dict[str, Any], outcome: dict[str, Any],

@@ -66,22 +66,39 @@ class Track:
 def participant_track(messages: Iterable[Mapping[str, Any] | None], num: int, participant: str = "") -> Track | None:
     """The states of obstacle ``num`` in perception-obstacle payloads (``header.stamp``,
     ``obstacles[].{id, x, y, heading, v, length, width}``), or None when it never appears."""
-    rows: dict[float, tuple[float, float, float, float, float, float]] = {}
+    track = participant_tracks(messages, {num}).get(num)
+    if track is not None:
+        track.participant = participant
+    return track
+
+
+def participant_tracks(messages: Iterable[Mapping[str, Any] | None], nums: set[int] | None = None
+                       ) -> dict[int, Track]:
+    """The tracks of every obstacle of perception-obstacle payloads (of ``nums`` only, when
+    given), by id, in one pass; each named by its id and ``type`` (``"3 (CONE)"``)."""
+    rows: dict[int, dict[float, tuple[float, float, float, float, float, float]]] = {}
+    kinds: dict[int, str] = {}
     for m in messages:
         if not m:
             continue
         stamp = (m.get("header") or {}).get("stamp")
+        if stamp is None:
+            continue
         for ob in m.get("obstacles") or ():
-            if ob.get("id") == num and stamp is not None:
-                rows[float(stamp)] = (ob["x"], ob["y"], ob.get("heading", 0.0), ob.get("v", 0.0),
-                                      ob.get("length", 0.0), ob.get("width", 0.0))
-                break
-    if not rows:
-        return None
-    ts = sorted(rows)
-    a = np.array([rows[t] for t in ts], dtype=float)
-    return Track(participant, num, np.array(ts), a[:, 0], a[:, 1], a[:, 2], a[:, 3],
-                 float(a[-1, 4]), float(a[-1, 5]))
+            num = ob.get("id")
+            if not isinstance(num, int) or (nums is not None and num not in nums):
+                continue
+            rows.setdefault(num, {}).setdefault(float(stamp), (ob["x"], ob["y"], ob.get("heading", 0.0),
+                                                               ob.get("v", 0.0), ob.get("length", 0.0),
+                                                               ob.get("width", 0.0)))
+            kinds.setdefault(num, str(ob.get("type", "")))
+    tracks = {}
+    for num, by_time in rows.items():
+        ts = sorted(by_time)
+        a = np.array([by_time[t] for t in ts], dtype=float)
+        tracks[num] = Track(f"{num} ({kinds[num]})" if kinds[num] else str(num), num, np.array(ts), a[:, 0],
+                            a[:, 1], a[:, 2], a[:, 3], float(a[-1, 4]), float(a[-1, 5]))
+    return tracks
 
 
 def boxes_overlap(ax: np.ndarray, ay: np.ndarray, ah: np.ndarray, a_len: float, a_wid: float,
@@ -97,6 +114,29 @@ def boxes_overlap(ax: np.ndarray, ay: np.ndarray, ah: np.ndarray, a_len: float, 
             & (np.abs(dy * ca - dx * sa) <= wa + lb * srel + wb * crel)
             & (np.abs(dx * cb + dy * sb) <= lb + la * crel + wa * srel)
             & (np.abs(dy * cb - dx * sb) <= wb + la * srel + wa * crel))
+
+
+def box_corners(x: np.ndarray, y: np.ndarray, heading: np.ndarray, size: tuple[float, float]) -> np.ndarray:
+    """Corners ``(..., 4, 2)`` [m], in order around each box, of boxes of ``size`` (length, width
+    [m]) centred at ``x``, ``y`` [m] with ``heading`` [rad]."""
+    c, s = np.cos(heading), np.sin(heading)
+    ux, uy, vx, vy = c * size[0] / 2, s * size[0] / 2, -s * size[1] / 2, c * size[1] / 2
+    cx = np.stack([x + ux + vx, x + ux - vx, x - ux - vx, x - ux + vx], axis=-1)
+    cy = np.stack([y + uy + vy, y + uy - vy, y - uy - vy, y - uy + vy], axis=-1)
+    return np.stack([cx, cy], axis=-1)
+
+
+def box_gaps(ax: np.ndarray, ay: np.ndarray, ah: np.ndarray, a_size: tuple[float, float],
+             bx: np.ndarray, by: np.ndarray, bh: np.ndarray, b_size: tuple[float, float]) -> np.ndarray:
+    """Distance [m] between oriented boxes A and B (sizes: length, width [m]), element-wise; 0
+    where they touch or overlap (shapely)."""
+    import shapely
+
+    if not len(ax):
+        return np.zeros(0)
+    a = shapely.polygons(box_corners(ax, ay, ah, a_size))
+    b = shapely.polygons(box_corners(bx, by, bh, b_size))
+    return np.asarray(shapely.distance(a, b), dtype=float)
 
 
 def overlapping_points(trajectory: Mapping[str, Sequence[float]], track: Track, ego: tuple[float, float]) -> np.ndarray:
@@ -384,10 +424,8 @@ def off_road_depths(trajectory: Mapping[str, Any], area: Any, ego: tuple[float, 
     h = np.asarray(trajectory.get("heading") or [0.0] * len(x), float)
     if not len(x):
         return np.zeros(0)
-    c, s = np.cos(h), np.sin(h)
-    ux, uy, vx, vy = c * ego[0] / 2, s * ego[0] / 2, -s * ego[1] / 2, c * ego[1] / 2
-    cx = np.stack([x + ux + vx, x + ux - vx, x - ux - vx, x - ux + vx], axis=-1).ravel()
-    cy = np.stack([y + uy + vy, y + uy - vy, y - uy - vy, y - uy + vy], axis=-1).ravel()
+    corners = box_corners(x, y, h, ego)
+    cx, cy = corners[..., 0].ravel(), corners[..., 1].ravel()
     depth = np.zeros(len(cx))
     outside = ~shapely.contains_xy(area, cx, cy)
     if outside.any():
@@ -492,3 +530,81 @@ def find_stall(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], limit: f
     return {"index": int(index), "time": float(t), "travel": travel[standing[0]],
             "limit": float(limit), "standing_plans": len(standing),
             "dropped_plans": len(outputs) - standing[0] - len(standing), "last_time": float(outputs[-1][1])}
+
+
+# -- passing too close: a near miss ----------------------------------------------------------------
+NEAR_MISS_CLEARANCE = 0.5  #: [m] boxes closer than this pass too close (the TTC metric's near miss, NEAR_MISS)
+NEAR_MISS_SPEED = 2.0  #: [m/s] ... while their velocities differ by more than this (a queue, a follower: no near miss)
+NEAR_MISS_SUBSTEPS = 4  #: states checked between two of a plan's points or poses
+
+
+def near_gaps(states: Mapping[str, Sequence[float]], track: Track, ego: tuple[float, float],
+              speed: float = NEAR_MISS_SPEED, reach: float = NEAR_MISS_CLEARANCE,
+              substeps: int = NEAR_MISS_SUBSTEPS) -> np.ndarray:
+    """Per ego state (``t`` [s], ``x``, ``y`` [m], ``heading`` [rad], ``v`` [m/s]: a plan's points or
+    the localization poses): the smallest gap [m] between the ego's box and the participant's
+    recorded box from that state to the next, both interpolated at ``substeps`` times between
+    (a car passing at 6 m/s moves 1.2 m between the 0.2 s points of a plan); inf where the
+    participant is not known then, their velocities differ by ``speed`` or less, or their centres
+    are too far apart for a gap under ``reach``."""
+    n = len(states.get("t") or ())
+    if not n:
+        return np.zeros(0)
+    at = np.linspace(0.0, n - 1.0, (n - 1) * substeps + 1)
+    grid = np.arange(n, dtype=float)
+
+    def fine(key: str, unwrap: bool = False) -> np.ndarray:
+        values = np.asarray(states.get(key) or [0.0] * n, float)
+        return np.interp(at, grid, np.unwrap(values) if unwrap else values)
+
+    t, x, y, h, v = fine("t"), fine("x"), fine("y"), fine("heading", True), fine("v")
+    px, py, ph, known = track.at(t)
+    pv = np.interp(t, track.t, track.v)
+    relative = np.hypot(v * np.cos(h) - pv * np.cos(ph), v * np.sin(h) - pv * np.sin(ph))
+    reach_c = (math.hypot(*ego) + math.hypot(track.length, track.width)) / 2 + reach
+    near = np.flatnonzero(known & (relative > speed) & (np.hypot(px - x, py - y) < reach_c))
+    gaps = np.full(len(t), np.inf)
+    gaps[near] = box_gaps(x[near], y[near], h[near], ego, px[near], py[near], ph[near],
+                          (track.length, track.width))
+    return np.minimum.reduceat(gaps, np.arange(n) * substeps)
+
+
+def find_near_miss(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], poses: Mapping[str, Sequence[float]],
+                   tracks: Iterable[Track], ego: tuple[float, float], clearance: float = NEAR_MISS_CLEARANCE,
+                   speed: float = NEAR_MISS_SPEED) -> dict[str, Any] | None:
+    """P_near_miss, the plan that took the ego past a participant too close: find the first ego pose
+    (``poses``: ``t`` [s], ``x``, ``y`` [m], ``heading`` [rad], ``v`` [m/s], the localization
+    messages) whose box came within ``clearance`` of a participant's (``tracks``, perceived) while
+    their velocities differed by more than ``speed``; then, from the last plan published before it,
+    walk back through the unbroken run of plans that each put the ego's box that close to the same
+    participant at its recorded position at the planned time; the first of that run (as
+    :func:`find_off_road`). None when the ego never came that close, or the last plan before did
+    not plan it (the vehicle left its plan, or the participant moved into the ego's way unforeseen
+    by the plans' times)."""
+    close = None  # (time, pose, gap, track) of the earliest close approach
+    for track in tracks:
+        gaps = near_gaps(poses, track, ego, speed, clearance)
+        hit = np.flatnonzero(gaps < clearance)
+        if len(hit) and (close is None or poses["t"][hit[0]] < close[0]):
+            close = (float(poses["t"][hit[0]]), int(hit[0]), float(gaps[hit[0]]), track)
+    if close is None:
+        return None
+    t_close, pose, gap_close, track = close
+
+    def planned(k: int) -> tuple[int, float]:
+        gaps = near_gaps(outputs[k][2].get("trajectory") or {}, track, ego, speed, clearance)
+        j = int(np.argmin(gaps)) if len(gaps) else -1
+        return j, float(gaps[j]) if j >= 0 else math.inf
+
+    first = None  # (plan, (point, gap)) of the earliest plan of the run so far
+    k = sum(1 for _, t, _ in outputs if t < t_close) - 1  # the last plan before the ego came close
+    while k >= 0 and (hit := planned(k))[1] < clearance:
+        first, k = (k, hit), k - 1
+    if first is None:
+        return None
+    (index, t, out), (point, gap) = outputs[first[0]], first[1]
+    tr = out["trajectory"]
+    return {"index": int(index), "time": float(t), "point": point, "point_time": float(tr["t"][point]),
+            "gap": gap, "clearance": float(clearance), "speed": float(speed), "participant": track.participant,
+            "track": track.as_dict(), "ego": {"length": ego[0], "width": ego[1]}, "close_at": t_close,
+            "close_gap": gap_close, "close_x": float(poses["x"][pose]), "close_y": float(poses["y"][pose])}

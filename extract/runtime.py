@@ -436,6 +436,31 @@ class EpisodeReplay:
                 f"(limit {float(w['limit']):.2f} m) at ({tr['x'][k]!r}, {tr['y'][k]!r}) at t={tr['t'][k]!r} s, "
                 f"{float(w['radius']):g} m or less from where the run left the road")
 
+    # -- the near-miss test ------------------------------------------------------------------------
+    def near_miss_cases(self) -> list[Any]:
+        """The P_near_miss frame as one ``pytest.param`` named by frame and time."""
+        return self._oracle_case("near_miss", "near-miss")
+
+    def near_miss_problem(self, index: int) -> str | None:
+        """Why the replayed output of frame ``index`` still plans the ego's box within the
+        clearance of the participant it passed too close in the run (at its recorded position at
+        the planned time, relative speed above the oracle's), or None."""
+        from extract.oracle import near_gaps
+
+        w, out = self._oracle_replay("near_miss", index)
+        if out is None:
+            return None
+        tr = out.get("trajectory") or {}
+        ego = (float(w["ego"]["length"]), float(w["ego"]["width"]))
+        gaps = near_gaps(tr, Track.from_dict(w["track"]), ego, float(w["speed"]), float(w["clearance"]))
+        k = int(gaps.argmin()) if len(gaps) else -1
+        if k < 0 or gaps[k] >= float(w["clearance"]):
+            return None
+        return (self._notes() + f"the planner still plans the ego past {w['participant']} too close: frame {index} "
+                f"(t={self.frame(index)['time']:.3f} s) plans the ego's box {gaps[k]:.2f} m from it (clearance "
+                f"{float(w['clearance']):.2f} m, relative speed above {float(w['speed']):g} m/s) at "
+                f"({tr['x'][k]!r}, {tr['y'][k]!r}) at t={tr['t'][k]!r} s")
+
     # -- the stuck test ----------------------------------------------------------------------------
     def stall_cases(self) -> list[Any]:
         """The P_stall frame as one ``pytest.param`` named by frame and time."""

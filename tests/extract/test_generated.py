@@ -230,3 +230,27 @@ def test_a_stuck_run_gets_a_test_that_the_planner_plans_progress(tmp_path: Path)
     assert row is not None and row["frame"] == stall["index"] and row["speed"] > 0.0
     assert row["outside_lanes_m2"] == 0.0
     assert row["variants"][0]["decision"] == row["recorded"] != "no output"
+
+
+def test_a_pass_too_close_gets_a_near_miss_test(tmp_path: Path) -> None:
+    """P_near_miss: a planner that goes straight on along its lane's centre (tests.support's
+    StraightPlanner) passes a cone standing 1.75 m off that centre (its box 0.45 m from the ego's)
+    at 8 m/s; the extraction finds the first plan of the run that planned the pass that close, and
+    the generated test fails every time on that planner and passes on the reference planner, which
+    keeps 0.9 m away."""
+    from deft_gym.scenarios.scenario import load_scenario, scenario_from_dict, scenario_to_dict
+    from tests.support.extract_support import record
+
+    data = scenario_to_dict(load_scenario("lane_follow_static"))
+    data.update(duration=8.0, name="lane_follow_cone")
+    data["participants"] = [dict(data["participants"][0], d=-1.75)]
+    log = record(tmp_path / "log", scenario_from_dict(data, source="test"), seed=7,
+                 planner_class="tests.support.extract_support:StraightPlanner")
+    res = extract_episode(log, tmp_path / "tests")
+    header = json.loads(res.frames_path.read_text().splitlines()[0])
+    near = header["oracle"]["near_miss"]
+    assert near["participant"] == "1 (CONE)" and near["gap"] < near["clearance"] == 0.5
+    assert near["time"] < near["point_time"] and near["close_gap"] < 0.5 and 4.0 < near["close_at"] < 5.0
+    assert "P_near_miss: frame" in res.test_path.read_text()
+    _fails_every_time_and_passes_on_the_reference(res.test_path.parent, "keeps_its_distance",
+                                                  "still plans the ego past 1 (CONE) too close")

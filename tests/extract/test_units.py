@@ -15,7 +15,16 @@ import yaml
 from deft_gym.planner.lattice import LatticePlanner
 from extract.emit import slug
 from extract.mapping import DEFAULT_MAPPING, MappingError, get_field, input_roles, load_mapping
-from extract.oracle import Track, boxes_overlap, find_faulty, first_overlaps, overlapping_points
+from extract.oracle import (
+    Track,
+    box_gaps,
+    boxes_overlap,
+    find_faulty,
+    find_near_miss,
+    first_overlaps,
+    near_gaps,
+    overlapping_points,
+)
 from extract.search import InputSearch, SearchConfig
 from extract.validator import (
     Tolerances,
@@ -360,3 +369,57 @@ def test_p_stall_is_the_first_of_the_standing_plans_that_end_a_stuck_run() -> No
     flicker = [*outs[:6], (6, 0.6, plan(9.2, 9.6)), (7, 0.7, plan(9.2, 0.0))]
     stall = find_stall(flicker)
     assert stall is not None and (stall["index"], stall["standing_plans"], stall["dropped_plans"]) == (4, 3, 1)
+
+
+def test_box_gaps_are_the_distances_between_oriented_boxes() -> None:
+    """Side by side 1 m apart, overlapping (0), and a box turned 90 deg: exact distances [m]."""
+    gaps = box_gaps(np.zeros(3), np.zeros(3), np.zeros(3), (4.0, 2.0),
+                    np.array([0.0, 1.0, 3.5]), np.array([3.0, 0.5, 0.0]), np.array([0.0, 0.0, math.pi / 2]), (4.0, 2.0))
+    assert gaps == pytest.approx([1.0, 0.0, 0.5])  # the turned box spans x 2.5..4.5, the ego's front is at 2
+    corner = box_gaps(np.zeros(1), np.zeros(1), np.zeros(1), (4.0, 2.0), np.array([5.0]), np.array([5.0]),
+                      np.zeros(1), (4.0, 2.0))
+    assert corner == pytest.approx([math.hypot(1.0, 3.0)])  # corner to corner: (2, 1) to (3, 4)
+
+
+def _static(x: float, y: float, size: float = 0.6) -> Track:
+    return Track("1 (CONE)", 1, np.array([0.0, 10.0]), np.array([x, x]), np.array([y, y]), np.zeros(2),
+                 np.zeros(2), size, size)
+
+
+def test_near_gaps_count_a_fast_pass_not_a_slow_one_and_see_between_points() -> None:
+    """A plan along y = 0 at 8 m/s passes a cone whose box edge is 1.3 m off the line: 0.3 m from
+    the ego's 2 m wide box; the same plan at 1 m/s is no near miss (the relative speed); a car
+    crossing between two 0.5 s points is seen by the sub-steps alone."""
+    t = np.arange(0.0, 4.01, 0.5)
+    plan = {"t": t.tolist(), "x": (8.0 * t).tolist(), "y": [0.0] * len(t), "heading": [0.0] * len(t),
+            "v": [8.0] * len(t)}
+    gaps = near_gaps(plan, _static(16.0, 1.6), (4.8, 2.0))
+    assert gaps.min() == pytest.approx(0.3)
+    slow = {**plan, "x": t.tolist(), "v": [1.0] * len(t)}
+    assert np.isinf(near_gaps(slow, _static(2.0, 1.6), (4.8, 2.0))).all()
+    crossing = Track("2 (VEHICLE)", 2, np.array([0.0, 2.0]), np.array([9.0, 9.0]), np.array([-20.0, 20.0]),
+                     np.full(2, math.pi / 2), np.full(2, 20.0), 4.8, 2.0)  # at x = 9 m, y = 0 at t = 1.0 s
+    stand = {"t": [0.75, 1.25], "x": [5.0, 5.0], "y": [0.0, 0.0], "heading": [0.0, 0.0], "v": [0.0, 0.0]}
+    assert near_gaps(stand, crossing, (4.8, 2.0), substeps=1)[0] > 0.5
+    assert near_gaps(stand, crossing, (4.8, 2.0))[0] == pytest.approx(0.6)  # the ego's front at 7.4, the car's side at 8
+
+
+def test_p_near_miss_is_the_first_of_the_plans_that_led_to_the_close_pass() -> None:
+    """Plans from 1 s on hold the line of a cone 0.3 m off the ego's box, the one before swerved
+    round it; the ego passes it at 0.3 m at t = 2 s: P_near_miss is the plan at 1 s. A run that
+    never came close has none."""
+    cone = _static(16.0, 1.6)
+
+    def plan(t0: float, y: float) -> dict[str, Any]:
+        t = t0 + np.arange(0.0, 4.01, 0.5)
+        return {"trajectory": {"t": t.tolist(), "x": (8.0 * t).tolist(), "y": [y] * len(t),
+                               "heading": [0.0] * len(t), "v": [8.0] * len(t)}}
+
+    outputs = [(0, 0.0, plan(0.0, 0.0)), (1, 0.5, plan(0.5, -1.0))] + [(k, 0.5 * k, plan(0.5 * k, 0.0)) for k in (2, 3, 4)]
+    tp = np.arange(0.0, 3.0, 0.05)
+    poses = {"t": tp.tolist(), "x": (8.0 * tp).tolist(), "y": [0.0] * len(tp), "heading": [0.0] * len(tp),
+             "v": [8.0] * len(tp)}
+    found = find_near_miss(outputs, poses, [cone], (4.8, 2.0))
+    assert found is not None and found["index"] == 2 and found["gap"] == pytest.approx(0.3)
+    assert 1.4 < found["close_at"] < 2.0 and found["participant"] == "1 (CONE)"
+    assert find_near_miss(outputs, {**poses, "y": [-1.0] * len(tp)}, [cone], (4.8, 2.0)) is None

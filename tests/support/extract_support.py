@@ -172,3 +172,21 @@ class StallingPlanner(_BrokenFrom):
             tr[key] = [tr[key][0]] * len(tr[key])
         tr["v"] = [0.0] * len(tr["v"])
         tr["a"] = [0.0] * len(tr["a"])
+
+
+class StraightPlanner(_BrokenFrom):
+    """A deliberately broken planner for roads along x: every plan goes straight on along the
+    line y = ``LINE_Y`` (lane_follow_static's left lane centre), heading 0, from its first point's
+    x over the path lengths the reference planner chose - it never steers round what stands at
+    the edge of its lane."""
+
+    LINE_Y = 0.0  # [m]
+
+    def break_plan(self, tr: dict[str, Any]) -> None:
+        import math
+
+        steps = [math.hypot(tr["x"][k] - tr["x"][k - 1], tr["y"][k] - tr["y"][k - 1]) for k in range(1, len(tr["x"]))]
+        for k, step in enumerate(steps, start=1):
+            tr["x"][k] = tr["x"][k - 1] + step
+        tr["y"] = [self.LINE_Y] * len(tr["y"])
+        tr["heading"] = [0.0] * len(tr["heading"])
