@@ -46,6 +46,7 @@ from deft_gym.metrics.oracle import (
     seed_finding,
     severity,
     severity_growth,
+    unmutated_finding,
     violated,
 )
 from deft_gym.search.context import SeedContext
@@ -131,23 +132,29 @@ def oracle_columns(ctx: SeedContext, m: EpisodeMetrics, valid: bool, oracle: str
                    rng: np.random.Generator, added_at: dict[str, float] | None = None,
                    count: tuple[str, ...] = (), jitter_seed: int = 0) -> tuple[dict[str, Any], float, float, int]:
     """The record's ``metric_*`` columns, and with a metric ``oracle`` its finding
-    (``oracle_signature``: on a valid mutation) and ``oracle_confirmed`` (re-checked on a jitter
+    (``oracle_signature``: on a valid mutation, not one the seed's unmutated runs have -
+    :func:`~deft_gym.metrics.oracle.unmutated_finding`, then ``unmutated_signature``) and ``oracle_confirmed`` (re-checked on a jitter
     seed drawn from ``rng`` - only then - :func:`deft_gym.metrics.oracle.confirm_oracle`);
-    with ``count`` (oracles counted beside the aimed one) ``found_by_oracle`` and
-    ``confirmed_by_oracle``, re-checked together on one jitter seed derived from the run's
+    with ``count`` (oracles counted beside the aimed one) ``found_by_oracle`` (those the
+    unmutated runs have apart, in ``unmutated_by_oracle``) and ``confirmed_by_oracle``, re-checked together on one jitter seed derived from the run's
     ``jitter_seed`` (``rng`` untouched: the methods draw what they drew without counting);
     ``(columns, wall s, cpu s, extra simulations)``."""
     cols = record_columns(m)
     w = c = 0.0
     n = 0
     if count:
-        found = findings_by_oracle(ctx, valid, m, count)
+        raw = findings_by_oracle(ctx, valid, m, count)
+        found = {o: sig for o, sig in raw.items() if not unmutated_finding(ctx, o, sig)}
         ok_by, w, c = confirm_findings(ctx, found, specs, count_confirm_seed(jitter_seed), added_at)
         cols = {**cols, "counted_oracles": list(count), "found_by_oracle": found, "confirmed_by_oracle": ok_by}
+        if len(found) < len(raw):  # what the seed's unmutated runs do too: no finding, kept for the reader
+            cols["unmutated_by_oracle"] = {o: sig for o, sig in raw.items() if o not in found}
         n = int(bool(found))
     if oracle in DECISION_ORACLES:  # the decision oracle's findings are the record's own
         return ({**cols, "oracle": oracle} if oracle != "default" else cols), w, c, n
     sig = seed_finding(ctx, valid, m, oracle)
+    if sig is not None and unmutated_finding(ctx, oracle, sig):
+        cols["unmutated_signature"], sig = sig, None
     again = int(rng.integers(2**31 - 1))
     ok, w2, c2 = confirm_oracle(ctx, oracle, sig, specs, again, added_at)
     cols = {**cols, "oracle": oracle, "oracle_signature": sig, "oracle_confirmed": ok}

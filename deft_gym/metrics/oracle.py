@@ -11,6 +11,7 @@ collisions, docs/search.md).
 from __future__ import annotations
 
 import functools
+import json
 import math
 import time
 from pathlib import Path
@@ -27,8 +28,8 @@ from deft_gym.metrics.episode import (
     MetricsContext,
     episode_metrics,
 )
-from deft_gym.search.context import SeedContext, judge_hash
-from deft_gym.search.trace import Trace
+from deft_gym.search.context import FIT_RUNS, SeedContext, judge_hash
+from deft_gym.search.trace import CACHE_DIR, Trace, content_key, record_run
 
 #: the oracles a config may name (``default``: the decision oracle, no metric; ``any``: the
 #: decision oracle and every counted metric oracle together)
@@ -224,6 +225,54 @@ def findings_by_oracle(ctx: SeedContext, valid: bool, m: EpisodeMetrics, oracles
     """:func:`seed_finding` on each of ``oracles``: ``{oracle: signature}`` of those with a finding."""
     found = {o: seed_finding(ctx, valid, m, o) for o in oracles}
     return {o: sig for o, sig in found.items() if sig is not None}
+
+
+_UNMUTATED: dict[int, tuple[Any, dict[str, list[str]]]] = {}
+
+
+def unmutated_signatures(ctx: SeedContext, cache_dir: Path | str | None = CACHE_DIR) -> dict[str, list[str]]:
+    """Per counted metric oracle, the signatures of the seed's own unmutated runs on the fit
+    check's jitter seeds 1..:data:`~deft_gym.search.context.FIT_RUNS` (what the scenario does under
+    timing noise without any mutation; the reference run is one run of it); oracles none of them
+    violates are left out. Memoised per context and cached on disk (the scenario's content key
+    and :func:`oracle_code`)."""
+    hit = _UNMUTATED.get(id(ctx))
+    if hit is not None and hit[0] is ctx:
+        return hit[1]
+    key = f"{ctx.name}-{content_key(ctx.scenario, ctx.ads, 0)}-unmutated{FIT_RUNS}-{oracle_code()}"
+    path = Path(cache_dir) / f"{key}.json" if cache_dir else None
+    found: dict[str, list[str]] | None = None
+    if path is not None and path.exists():
+        try:
+            found = {str(o): [str(s) for s in sigs] for o, sigs in json.loads(path.read_text())["signatures"].items()}
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            found = None  # damaged: simulated again
+    if found is None:
+        by_oracle: dict[str, set[str]] = {}
+        for js in range(1, FIT_RUNS + 1):
+            m = run_metrics(ctx, record_run(ctx.scenario, ctx.ads, js), None)
+            for o in COUNTED_ORACLES:
+                sig = signature(m, o)
+                if sig is not None:
+                    by_oracle.setdefault(o, set()).add(sig)
+        found = {o: sorted(sigs) for o, sigs in by_oracle.items()}
+        if path is not None:
+            from deft_gym.files import write_json_atomic
+
+            write_json_atomic(path, {"signatures": found, "runs": FIT_RUNS})
+    if len(_UNMUTATED) > 512:
+        _UNMUTATED.clear()
+    _UNMUTATED[id(ctx)] = (ctx, found)
+    return found
+
+
+def unmutated_finding(ctx: SeedContext, oracle: str, sig: str) -> bool:
+    """Whether finding ``sig`` on ``oracle`` is one the seed's unmutated runs have too
+    (:func:`unmutated_signatures`) - on an :data:`UNSPECIFIC` oracle, any violation of it - and so
+    no finding of a mutation: CommonRoad's planner brakes beyond the comfort bound on take_exit at
+    some jitter seeds unmutated, while its reference run happened to stay inside."""
+    sigs = unmutated_signatures(ctx).get(oracle, [])
+    return bool(sigs) if oracle in UNSPECIFIC else sig in sigs
 
 
 def confirm_findings(ctx: SeedContext, found: dict[str, str], specs: list[dict[str, Any]], jitter_seed: int,

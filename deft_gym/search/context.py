@@ -50,6 +50,7 @@ TIME_FACTOR, TIME_SLACK = 1.5, 10.0  # [-], [s]: mutated runs last at most this 
 # [s] a mutated run whose ego stands this long, not held by a red light, is stuck. In 400 episodes
 # of random placements no run that went on to complete stood so for more than 1.75 s
 STUCK_TIME = 10.0
+FIT_RUNS = 8  # unmutated runs (jitter seeds 1..8) a seed scenario must pass to be fit (robust)
 
 
 def resolve_scenario(spec: str | Path | Scenario, strength: float = VARIANT_STRENGTH) -> Scenario:
@@ -229,7 +230,7 @@ def judge_hash(sources: Iterable[bytes | str]) -> str:
     return h.hexdigest()[:8]
 
 
-def robust(ctx: SeedContext, runs: int = 8, cache_dir: Path | str | None = CACHE_DIR) -> bool:
+def robust(ctx: SeedContext, runs: int = FIT_RUNS, cache_dir: Path | str | None = CACHE_DIR) -> bool:
     """Is the scenario an optimal-decision seed under timing noise? Its reference must not give up a
     lane change it began (:func:`~deft_gym.search.trace.aborted_changes`), and its unmutated runs
     with jitter seeds 1..``runs`` (8) must all complete without a collision and stay consistent

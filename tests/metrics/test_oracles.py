@@ -147,6 +147,32 @@ def test_counted_oracles_leave_the_search_as_it_was() -> None:
     assert counted[0]["found_by_oracle"]["ttc"] == "metric:ttc:seed:parked" and counted[0]["confirmed_by_oracle"]["ttc"]
 
 
+def test_what_the_unmutated_runs_do_counts_nothing(tmp_path, monkeypatch) -> None:
+    """The seed's unmutated runs on the fit check's jitter seeds are simulated once and their
+    signatures cached; a counted finding that one of them has (here the near miss of
+    test_counted_oracles_leave_the_search_as_it_was, as if an unmutated run had it) moves from
+    ``found_by_oracle`` to ``unmutated_by_oracle`` and costs no re-check; on comfort, which names
+    no participant, any unmutated violation rules its findings out."""
+    from agents.search import search
+    from deft_gym.metrics import oracle as mo
+    from deft_gym.search.context import FIT_RUNS, seed_context
+
+    ctx = seed_context("handwritten/parked_street")
+    monkeypatch.setattr(mo, "_UNMUTATED", {})
+    sigs = mo.unmutated_signatures(ctx, cache_dir=tmp_path)
+    assert [p.name.split("-")[-2] for p in tmp_path.glob("*.json")] == [f"unmutated{FIT_RUNS}"]
+    assert all(o in mo.COUNTED_ORACLES and s for o, s in sigs.items())
+    mo._UNMUTATED.clear()
+    monkeypatch.setattr(mo, "record_run", lambda *a, **k: pytest.fail("simulated again, not read from the cache"))
+    assert mo.unmutated_signatures(ctx, cache_dir=tmp_path) == sigs
+    mo._UNMUTATED[id(ctx)] = (ctx, {"ttc": ["metric:ttc:seed:parked"], "comfort": ["metric:comfort:lat_accel"]})
+    rec = next(iter(search("decictor", ctx, 1, seed=0, count=mo.COUNTED_ORACLES)))
+    assert "ttc" not in rec["found_by_oracle"] and "ttc" not in rec["confirmed_by_oracle"]
+    assert rec["unmutated_by_oracle"]["ttc"] == "metric:ttc:seed:parked"
+    assert mo.unmutated_finding(ctx, "comfort", "metric:comfort:lon_jerk")  # any comfort violation
+    assert not mo.unmutated_finding(ctx, "ttc", "metric:ttc:cone")  # another root cause still counts
+
+
 def test_the_union_oracle_rewards_each_finding_with_its_own_novelty() -> None:
     """``oracle: any``: the end bonus is the decision oracle's failure bonus plus one for each counted
     metric oracle's finding, each divided by sqrt(1 + n) for the n times this env was rewarded for
