@@ -342,8 +342,10 @@ def seed_problem(item: dict[str, Any]) -> str | None:
     (the medoid of five jitter seeds) does not complete its task, or only just arrives
     (:func:`~deft_gym.search.context.arrival_problem`), or it is not robust (its unmutated runs on
     jitter seeds 1-8 do not all complete consistently with the reference; skipped for the held-out
-    scenarios, chosen robust). Builds and caches what the jobs use (in a worker process)."""
+    scenarios, chosen robust). Builds and caches what the jobs use (in a worker process), with
+    metric oracles counted the signatures of those unmutated runs too."""
     from deft_gym.envs.adversary import load_env_config
+    from deft_gym.metrics.oracle import DECISION_ORACLES, unmutated_signatures
     from deft_gym.search.context import arrival_problem, robust
 
     try:
@@ -355,6 +357,8 @@ def seed_problem(item: dict[str, Any]) -> str | None:
     if item.get("check_robust", True) and not robust(ctx):
         return (f"scenario {ctx.name!r}: not robust on this planner: its unmutated runs on jitter seeds 1-8 do "
                 "not all complete consistently with the reference (or the reference gives up a lane change)")
+    if item.get("count") or item["env"].get("oracle", "default") not in DECISION_ORACLES:
+        unmutated_signatures(ctx)  # what those runs violate counts nothing there: cached before the jobs ask
     return None
 
 
@@ -667,7 +671,8 @@ def _evaluate(args: argparse.Namespace, con: Any, cfg: EvalConfig, backend: Any)
         bar = common.Bar(len(todo), "scenarios checked", common.show_progress(args))
         with Executor(backend, initializer=init_pool_worker, initargs=(cfg.workers,),
                       preload=("deft_gym.envs.adversary",), run_dir=out) as ex:
-            items = [{"scenario": s, "env": env, "check_robust": s not in held_out} for s in todo]
+            items = [{"scenario": s, "env": env, "check_robust": s not in held_out, "count": bool(cfg.count_oracles)}
+                     for s in todo]
             for name, problem in zip(todo, ex.map(seed_problem, items, progress=bar.update), strict=True):
                 if problem:
                     unfit[name] = problem
