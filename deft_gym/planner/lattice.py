@@ -849,7 +849,7 @@ class LatticePlanner(Planner):
         short = np.maximum(need - (rear_t - sva[0] - half), 0.0) / need
         need_now = max(p.follow_gap, p.headway_time * v0)
         short_now = max(need_now - (rear_now - s0 - half), 0.0) / need_now
-        return p.w_closing * np.maximum(short - short_now, 0.0).mean(axis=-1)
+        return p.w_closing * (np.maximum(short - short_now, 0.0).sum(axis=-1) / self.K)  # = .mean(-1), bit for bit
 
     def _curve_target(self, ref: _Ref, s0: float, v0: float) -> tuple[float | None, float]:
         """Where a curve ahead needs a lower speed than ``v0``, and that speed."""
