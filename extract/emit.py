@@ -62,6 +62,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
     stall = (header.get("oracle") or {}).get("stall")
     off_road = (header.get("oracle") or {}).get("off_road")
     near_miss = (header.get("oracle") or {}).get("near_miss")
+    red_light = (header.get("oracle") or {}).get("red_light")
     coll = summary.get("collision")
     outcome = summary.get("outcome") or "unknown"
     if coll:
@@ -92,6 +93,11 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
         lines.append(f"P_near_miss: frame {n['index']} (t={n['time']:.3f} s) plans the ego's box {n['gap']:.2f} m from "
                      f"{n['participant']} at t={n['point_time']:.2f} s (clearance {n['clearance']:.2f} m); the ego "
                      f"passed it {n['close_gap']:.2f} m away at t={n['close_at']:.2f} s")
+    if red_light:
+        r = red_light
+        lines.append(f"P_red_light: frame {r['index']} (t={r['time']:.3f} s, light {r['light']} {r['colour']}) plans the "
+                     f"ego's front over its stop line at t={r['point_time']:.2f} s, at red; the ego crossed it at "
+                     f"t={r['crossed_at']:.2f} s")
     if stall:
         lines.append(f"P_stall : frame {stall['index']} (t={stall['time']:.3f} s) plans {stall['travel']:.3f} m of path "
                      f"(limit {stall['limit']:.2f} m), the first of the {stall['standing_plans']} standing plans that "
@@ -143,7 +149,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
             problem = EPISODE.faulty_hit(index)
             assert problem is None, problem
         '''
-    for oracle, test, doc in _more_failure_tests(departure, stall, wrong_way, off_road, near_miss):
+    for oracle, test, doc in _more_failure_tests(departure, stall, wrong_way, off_road, near_miss, red_light):
         src += f'''
 
         @pytest.mark.parametrize("index", EPISODE.{oracle}_cases())
@@ -158,7 +164,8 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
 def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] | None,
                         wrong_way: dict[str, Any] | None,
                         off_road: dict[str, Any] | None,
-                        near_miss: dict[str, Any] | None) -> list[tuple[str, str, str]]:
+                        near_miss: dict[str, Any] | None,
+                        red_light: dict[str, Any] | None) -> list[tuple[str, str, str]]:
     """``(oracle, test name, docstring)`` of each failure test but P_faulty's that the episode has
     (its ``EpisodeReplay`` methods are ``<oracle>_cases`` and ``<oracle>_problem``)."""
     tests = []
@@ -191,4 +198,10 @@ def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] 
                       f"            than {near_miss['speed']:g} m/s relative to it (P_near_miss, the first plan of the run that\n"
                       "            put it there; the participant at its recorded positions); passes once the plan keeps\n"
                       "            its distance. Whether the ego could have kept it is the reader's call."))
+    if red_light:
+        tests.append(("red_light", "stops_at_red",
+                      "Red light: fails while the planner still plans the ego's front over the stop line that\n"
+                      "            the system-level run crossed at red, at a planned time when the light was red (P_red_light,\n"
+                      "            the first plan of the run that did, made after the light turned); passes once it\n"
+                      "            stops before the line or is over it before red."))
     return tests

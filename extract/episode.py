@@ -33,10 +33,13 @@ from extract.oracle import (
     find_faulty,
     find_near_miss,
     find_off_road,
+    find_red_light,
     find_stall,
     find_wrong_way,
+    light_timeline,
     map_area,
     map_lanes,
+    map_stop_lines,
     optimal_path,
     participant_track,
     participant_tracks,
@@ -192,7 +195,8 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
                        ("stall", {"stall": find_stall(outputs)} if stuck else None),
                        ("wrong_way", _wrong_way(elog, mp, outputs)),
                        ("off_road", _off_road(elog, mp, outputs, ego)),
-                       ("near_miss", _near_miss(elog, mp, outputs, ego, outcome))):
+                       ("near_miss", _near_miss(elog, mp, outputs, ego, outcome)),
+                       ("red_light", _red_light(elog, mp, outputs, ego))):
         if found is None or found[key] is None:
             continue
         target = found[key]
@@ -524,6 +528,23 @@ def _near_miss(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, floa
         tracks.pop(coll.get("participant_num"), None)
     found = find_near_miss(outputs, poses, tracks.values(), ego)
     return {"near_miss": found} if found is not None else None
+
+
+def _red_light(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]],
+               ego: tuple[float, float]) -> dict[str, Any] | None:
+    """The oracle of running a red light (``red_light``, P_red_light, with the stop line and its
+    light's recorded colours) when the log holds the map's stop lines, the ego's poses and the
+    light states (the mapping's ``map``, ``localization`` and ``traffic_light`` roles) and the
+    ego's front crossed a stop line at red where the plans made after the light turned had put it;
+    else None."""
+    lines = map_stop_lines(map_payload(elog, mp))
+    poses = ego_poses(elog, mp)
+    topic = elog.topics.get(mp.topic("traffic_light") or "")
+    if not lines or poses is None or topic is None:
+        return None
+    timelines = light_timeline(topic.payload(i) for i in range(len(topic)))
+    found = find_red_light(outputs, poses, lines, timelines, ego[0])
+    return {"red_light": found} if found is not None else None
 
 
 def _summary(elog: EpisodeLog, log_path: Path, scenario: str, meta: dict[str, Any], outcome: dict[str, Any],

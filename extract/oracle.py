@@ -608,3 +608,101 @@ def find_near_miss(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], pose
             "gap": gap, "clearance": float(clearance), "speed": float(speed), "participant": track.participant,
             "track": track.as_dict(), "ego": {"length": ego[0], "width": ego[1]}, "close_at": t_close,
             "close_gap": gap_close, "close_x": float(poses["x"][pose]), "close_y": float(poses["y"][pose])}
+
+
+# -- running a red light ---------------------------------------------------------------------------
+def map_stop_lines(map_payload: Mapping[str, Any] | None) -> list[dict[str, Any]]:
+    """The stop lines of a ``map`` message (``stop_lines[].{lane, x, y, light_id}``), each with its
+    lane's heading there (of the lane polyline's segment nearest to it) [rad] and half width [m]:
+    ``{"light", "x", "y", "heading", "half_width"}``; lines whose lane is not in the map are left out."""
+    lanes = {tuple(lane["id"]) if isinstance(lane.get("id"), list) else lane.get("id"): lane
+             for lane in (map_payload or {}).get("lanes") or ()}
+    out = []
+    for sl in (map_payload or {}).get("stop_lines") or ():
+        lane = lanes.get(tuple(sl["lane"]) if isinstance(sl.get("lane"), list) else sl.get("lane"))
+        if lane is None or len(lane.get("x") or ()) < 2:
+            continue
+        xy = np.column_stack([lane["x"], lane["y"]]).astype(float)
+        k = int(np.argmin(np.hypot(xy[:, 0] - sl["x"], xy[:, 1] - sl["y"])))
+        a, b = xy[max(k - 1, 0)], xy[min(k + 1, len(xy) - 1)]
+        out.append({"light": str(sl["light_id"]), "x": float(sl["x"]), "y": float(sl["y"]),
+                    "heading": math.atan2(b[1] - a[1], b[0] - a[0]), "half_width": 0.5 * float(lane["width"])})
+    return out
+
+
+def light_timeline(messages: Iterable[Mapping[str, Any] | None]) -> dict[str, dict[str, list[Any]]]:
+    """Each light's recorded colours from traffic-light payloads (``header.stamp``,
+    ``lights[].{id, color}``): ``{light: {"t": [s, ...], "color": [...]}}``, the changes only."""
+    out: dict[str, dict[str, list[Any]]] = {}
+    for m in messages:
+        stamp = ((m or {}).get("header") or {}).get("stamp")
+        for lt in (m or {}).get("lights") or ():
+            row = out.setdefault(str(lt["id"]), {"t": [], "color": []})
+            if stamp is not None and (not row["color"] or row["color"][-1] != lt["color"]):
+                row["t"].append(float(stamp))
+                row["color"].append(str(lt["color"]))
+    return out
+
+
+def colour_at(timeline: Mapping[str, Sequence[Any]], t: float) -> str | None:
+    """The light's colour recorded last at or before ``t`` [s] (None before its first record)."""
+    k = int(np.searchsorted(np.asarray(timeline["t"], float), t, side="right")) - 1
+    return str(timeline["color"][k]) if k >= 0 else None
+
+
+def red_crossings(states: Mapping[str, Sequence[float]], line: Mapping[str, Any], timeline: Mapping[str, Sequence[Any]],
+                  ego_length: float) -> np.ndarray:
+    """Indices of the ego states (``t`` [s], ``x``, ``y`` [m], ``heading`` [rad]: a plan's points or
+    the poses) at which the ego's front has just crossed the stop ``line`` (from before it, within
+    its lane's width, driving along the lane) while its light's recorded colour is RED - the
+    metric's red-light rule (CommonRoad's R_IN1)."""
+    t = np.asarray(states.get("t") or [], float)
+    if len(t) < 2:
+        return np.zeros(0, dtype=np.int64)
+    h = np.asarray(states["heading"], float)
+    fx = np.asarray(states["x"], float) + ego_length / 2 * np.cos(h)
+    fy = np.asarray(states["y"], float) + ego_length / 2 * np.sin(h)
+    u, v = math.cos(line["heading"]), math.sin(line["heading"])
+    lon = (fx - line["x"]) * u + (fy - line["y"]) * v
+    lat = -(fx - line["x"]) * v + (fy - line["y"]) * u
+    cross = np.flatnonzero((lon[:-1] < 0.0) & (lon[1:] >= 0.0) & (np.abs(lat[1:]) <= line["half_width"])
+                           & (np.cos(h[1:] - line["heading"]) > 0.0)) + 1
+    return np.array([k for k in cross if colour_at(timeline, float(t[k])) == "RED"], dtype=np.int64)
+
+
+def find_red_light(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], poses: Mapping[str, Sequence[float]],
+                   lines: Sequence[Mapping[str, Any]], timelines: Mapping[str, Mapping[str, Sequence[Any]]],
+                   ego_length: float) -> dict[str, Any] | None:
+    """P_red_light, the plan that ran a red light: find the first ego pose (``poses``: ``t`` [s],
+    ``x``, ``y`` [m], ``heading`` [rad]) at which its front crossed a stop line (``lines``,
+    :func:`map_stop_lines`) at red (``timelines``, :func:`light_timeline`); then, from the last plan
+    published before it, walk back through the unbroken run of plans that each planned to cross
+    that line at red (the light's recorded colours at the planned times) and were made while it
+    showed yellow or red (the planner had seen it change: a plan made at green that the light
+    caught is no plan to run it); the first of that run. None when the ego never ran a red light
+    or the last plan before did not plan it."""
+    crossed = None  # (time, line) of the first red crossing
+    for line in lines:
+        timeline = timelines.get(line["light"])
+        hits = red_crossings(poses, line, timeline, ego_length) if timeline else ()
+        if len(hits) and (crossed is None or poses["t"][hits[0]] < crossed[0]):
+            crossed = (float(poses["t"][hits[0]]), line)
+    if crossed is None:
+        return None
+    t_cross, line = crossed
+    timeline = timelines[line["light"]]
+
+    def planned(k: int) -> np.ndarray:
+        return red_crossings(outputs[k][2].get("trajectory") or {}, line, timeline, ego_length)
+
+    first = None  # (plan, point) of the earliest plan of the run so far
+    k = sum(1 for _, t, _ in outputs if t < t_cross) - 1  # the last plan before the ego crossed
+    while k >= 0 and colour_at(timeline, outputs[k][1]) in ("YELLOW", "RED") and len(hit := planned(k)):
+        first, k = (k, int(hit[0])), k - 1
+    if first is None:
+        return None
+    (index, t, out), point = outputs[first[0]], first[1]
+    return {"index": int(index), "time": float(t), "point": point, "point_time": float(out["trajectory"]["t"][point]),
+            "light": line["light"], "colour": colour_at(timeline, t), "line": dict(line),
+            "timeline": {"t": list(timeline["t"]), "color": list(timeline["color"])}, "ego_length": float(ego_length),
+            "crossed_at": t_cross}

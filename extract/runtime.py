@@ -461,6 +461,29 @@ class EpisodeReplay:
                 f"{float(w['clearance']):.2f} m, relative speed above {float(w['speed']):g} m/s) at "
                 f"({tr['x'][k]!r}, {tr['y'][k]!r}) at t={tr['t'][k]!r} s")
 
+    # -- the red-light test ------------------------------------------------------------------------
+    def red_light_cases(self) -> list[Any]:
+        """The P_red_light frame as one ``pytest.param`` named by frame and time."""
+        return self._oracle_case("red_light", "red-light")
+
+    def red_light_problem(self, index: int) -> str | None:
+        """Why the replayed output of frame ``index`` still plans the ego's front over the stop line
+        the run crossed at red while its light is red (its recorded colours at the planned times),
+        or None."""
+        from extract.oracle import red_crossings
+
+        w, out = self._oracle_replay("red_light", index)
+        if out is None:
+            return None
+        tr = out.get("trajectory") or {}
+        hits = red_crossings(tr, w["line"], w["timeline"], float(w["ego_length"]))
+        if not len(hits):
+            return None
+        k = int(hits[0])
+        return (self._notes() + f"the planner still plans to run the red light {w['light']}: frame {index} "
+                f"(t={self.frame(index)['time']:.3f} s, the light {w['colour']}) plans the ego's front over its stop "
+                f"line at t={tr['t'][k]!r} s, when the light was red")
+
     # -- the stuck test ----------------------------------------------------------------------------
     def stall_cases(self) -> list[Any]:
         """The P_stall frame as one ``pytest.param`` named by frame and time."""

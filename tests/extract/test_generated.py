@@ -254,3 +254,25 @@ def test_a_pass_too_close_gets_a_near_miss_test(tmp_path: Path) -> None:
     assert "P_near_miss: frame" in res.test_path.read_text()
     _fails_every_time_and_passes_on_the_reference(res.test_path.parent, "keeps_its_distance",
                                                   "still plans the ego past 1 (CONE) too close")
+
+
+def test_a_red_light_run_gets_a_red_light_test(tmp_path: Path) -> None:
+    """P_red_light: a planner told every light is green (tests.support's GreenLightPlanner) drives
+    over blocked_red_light's stop line (its obstacles left out) at red; the extraction finds the
+    first plan, made after the light turned, that planned the crossing at red, and the generated
+    test fails every time on that planner and passes on the reference planner, which stops."""
+    from deft_gym.scenarios.scenario import load_scenario, scenario_from_dict, scenario_to_dict
+    from tests.support.extract_support import record
+
+    data = scenario_to_dict(load_scenario("blocked_red_light"))
+    data.update(duration=16.0, name="red_light_run", participants=[])
+    log = record(tmp_path / "log", scenario_from_dict(data, source="test"), seed=7,
+                 planner_class="tests.support.extract_support:GreenLightPlanner")
+    res = extract_episode(log, tmp_path / "tests")
+    header = json.loads(res.frames_path.read_text().splitlines()[0])
+    red = header["oracle"]["red_light"]
+    assert red["light"] == "tl0" and red["colour"] == "RED" and red["time"] < red["point_time"]
+    assert red["crossed_at"] > red["time"] >= 2.0  # the light turned red at 2 s; the ego crossed later
+    assert "P_red_light: frame" in res.test_path.read_text()
+    _fails_every_time_and_passes_on_the_reference(res.test_path.parent, "stops_at_red",
+                                                  "still plans to run the red light tl0")

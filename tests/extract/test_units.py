@@ -21,9 +21,11 @@ from extract.oracle import (
     boxes_overlap,
     find_faulty,
     find_near_miss,
+    find_red_light,
     first_overlaps,
     near_gaps,
     overlapping_points,
+    red_crossings,
 )
 from extract.search import InputSearch, SearchConfig
 from extract.validator import (
@@ -423,3 +425,29 @@ def test_p_near_miss_is_the_first_of_the_plans_that_led_to_the_close_pass() -> N
     assert found is not None and found["index"] == 2 and found["gap"] == pytest.approx(0.3)
     assert 1.4 < found["close_at"] < 2.0 and found["participant"] == "1 (CONE)"
     assert find_near_miss(outputs, {**poses, "y": [-1.0] * len(tp)}, [cone], (4.8, 2.0)) is None
+
+
+def test_p_red_light_is_the_first_plan_after_the_light_turned_that_runs_it() -> None:
+    """A stop line across y = 0 at x = 40 m, its light yellow from 1 s and red from 3 s; the ego
+    (front 2.4 m ahead of its centre) drives on at 10 m/s and crosses at 4 s. Plans made at green
+    are no plan to run the light even where they cross at red; P_red_light is the first plan made
+    at yellow of the run that crosses at red. Crossing before red, or backwards, is none."""
+    line = {"light": "tl", "x": 40.0, "y": 0.0, "heading": 0.0, "half_width": 1.75}
+    timeline = {"t": [0.0, 1.0, 3.0], "color": ["GREEN", "YELLOW", "RED"]}
+
+    def plan(t0: float) -> dict[str, Any]:
+        t = t0 + np.arange(0.0, 4.01, 0.25)
+        return {"trajectory": {"t": t.tolist(), "x": (10.0 * t - 2.4).tolist(), "y": [0.0] * len(t),
+                               "heading": [0.0] * len(t)}}
+
+    outputs = [(k, 0.5 * k, plan(0.5 * k)) for k in range(8)]
+    tp = np.arange(0.0, 5.0, 0.05)
+    poses = {"t": tp.tolist(), "x": (10.0 * tp - 2.4).tolist(), "y": [0.0] * len(tp), "heading": [0.0] * len(tp)}
+    assert list(red_crossings(poses, line, timeline, 4.8)) == [80]  # the front at x = 40 at t = 4 s
+    found = find_red_light(outputs, poses, [line], {"tl": timeline}, 4.8)
+    assert found is not None and found["index"] == 2 and found["colour"] == "YELLOW"  # made at 1.0 s
+    assert found["point_time"] == pytest.approx(4.0) and found["crossed_at"] == pytest.approx(4.0)
+    early = {"t": [0.0, 1.0, 5.0], "color": ["GREEN", "YELLOW", "RED"]}
+    assert find_red_light(outputs, poses, [line], {"tl": early}, 4.8) is None  # over the line before red
+    back = {**poses, "x": poses["x"][::-1], "heading": [math.pi] * len(tp)}
+    assert not len(red_crossings(back, line, timeline, 4.8))

@@ -190,3 +190,16 @@ class StraightPlanner(_BrokenFrom):
             tr["x"][k] = tr["x"][k - 1] + step
         tr["y"] = [self.LINE_Y] * len(tr["y"])
         tr["heading"] = [0.0] * len(tr["heading"])
+
+
+class GreenLightPlanner(LatticePlanner):
+    """A deliberately broken planner: the reference planner given every frame with all its
+    traffic lights green - it drives through red ones (a light it is not told of it treats as red)."""
+
+    def plan(self, frame: Any) -> dict[str, Any] | None:
+        from deft_gym.planner.base import Frame
+
+        lights = frame.get("traffic_light")
+        if lights:
+            lights = {**lights, "lights": [{**lt, "color": "GREEN"} for lt in lights.get("lights", [])]}
+        return super().plan(Frame(frame.time, {**frame.inputs, "traffic_light": lights}))
