@@ -36,6 +36,7 @@ from extract.oracle import (
     find_red_light,
     find_stall,
     find_wrong_way,
+    light_holds,
     light_timeline,
     map_area,
     map_lanes,
@@ -189,10 +190,10 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     faulty, oracle, oracle_note = _oracle(elog, mp, outcome, choices, distances, reproduced, ego, theta,
                                           minimize if minimize_failure and engine.hang is None else None)
     outputs = [(c.output.index, c.time, c.output.payload) for c in choices]
-    stuck = isinstance(outcome, dict) and outcome.get("outcome") == "stuck"
+    ended = outcome.get("outcome") if isinstance(outcome, dict) else None
     # the other failure tests start where P_faulty's would: a seeded planner, else the shortest suffix
     for key, found in (("departure", _departure(elog, mp, outputs)),
-                       ("stall", {"stall": find_stall(outputs)} if stuck else None),
+                       ("stall", _stall(elog, mp, outputs, ego, ended)),
                        ("wrong_way", _wrong_way(elog, mp, outputs)),
                        ("off_road", _off_road(elog, mp, outputs, ego)),
                        ("near_miss", _near_miss(elog, mp, outputs, ego, outcome)),
@@ -528,6 +529,26 @@ def _near_miss(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, floa
         tracks.pop(coll.get("participant_num"), None)
     found = find_near_miss(outputs, poses, tracks.values(), ego)
     return {"near_miss": found} if found is not None else None
+
+
+def _stall(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]], ego: tuple[float, float],
+           ended: str | None) -> dict[str, Any] | None:
+    """The oracle of an ego left standing (``stall``, P_stall): for a run that ended ``stuck``, the
+    first plan of the standing stretch that ends it; for one that timed out, the first such plan
+    made while no light held the ego (:func:`~extract.oracle.light_holds`, from the map's stop
+    lines and the light states when the log has them: a stop line ahead whose light was not green,
+    or green for less than a second) - an ego that waits at a red light and does not move off at
+    green; else None."""
+    if ended == "stuck":
+        return {"stall": find_stall(outputs)}
+    if ended != "timeout":
+        return None
+    lines = map_stop_lines(map_payload(elog, mp))
+    topic = elog.topics.get(mp.topic("traffic_light") or "")
+    timelines = light_timeline(topic.payload(i) for i in range(len(topic))) if topic is not None else {}
+    held = light_holds(outputs, lines, timelines, ego[0])
+    found = find_stall(outputs, free=[not h for h in held])
+    return {"stall": found} if found is not None else None
 
 
 def _red_light(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]],

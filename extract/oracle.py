@@ -501,13 +501,16 @@ def planned_travel(trajectory: Mapping[str, Any]) -> float:
     return float(np.hypot(np.diff(x), np.diff(y)).sum()) if len(x) > 1 else 0.0
 
 
-def find_stall(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], limit: float = STALL_LIMIT) -> dict[str, Any] | None:
+def find_stall(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], limit: float = STALL_LIMIT,
+               free: Sequence[bool] | None = None) -> dict[str, Any] | None:
     """P_stall, the plan that left a stuck ego standing: the first plan shorter than ``limit``
     (its path) of the stretch at the end of the episode in which every plan stands, or moves but
     was never followed - the ego stood where that plan starts until the end (a planner that
     flickers between a standstill and a plan it drops at the next cycle). For an episode the
-    simulation ended as ``stuck``: the ego stood, no light holding it. None when no plan of that
-    stretch stands."""
+    simulation ended as ``stuck``: the ego stood, no light holding it. With ``free`` (per output:
+    no light held the ego then, :func:`light_holds`), only such plans count - for an episode that
+    timed out standing at a light through its green phases. None when no plan of that stretch
+    stands (free)."""
     def start(k: int) -> tuple[float, float] | None:
         tr = outputs[k][2].get("trajectory") or {}
         return (float(tr["x"][0]), float(tr["y"][0])) if tr.get("x") and tr.get("y") else None
@@ -523,12 +526,12 @@ def find_stall(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], limit: f
         if travel[k - 1] >= limit and followed:
             break
         k -= 1
-    standing = [i for i in range(k, len(outputs)) if travel[i] < limit]
+    standing = [i for i in range(k, len(outputs)) if travel[i] < limit and (free is None or free[i])]
     if not standing:
         return None
     index, t, _ = outputs[standing[0]]
     return {"index": int(index), "time": float(t), "travel": travel[standing[0]],
-            "limit": float(limit), "standing_plans": len(standing),
+            "limit": float(limit), "standing_plans": len(standing), "at_green": free is not None,
             "dropped_plans": len(outputs) - standing[0] - len(standing), "last_time": float(outputs[-1][1])}
 
 
@@ -706,3 +709,36 @@ def find_red_light(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], pose
             "light": line["light"], "colour": colour_at(timeline, t), "line": dict(line),
             "timeline": {"t": list(timeline["t"]), "color": list(timeline["color"])}, "ego_length": float(ego_length),
             "crossed_at": t_cross}
+
+
+GREEN_REACTION = 1.0  #: [s] a light green for less than this still holds a standing ego (moving off takes a moment)
+HOLD_REACH = 15.0  #: [m] a stop line this far ahead of the ego's front, or less, is the one its light holds it at
+
+
+def light_holds(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], lines: Sequence[Mapping[str, Any]],
+                timelines: Mapping[str, Mapping[str, Sequence[Any]]], ego_length: float,
+                reaction: float = GREEN_REACTION, reach: float = HOLD_REACH) -> list[bool]:
+    """Per output ``(index, frame time, payload)``: whether a light holds the ego at its plan's start
+    - a stop line up to ``reach`` ahead of its front (or 0.5 m behind it), in its lane and
+    direction, whose light was not green at the frame time, or had been green for less than
+    ``reaction``."""
+    held = []
+    for _, t, out in outputs:
+        tr = out.get("trajectory") or {}
+        if not tr.get("x"):
+            held.append(False)
+            continue
+        h = float(tr["heading"][0])
+        fx, fy = tr["x"][0] + ego_length / 2 * math.cos(h), tr["y"][0] + ego_length / 2 * math.sin(h)
+        hold = False
+        for line in lines:
+            u, v = math.cos(line["heading"]), math.sin(line["heading"])
+            ahead = (line["x"] - fx) * u + (line["y"] - fy) * v
+            beside = -(fx - line["x"]) * v + (fy - line["y"]) * u
+            timeline = timelines.get(line["light"])
+            if timeline is None or not (-0.5 <= ahead <= reach and abs(beside) <= line["half_width"]
+                                        and math.cos(h - line["heading"]) > 0.0):
+                continue
+            hold = hold or colour_at(timeline, t) != "GREEN" or colour_at(timeline, t - reaction) != "GREEN"
+        held.append(hold)
+    return held

@@ -22,7 +22,9 @@ from extract.oracle import (
     find_faulty,
     find_near_miss,
     find_red_light,
+    find_stall,
     first_overlaps,
+    light_holds,
     near_gaps,
     overlapping_points,
     red_crossings,
@@ -451,3 +453,25 @@ def test_p_red_light_is_the_first_plan_after_the_light_turned_that_runs_it() -> 
     assert find_red_light(outputs, poses, [line], {"tl": early}, 4.8) is None  # over the line before red
     back = {**poses, "x": poses["x"][::-1], "heading": [math.pi] * len(tp)}
     assert not len(red_crossings(back, line, timeline, 4.8))
+
+
+def test_a_timed_out_ego_standing_at_a_green_light_stalls_there() -> None:
+    """The ego stands 1 m before a stop line from 2 s to the end (10 s); its light is red to 5 s and
+    green after: P_stall (for a run that timed out) is the first standing plan made when the light
+    had been green a second, at 6 s. Red to the end: a light holds it, no P_stall."""
+    line = {"light": "tl", "x": 40.0, "y": 0.0, "heading": 0.0, "half_width": 1.75}
+
+    def plan(t0: float) -> dict[str, Any]:
+        x = 40.0 - 1.0 - 2.4 - (max(2.0 - t0, 0.0) * 5.0)  # the front 1 m before the line from 2 s on
+        stop = t0 >= 2.0
+        return {"trajectory": {"t": [t0, t0 + 1.0], "x": [x, x if stop else x + 5.0], "y": [0.0, 0.0],
+                               "heading": [0.0, 0.0]}}
+
+    outputs = [(k, 0.5 * k, plan(0.5 * k)) for k in range(21)]
+    green = {"tl": {"t": [0.0, 5.0], "color": ["RED", "GREEN"]}}
+    held = light_holds(outputs, [line], green, 4.8)
+    assert held == [k * 0.5 < 6.0 for k in range(21)]
+    found = find_stall(outputs, free=[not h for h in held])
+    assert found is not None and found["index"] == 12 and found["at_green"] and found["standing_plans"] == 9
+    red = {"tl": {"t": [0.0], "color": ["RED"]}}
+    assert find_stall(outputs, free=[not h for h in light_holds(outputs, [line], red, 4.8)]) is None
