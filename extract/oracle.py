@@ -368,11 +368,12 @@ def find_wrong_way(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], lane
     plan, as CommonRoad's ego cutting a left turn's corner does: DeFT's criterion for P_faulty)."""
     if not lanes:
         return None
-    entered = next((k for k, (_, _, out) in enumerate(outputs)
-                    if (tr := out.get("trajectory") or {}).get("x")
-                    and wrong_way_flags({k2: tr[k2][:1] for k2 in ("x", "y", "heading") if k2 in tr}, lanes)[0]), None)
-    if entered is None:
+    starts = [k for k, (_, _, out) in enumerate(outputs) if (out.get("trajectory") or {}).get("x")]
+    firsts = {key: [(outputs[k][2]["trajectory"].get(key) or [0.0])[0] for k in starts] for key in ("x", "y", "heading")}
+    flags = wrong_way_flags(firsts, lanes)  # every plan's first point at once (each point is judged alone)
+    if not flags.any():
         return None
+    entered = starts[int(np.argmax(flags))]
 
     def planned(k: int) -> tuple[int, float]:
         return wrong_way_length(outputs[k][2].get("trajectory") or {}, lanes)
