@@ -101,7 +101,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
     if stall:
         lines.append(f"P_stall : frame {stall['index']} (t={stall['time']:.3f} s) plans {stall['travel']:.3f} m of path "
                      f"(limit {stall['limit']:.2f} m), the first of the {stall['standing_plans']} standing plans that "
-                     + ("end the run (timed out), no light holding the ego" if stall.get("at_green") else
+                     + ("end the run (timed out), no light holding the ego" if stall.get("timed_out") else
                         "end the run (stuck)"))
     if faulty:
         lines.append(f"P_faulty : frame {faulty['index']} (t={faulty['time']:.3f} s) plans the ego into "

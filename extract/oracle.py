@@ -532,7 +532,7 @@ def find_stall(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], limit: f
         return None
     index, t, _ = outputs[standing[0]]
     return {"index": int(index), "time": float(t), "travel": travel[standing[0]],
-            "limit": float(limit), "standing_plans": len(standing), "at_green": free is not None,
+            "limit": float(limit), "standing_plans": len(standing), "timed_out": free is not None,
             "dropped_plans": len(outputs) - standing[0] - len(standing), "last_time": float(outputs[-1][1])}
 
 

@@ -472,6 +472,6 @@ def test_a_timed_out_ego_standing_at_a_green_light_stalls_there() -> None:
     held = light_holds(outputs, [line], green, 4.8)
     assert held == [k * 0.5 < 6.0 for k in range(21)]
     found = find_stall(outputs, free=[not h for h in held])
-    assert found is not None and found["index"] == 12 and found["at_green"] and found["standing_plans"] == 9
+    assert found is not None and found["index"] == 12 and found["timed_out"] and found["standing_plans"] == 9
     red = {"tl": {"t": [0.0], "color": ["RED"]}}
     assert find_stall(outputs, free=[not h for h in light_holds(outputs, [line], red, 4.8)]) is None
