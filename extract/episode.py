@@ -525,8 +525,8 @@ def _near_miss(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, floa
         return None
     tracks = participant_tracks(topic.payload(i) for i in range(len(topic)))
     coll = outcome.get("collision") if isinstance(outcome, dict) else None
-    if isinstance(coll, dict):
-        tracks.pop(coll.get("participant_num"), None)
+    if isinstance(coll, dict) and str(coll.get("participant_num", "")).lstrip("-").isdigit():
+        tracks.pop(int(coll["participant_num"]), None)  # P_faulty's participant
     found = find_near_miss(outputs, poses, tracks.values(), ego)
     return {"near_miss": found} if found is not None else None
 

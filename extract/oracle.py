@@ -85,8 +85,11 @@ def participant_tracks(messages: Iterable[Mapping[str, Any] | None], nums: set[i
         if stamp is None:
             continue
         for ob in m.get("obstacles") or ():
-            num = ob.get("id")
-            if not isinstance(num, int) or (nums is not None and num not in nums):
+            try:
+                num = int(ob["id"])
+            except (KeyError, TypeError, ValueError):
+                continue
+            if nums is not None and num not in nums:
                 continue
             rows.setdefault(num, {}).setdefault(float(stamp), (ob["x"], ob["y"], ob.get("heading", 0.0),
                                                                ob.get("v", 0.0), ob.get("length", 0.0),
