@@ -139,8 +139,8 @@ def _table(results: list[ExtractionResult], args: argparse.Namespace, root: Path
                     f"'all fields': every field within tolerance at theta)",
               title_justify="left", box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1))
     for col in ["log", "scenario", "frames", *(f"<={theta_key(x)} m" for x in SUMMARY_THETAS), "all fields",
-                "ms/frame", "planner", "overhead", "truth", "P_faulty"]:
-        t.add_column(col, justify="left" if col in ("log", "scenario", "P_faulty") else "right", no_wrap=True)
+                "ms/frame", "planner", "overhead", "truth", "failure tests"]:
+        t.add_column(col, justify="left" if col in ("log", "scenario", "failure tests") else "right", no_wrap=True)
     for r in results:
         s = r.summary
         log = Path(s["log"])
@@ -153,14 +153,14 @@ def _table(results: list[ExtractionResult], args: argparse.Namespace, root: Path
             t.add_row(name, "error", *[""] * 10)
             continue
         n = s["frames"] or 1
-        f = s.get("faulty_trajectory")
+        failing = "; ".join(f"{k} frame {o['index']} t={o['time']:.2f}s" for k, o in (s.get("failure_oracles") or {}).items())
         t.add_row(
             name, str(s["scenario"]) + (" (cached)" if s.get("skipped") else ""), str(s["frames"]),
             *(f"{100 * s['reproduced'][theta_key(x)] / n:.1f}%" for x in SUMMARY_THETAS),
             "-" if s.get("reproduced_at_theta") is None else f"{100 * s['reproduced_at_theta'] / n:.1f}%",
             f"{s['ms_per_frame']:.2f}", f"{s['planner_ms_per_frame']:.2f}", f"{s['overhead_ms_per_frame']:.2f}",
             "-" if s.get("truth_agreement") is None else f"{100 * s['truth_agreement']:.1f}%",
-            f"frame {f['index']} t={f['time']:.2f}s" if f else ("-" if not s.get("collision") else "none found"),
+            failing or ("-" if not s.get("collision") else "no P_faulty found"),
             style="red" if damaged_log(s) else None)  # named below the table ("damaged log: ...")
     return t
 

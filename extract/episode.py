@@ -60,6 +60,8 @@ from extract.validator import (
 )
 
 SUMMARY_FORMAT = "deft_gym.extraction/1"
+#: the oracle data keys of a frames header that each give a failure test (P_<key>)
+FAILURE_ORACLES = ("faulty", "departure", "wrong_way", "off_road", "stall", "near_miss", "red_light")
 MAX_LAG_S = 3600.0  #: the latest an output may be logged after its frame time [s] for the times to map
 
 
@@ -225,6 +227,8 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     summary = _summary(elog, log_path, scenario, meta, outcome, cfg, tol, choices, comparisons, engine,
                        faulty, oracle_note, agreement, mp)
     summary["findings"] = findings
+    summary["failure_oracles"] = {f"P_{key}": {"index": oracle[key]["index"], "time": oracle[key]["time"]}
+                                  for key in FAILURE_ORACLES if isinstance(oracle.get(key), dict)}
     if choices and len(choices) == findings["outputs_without_replay"]:  # nothing could be replayed: no tests
         summary["error"] = (f"none of the {len(choices)} planning outputs got a replayed plan; the generated tests "
                             f"would all fail ({elog.warnings[-1] if elog.warnings else 'see the warnings'})")

@@ -251,6 +251,7 @@ def test_a_pass_too_close_gets_a_near_miss_test(tmp_path: Path) -> None:
     near = header["oracle"]["near_miss"]
     assert near["participant"] == "1 (CONE)" and near["gap"] < near["clearance"] == 0.5
     assert near["time"] < near["point_time"] and near["close_gap"] < 0.5 and 4.0 < near["close_at"] < 5.0
+    assert res.summary["failure_oracles"] == {"P_near_miss": {"index": near["index"], "time": near["time"]}}
     assert "P_near_miss: frame" in res.test_path.read_text()
     _fails_every_time_and_passes_on_the_reference(res.test_path.parent, "keeps_its_distance",
                                                   "still plans the ego past 1 (CONE) too close")
