@@ -98,7 +98,21 @@ def build_summary(records: list[dict[str, Any]], config: dict[str, Any], seeds: 
     s["training"] = {m: (rl_training(config.get("model")) if m in TRAINING_METHODS else None)
                      for m in s["methods"]}
     s["simulation_code"] = sorted({str(r.get("code", "?")) for r in records})
+    s["unmutated"] = unmutated_counts(records)
     return s
+
+
+def unmutated_counts(records: list[dict[str, Any]]) -> dict[str, int]:
+    """Per metric oracle, how many records had a finding that the seed's own unmutated runs have
+    too (``unmutated_by_oracle``, ``unmutated_signature``: counted as nothing, docs/metrics.md)."""
+    out: dict[str, int] = {}
+    for r in records:
+        found = dict(r.get("unmutated_by_oracle") or {})
+        if r.get("unmutated_signature") and r.get("oracle"):
+            found[r["oracle"]] = r["unmutated_signature"]
+        for o in found:
+            out[o] = out.get(o, 0) + 1
+    return dict(sorted(out.items()))
 
 
 # -- markdown -------------------------------------------------------------------------------------
@@ -453,7 +467,10 @@ def table_markdown(summary: dict[str, Any]) -> str:
                  "valid mutation whose run violates the oracle where the seed's reference run does not (docs/metrics.md), "
                  "reproduced with the same signature on a second jitter seed; the methods do not aim at them. "
                  "`any oracle`: the decision oracle's distinct failures and every counted oracle's findings "
-                 "(an at-fault collision once); scenarios: where the method counted one in some repeat.", ""]
+                 "(an at-fault collision once); scenarios: where the method counted one in some repeat. "
+                 "A finding that one of the seed's own unmutated runs (jitter seeds 1-8) has too counts nothing: "
+                 + (", ".join(f"`{o}` in {n} record(s)" for o, n in summary["unmutated"].items())
+                    if summary.get("unmutated") else "none in these records") + ".", ""]
         for g in stats.shown_groups(summary):
             table = oracles_markdown(summary, g)
             if table:

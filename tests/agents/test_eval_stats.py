@@ -537,6 +537,8 @@ def test_counted_oracles_per_oracle_any_oracle_and_coverage(tmp_path):
                                         confirmed_by_oracle={"comfort": False})
     first[("rl", hand[2], 1, 0)].update(valid=False, found_by_oracle={"ttc": "metric:ttc:cone"},
                                         confirmed_by_oracle={"ttc": True})
+    # what the seed's unmutated runs do too: kept in the record, counted nowhere, named in the table
+    first[("decictor", hand[2], 0, 1)].update(unmutated_by_oracle={"comfort": "metric:comfort:lon_accel"})
     cfg = {"methods": ["rl", "decictor"], "placements": ["closest"], "budget": 3, "repeats": 2,
            "count_oracles": ["collision", "ttc", "comfort", "standstill"]}
     summary = eval_report.build_summary(recs, cfg, hand, [])
@@ -552,6 +554,7 @@ def test_counted_oracles_per_oracle_any_oracle_and_coverage(tmp_path):
     assert t["coverage_any"] == {"found": 2, "scenarios": 3, "share": 2 / 3, "met": False}
     table = eval_report.write_report(recs, summary, tmp_path)
     assert "## Findings per oracle" in table
+    assert summary["unmutated"] == {"comfort": 1} and "`comfort` in 1 record(s)" in table
     assert "| RL | closest | 1.0 ± 0.0 | 0.5 ± 0.7 | 1.0 ± 0.0 | 0.0 ± 0.0 | 0.5 ± 0.7 | 2.5 ± 0.7 | 2.0 ± 0.0 | 2 of 3 |" in table
     # per scenario: RL found something on a and b, the GA nowhere; c is where no method found anything
     assert "| handwritten/a | hand-written | 1.0 ± 0.0 | 0.0 ± 0.0 | yes |" in table
