@@ -133,12 +133,13 @@ def oracle_columns(ctx: SeedContext, m: EpisodeMetrics, valid: bool, oracle: str
                    count: tuple[str, ...] = (), jitter_seed: int = 0) -> tuple[dict[str, Any], float, float, int]:
     """The record's ``metric_*`` columns, and with a metric ``oracle`` its finding
     (``oracle_signature``: on a valid mutation, not one the seed's unmutated runs have -
-    :func:`~deft_gym.metrics.oracle.unmutated_finding`, then ``unmutated_signature``) and ``oracle_confirmed`` (re-checked on a jitter
-    seed drawn from ``rng`` - only then - :func:`deft_gym.metrics.oracle.confirm_oracle`);
-    with ``count`` (oracles counted beside the aimed one) ``found_by_oracle`` (those the
-    unmutated runs have apart, in ``unmutated_by_oracle``) and ``confirmed_by_oracle``, re-checked together on one jitter seed derived from the run's
-    ``jitter_seed`` (``rng`` untouched: the methods draw what they drew without counting);
-    ``(columns, wall s, cpu s, extra simulations)``."""
+    :func:`~deft_gym.metrics.oracle.unmutated_finding`; such a one goes to ``unmutated_signature``)
+    and ``oracle_confirmed`` (re-checked on a jitter seed drawn from ``rng`` - only then -
+    :func:`deft_gym.metrics.oracle.confirm_oracle`); with ``count`` (oracles counted beside the
+    aimed one) ``found_by_oracle`` (those the unmutated runs have apart, in
+    ``unmutated_by_oracle``) and ``confirmed_by_oracle``, re-checked together on one jitter seed
+    derived from the run's ``jitter_seed`` (``rng`` untouched: the methods draw what they drew
+    without counting); ``(columns, wall s, cpu s, extra simulations)``."""
     cols = record_columns(m)
     w = c = 0.0
     n = 0
