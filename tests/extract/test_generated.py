@@ -257,7 +257,7 @@ def test_a_pass_too_close_gets_a_near_miss_test(tmp_path: Path) -> None:
                                                   "still plans the ego past 1 (CONE) too close")
 
 
-@pytest.mark.slow  # ~70 s: 160 frames replayed four times (tests/extract/test_units.py has the oracle's rule)
+@pytest.mark.slow  # 17 s idle, 70 s loaded: 160 frames replayed four times (test_units.py has its rule)
 def test_a_red_light_run_gets_a_red_light_test(tmp_path: Path) -> None:
     """P_red_light: a planner told every light is green (tests.support's GreenLightPlanner) drives
     over blocked_red_light's stop line (its obstacles left out) at red; the extraction finds the
