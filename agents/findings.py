@@ -255,14 +255,16 @@ def judged_again(ctx: Any, run: Any, rec: dict[str, Any], cause: str) -> tuple[b
 #: the failure tests an extraction emits: a collision's (P_faulty), a non-optimal decision's
 #: (P_departure, when the log carries the optimal path), driving against the lane direction's
 #: (P_wrong_way), a stuck run's (P_stall), leaving the road's (P_off_road), passing a
-#: participant too close (P_near_miss) and running a red light (P_red_light)
+#: participant too close (P_near_miss), running a red light (P_red_light) and driving on at a
+#: yellow light it could stop for (P_yellow)
 FAILURE_TESTS = {"does_not_plan_into_collision": "collision (P_faulty)",
                  "keeps_to_the_optimal_path": "non-optimal decision (P_departure)",
                  "keeps_to_its_side_of_the_road": "driving direction (P_wrong_way)",
                  "plans_progress": "stuck (P_stall)",
                  "keeps_on_the_road": "drivable area (P_off_road)",
                  "keeps_its_distance": "near miss (P_near_miss)",
-                 "stops_at_red": "red light (P_red_light)"}
+                 "stops_at_red": "red light (P_red_light)",
+                 "stops_for_a_stoppable_yellow": "yellow light (P_yellow)"}
 
 
 def run_tests(folder: Path, times: int) -> dict[str, Any]:

@@ -63,6 +63,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
     off_road = (header.get("oracle") or {}).get("off_road")
     near_miss = (header.get("oracle") or {}).get("near_miss")
     red_light = (header.get("oracle") or {}).get("red_light")
+    yellow = (header.get("oracle") or {}).get("yellow")
     coll = summary.get("collision")
     outcome = summary.get("outcome") or "unknown"
     if coll:
@@ -98,6 +99,11 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
         lines.append(f"P_red_light: frame {r['index']} (t={r['time']:.3f} s, light {r['light']} {r['colour']}) plans the "
                      f"ego's front over its stop line at t={r['point_time']:.2f} s, at red; the ego crossed it at "
                      f"t={r['crossed_at']:.2f} s")
+    if yellow:
+        y = yellow
+        lines.append(f"P_yellow: frame {y['index']} (t={y['time']:.3f} s, light {y['light']} yellow) starts {y['ahead']:.1f} m "
+                     f"before the line at {y['v0']:.1f} m/s (a stop within {y['decel']:g} m/s^2) and plans on; the ego "
+                     f"crossed it at red at t={y['crossed_at']:.2f} s")
     if stall:
         lines.append(f"P_stall : frame {stall['index']} (t={stall['time']:.3f} s) plans {stall['travel']:.3f} m of path "
                      f"(limit {stall['limit']:.2f} m), the first of the {stall['standing_plans']} standing plans that "
@@ -150,7 +156,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
             problem = EPISODE.faulty_hit(index)
             assert problem is None, problem
         '''
-    for oracle, test, doc in _more_failure_tests(departure, stall, wrong_way, off_road, near_miss, red_light):
+    for oracle, test, doc in _more_failure_tests(departure, stall, wrong_way, off_road, near_miss, red_light, yellow):
         src += f'''
 
         @pytest.mark.parametrize("index", EPISODE.{oracle}_cases())
@@ -166,7 +172,8 @@ def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] 
                         wrong_way: dict[str, Any] | None,
                         off_road: dict[str, Any] | None,
                         near_miss: dict[str, Any] | None,
-                        red_light: dict[str, Any] | None) -> list[tuple[str, str, str]]:
+                        red_light: dict[str, Any] | None,
+                        yellow: dict[str, Any] | None) -> list[tuple[str, str, str]]:
     """``(oracle, test name, docstring)`` of each failure test but P_faulty's that the episode has
     (its ``EpisodeReplay`` methods are ``<oracle>_cases`` and ``<oracle>_problem``)."""
     tests = []
@@ -205,4 +212,10 @@ def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] 
                       "            the system-level run crossed at red, at a planned time when the light was red (P_red_light,\n"
                       "            the first plan of the run that did, made after the light turned); passes once it\n"
                       "            stops before the line or is over it before red."))
+    if yellow:
+        tests.append(("yellow", "stops_for_a_stoppable_yellow",
+                      "Yellow light: fails while the planner, at a yellow light it could still stop for within\n"
+                      f"            {yellow['decel']:g} m/s^2, plans on to where that stop is no longer possible (P_yellow, the\n"
+                      "            first such plan of a run that then crossed the line at red); passes once it keeps\n"
+                      "            the stop possible."))
     return tests

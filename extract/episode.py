@@ -36,6 +36,7 @@ from extract.oracle import (
     find_red_light,
     find_stall,
     find_wrong_way,
+    find_yellow,
     light_holds,
     light_timeline,
     map_area,
@@ -61,7 +62,7 @@ from extract.validator import (
 
 SUMMARY_FORMAT = "deft_gym.extraction/1"
 #: the oracle data keys of a frames header that each give a failure test (P_<key>)
-FAILURE_ORACLES = ("faulty", "departure", "wrong_way", "off_road", "stall", "near_miss", "red_light")
+FAILURE_ORACLES = ("faulty", "departure", "wrong_way", "off_road", "stall", "near_miss", "red_light", "yellow")
 MAX_LAG_S = 3600.0  #: the latest an output may be logged after its frame time [s] for the times to map
 
 
@@ -199,7 +200,8 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
                        ("wrong_way", _wrong_way(elog, mp, outputs)),
                        ("off_road", _off_road(elog, mp, outputs, ego)),
                        ("near_miss", _near_miss(elog, mp, outputs, ego, outcome)),
-                       ("red_light", _red_light(elog, mp, outputs, ego))):
+                       ("red_light", _red_light(elog, mp, outputs, ego)),
+                       ("yellow", _red_light(elog, mp, outputs, ego, yellow=True))):
         if found is None or found[key] is None:
             continue
         target = found[key]
@@ -556,18 +558,22 @@ def _stall(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, A
 
 
 def _red_light(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]],
-               ego: tuple[float, float]) -> dict[str, Any] | None:
+               ego: tuple[float, float], yellow: bool = False) -> dict[str, Any] | None:
     """The oracle of running a red light (``red_light``, P_red_light, with the stop line and its
     light's recorded colours) when the log holds the map's stop lines, the ego's poses and the
     light states (the mapping's ``map``, ``localization`` and ``traffic_light`` roles) and the
     ego's front crossed a stop line at red where the plans made after the light turned had put it;
-    else None."""
+    with ``yellow``, the earlier one of giving up a stop the yellow left room for (``yellow``,
+    P_yellow); else None."""
     lines = map_stop_lines(map_payload(elog, mp))
     poses = ego_poses(elog, mp)
     topic = elog.topics.get(mp.topic("traffic_light") or "")
     if not lines or poses is None or topic is None:
         return None
     timelines = light_timeline(topic.payload(i) for i in range(len(topic)))
+    if yellow:
+        found = find_yellow(outputs, poses, lines, timelines, ego[0])
+        return {"yellow": found} if found is not None else None
     found = find_red_light(outputs, poses, lines, timelines, ego[0])
     return {"red_light": found} if found is not None else None
 

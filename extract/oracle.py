@@ -677,6 +677,20 @@ def red_crossings(states: Mapping[str, Sequence[float]], line: Mapping[str, Any]
     return np.array([k for k in cross if colour_at(timeline, float(t[k])) == "RED"], dtype=np.int64)
 
 
+def first_red_crossing(poses: Mapping[str, Sequence[float]], lines: Sequence[Mapping[str, Any]],
+                       timelines: Mapping[str, Mapping[str, Sequence[Any]]],
+                       ego_length: float) -> tuple[float, Mapping[str, Any]] | None:
+    """``(time [s], stop line)`` of the first ego pose whose front crossed a stop line at red
+    (:func:`red_crossings`), or None."""
+    crossed = None
+    for line in lines:
+        timeline = timelines.get(line["light"])
+        hits = red_crossings(poses, line, timeline, ego_length) if timeline else ()
+        if len(hits) and (crossed is None or poses["t"][hits[0]] < crossed[0]):
+            crossed = (float(poses["t"][hits[0]]), line)
+    return crossed
+
+
 def find_red_light(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], poses: Mapping[str, Sequence[float]],
                    lines: Sequence[Mapping[str, Any]], timelines: Mapping[str, Mapping[str, Sequence[Any]]],
                    ego_length: float) -> dict[str, Any] | None:
@@ -688,12 +702,7 @@ def find_red_light(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], pose
     showed yellow or red (the planner had seen it change: a plan made at green that the light
     caught is no plan to run it); the first of that run. None when the ego never ran a red light
     or the last plan before did not plan it."""
-    crossed = None  # (time, line) of the first red crossing
-    for line in lines:
-        timeline = timelines.get(line["light"])
-        hits = red_crossings(poses, line, timeline, ego_length) if timeline else ()
-        if len(hits) and (crossed is None or poses["t"][hits[0]] < crossed[0]):
-            crossed = (float(poses["t"][hits[0]]), line)
+    crossed = first_red_crossing(poses, lines, timelines, ego_length)
     if crossed is None:
         return None
     t_cross, line = crossed
@@ -746,3 +755,59 @@ def light_holds(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], lines: 
             hold = hold or colour_at(timeline, t) != "GREEN" or colour_at(timeline, t - reaction) != "GREEN"
         held.append(hold)
     return held
+
+
+YELLOW_DECEL = 3.0  #: [m/s^2] a yellow light this gentle a stop can still be made for must be (ITE's yellow-interval deceleration)
+
+
+def yellow_stop(trajectory: Mapping[str, Sequence[float]], lines: Sequence[Mapping[str, Any]], ego_length: float,
+                decel: float = YELLOW_DECEL) -> tuple[float, bool, bool]:
+    """For a plan approaching the stop lines ``lines`` (those of one light): ``(distance [m] of its
+    first point's front to the line, whether a stop before the line at ``decel`` was possible
+    there, whether the plan gives it up - it crosses the line, or ends where stopping before it
+    takes more than ``decel``)``; the line is the one laterally nearest to the plan's start."""
+    if not trajectory.get("t") or not trajectory.get("v") or not lines:
+        return math.inf, False, False
+
+    def front_to_line(k: int, line: Mapping[str, Any]) -> tuple[float, float]:
+        h = float(trajectory["heading"][k])
+        fx = trajectory["x"][k] + ego_length / 2 * math.cos(h)
+        fy = trajectory["y"][k] + ego_length / 2 * math.sin(h)
+        u, v = math.cos(line["heading"]), math.sin(line["heading"])
+        return (line["x"] - fx) * u + (line["y"] - fy) * v, abs(-(fx - line["x"]) * v + (fy - line["y"]) * u)
+
+    line = min(lines, key=lambda ln: front_to_line(0, ln)[1])
+    ahead0, ahead_end = front_to_line(0, line)[0], front_to_line(len(trajectory["t"]) - 1, line)[0]
+    v0, v_end = float(trajectory["v"][0]), float(trajectory["v"][-1])
+    possible = ahead0 > 0.0 and v0 * v0 <= 2.0 * decel * ahead0
+    given_up = ahead_end <= 0.0 or v_end * v_end > 2.0 * decel * ahead_end
+    return ahead0, possible, given_up
+
+
+def find_yellow(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], poses: Mapping[str, Sequence[float]],
+                lines: Sequence[Mapping[str, Any]], timelines: Mapping[str, Mapping[str, Sequence[Any]]],
+                ego_length: float, decel: float = YELLOW_DECEL) -> dict[str, Any] | None:
+    """P_yellow, the plan that gave up a stop it could make: for a run whose ego crossed a stop line
+    at red (:func:`first_red_crossing`), the first plan made while that light showed yellow, before
+    the crossing, from whose start a stop before the line at ``decel`` was possible and which gives
+    it up (:func:`yellow_stop`). The planner saw the yellow and could stop gently; the plan drove on
+    into the red. None when every such plan kept the stop possible (the yellow came too late to
+    stop for: a dilemma the planner did not make)."""
+    crossed = first_red_crossing(poses, lines, timelines, ego_length)
+    if crossed is None:
+        return None
+    t_cross, line = crossed
+    timeline = timelines[line["light"]]
+    same_light = [ln for ln in lines if ln["light"] == line["light"]]
+    for index, t, out in outputs:
+        if t >= t_cross:
+            break
+        if colour_at(timeline, t) != "YELLOW":
+            continue
+        tr = out.get("trajectory") or {}
+        ahead, possible, given_up = yellow_stop(tr, same_light, ego_length, decel)
+        if possible and given_up:
+            return {"index": int(index), "time": float(t), "light": line["light"], "ahead": ahead,
+                    "v0": float(tr["v"][0]), "v_end": float(tr["v"][-1]), "decel": float(decel),
+                    "lines": [dict(ln) for ln in same_light], "ego_length": float(ego_length), "crossed_at": t_cross}
+    return None

@@ -484,6 +484,28 @@ class EpisodeReplay:
                 f"(t={self.frame(index)['time']:.3f} s, the light {w['colour']}) plans the ego's front over its stop "
                 f"line at t={tr['t'][k]!r} s, when the light was red")
 
+    # -- the yellow-light test ---------------------------------------------------------------------
+    def yellow_cases(self) -> list[Any]:
+        """The P_yellow frame as one ``pytest.param`` named by frame and time."""
+        return self._oracle_case("yellow", "yellow")
+
+    def yellow_problem(self, index: int) -> str | None:
+        """Why the replayed output of frame ``index`` still gives up the stop before the yellow
+        light's line that its start left room for at the oracle's deceleration, or None."""
+        from extract.oracle import yellow_stop
+
+        w, out = self._oracle_replay("yellow", index)
+        if out is None:
+            return None
+        tr = out.get("trajectory") or {}
+        ahead, possible, given_up = yellow_stop(tr, w["lines"], float(w["ego_length"]), float(w["decel"]))
+        if not (possible and given_up):
+            return None
+        return (self._notes() + f"the planner still drives on at the yellow light {w['light']}: frame {index} "
+                f"(t={self.frame(index)['time']:.3f} s) starts {ahead:.1f} m before its line at {tr['v'][0]:.1f} m/s "
+                f"(a stop there needs {tr['v'][0] ** 2 / (2 * ahead):.1f} m/s^2, at most {float(w['decel']):g} allowed) "
+                f"and ends at {tr['v'][-1]:.1f} m/s where that stop is no longer possible")
+
     # -- the stuck test ----------------------------------------------------------------------------
     def stall_cases(self) -> list[Any]:
         """The P_stall frame as one ``pytest.param`` named by frame and time."""

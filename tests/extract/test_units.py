@@ -23,6 +23,7 @@ from extract.oracle import (
     find_near_miss,
     find_red_light,
     find_stall,
+    find_yellow,
     first_overlaps,
     light_holds,
     near_gaps,
@@ -440,7 +441,7 @@ def test_p_red_light_is_the_first_plan_after_the_light_turned_that_runs_it() -> 
     def plan(t0: float) -> dict[str, Any]:
         t = t0 + np.arange(0.0, 4.01, 0.25)
         return {"trajectory": {"t": t.tolist(), "x": (10.0 * t - 2.4).tolist(), "y": [0.0] * len(t),
-                               "heading": [0.0] * len(t)}}
+                               "heading": [0.0] * len(t), "v": [10.0] * len(t)}}
 
     outputs = [(k, 0.5 * k, plan(0.5 * k)) for k in range(8)]
     tp = np.arange(0.0, 5.0, 0.05)
@@ -453,6 +454,14 @@ def test_p_red_light_is_the_first_plan_after_the_light_turned_that_runs_it() -> 
     assert find_red_light(outputs, poses, [line], {"tl": early}, 4.8) is None  # over the line before red
     back = {**poses, "x": poses["x"][::-1], "heading": [math.pi] * len(tp)}
     assert not len(red_crossings(back, line, timeline, 4.8))
+    # P_yellow: at 1 s the front is 30 m before the line at 10 m/s (a stop needs 1.7 m/s^2) and the plan
+    # drives on over it; the plan at 0.5 s was made at green. Plans that brake to stop are none.
+    yellow = find_yellow(outputs, poses, [line], {"tl": timeline}, 4.8)
+    assert yellow is not None and yellow["index"] == 2 and yellow["ahead"] == pytest.approx(30.0)
+    braking = [(k, t, {"trajectory": {**p["trajectory"], "v": [10.0] + [0.0] * (len(p["trajectory"]["t"]) - 1),
+                                      "x": [p["trajectory"]["x"][0]] * len(p["trajectory"]["t"])}})
+               for k, t, p in outputs]
+    assert find_yellow(braking, poses, [line], {"tl": timeline}, 4.8) is None
 
 
 def test_a_timed_out_ego_standing_at_a_green_light_stalls_there() -> None:
