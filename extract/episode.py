@@ -7,6 +7,7 @@ the output folder and returns an :class:`ExtractionResult`.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import time
@@ -195,13 +196,14 @@ def extract_episode(log: Path | str, out_dir: Path | str, *, mode: str = "heuris
     outputs = [(c.output.index, c.time, c.output.payload) for c in choices]
     ended = outcome.get("outcome") if isinstance(outcome, dict) else None
     # the other failure tests start where P_faulty's would: a seeded planner, else the shortest suffix
+    views = _LogViews(elog, mp)
     for key, found in (("departure", _departure(elog, mp, outputs)),
-                       ("stall", _stall(elog, mp, outputs, ego, ended)),
-                       ("wrong_way", _wrong_way(elog, mp, outputs)),
-                       ("off_road", _off_road(elog, mp, outputs, ego)),
-                       ("near_miss", _near_miss(elog, mp, outputs, ego, outcome)),
-                       ("red_light", _red_light(elog, mp, outputs, ego)),
-                       ("yellow", _red_light(elog, mp, outputs, ego, yellow=True))):
+                       ("stall", _stall(views, outputs, ego, ended)),
+                       ("wrong_way", _wrong_way(views, outputs)),
+                       ("off_road", _off_road(views, outputs, ego)),
+                       ("near_miss", _near_miss(views, outputs, ego, outcome)),
+                       ("red_light", _red_light(views, outputs, ego)),
+                       ("yellow", _yellow(views, outputs, ego))):
         if found is None or found[key] is None:
             continue
         target = found[key]
@@ -459,13 +461,13 @@ def _departure(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, floa
     return {"optimal_path": {"x": meta["x"], "y": meta["y"], "limit": limit}, "departure": dep}
 
 
-def _wrong_way(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]]) -> dict[str, Any] | None:
+def _wrong_way(views: _LogViews, outputs: list[tuple[int, float, Any]]) -> dict[str, Any] | None:
     """The oracle of driving against the lane direction (``wrong_way``, P_wrong_way, with the lanes
     it is judged on, ``wrong_way_map``) when the log holds the road map (the mapping's ``map``
     role, whether or not the planner reads it) and one of the plans ``(index, time, payload)`` took
     the ego into lanes that all point against it for at least :data:`~extract.oracle.WRONG_WAY_LIMIT`
     m; else None."""
-    lanes = map_lanes(map_payload(elog, mp))
+    lanes = map_lanes(views.map)
     ww = find_wrong_way(outputs, lanes)
     if ww is None:
         return None
@@ -500,14 +502,40 @@ def ego_poses(elog: EpisodeLog, mp: TopicMapping) -> dict[str, list[float]] | No
     return poses
 
 
-def _off_road(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]],
+@dataclass
+class _LogViews:
+    """What several failure oracles read from one log, each read and decoded once: the road map,
+    the ego's poses (:func:`ego_poses`), the map's stop lines and each light's recorded colours
+    (None without the mapping's ``traffic_light`` role)."""
+
+    elog: EpisodeLog
+    mp: TopicMapping
+
+    @functools.cached_property
+    def map(self) -> dict[str, Any] | None:
+        return map_payload(self.elog, self.mp)
+
+    @functools.cached_property
+    def poses(self) -> dict[str, list[float]] | None:
+        return ego_poses(self.elog, self.mp)
+
+    @functools.cached_property
+    def stop_lines(self) -> list[dict[str, Any]]:
+        return map_stop_lines(self.map)
+
+    @functools.cached_property
+    def lights(self) -> dict[str, dict[str, list[Any]]] | None:
+        topic = self.elog.topics.get(self.mp.topic("traffic_light") or "")
+        return light_timeline(topic.payload(i) for i in range(len(topic))) if topic is not None else None
+
+
+def _off_road(views: _LogViews, outputs: list[tuple[int, float, Any]],
               ego: tuple[float, float]) -> dict[str, Any] | None:
     """The oracle of leaving the road (``off_road``, P_off_road, with the map it is judged on,
     ``off_road_map``) when the log holds the road map and the ego's poses (the mapping's ``map``
     and ``localization`` roles) and the ego's box left the drivable area by more than
     :data:`~extract.oracle.OFF_ROAD_LIMIT` m where the plans before had put it; else None."""
-    payload = map_payload(elog, mp)
-    poses = ego_poses(elog, mp)
+    payload, poses = views.map, views.poses
     if payload is None or poses is None:
         return None
     found = find_off_road(outputs, poses, map_area(payload), ego)
@@ -517,7 +545,7 @@ def _off_road(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float
         {k: lane[k] for k in ("x", "y", "width", "junction") if k in lane} for lane in payload["lanes"]]}}
 
 
-def _near_miss(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]], ego: tuple[float, float],
+def _near_miss(views: _LogViews, outputs: list[tuple[int, float, Any]], ego: tuple[float, float],
                outcome: Any) -> dict[str, Any] | None:
     """The oracle of passing a participant too close (``near_miss``, P_near_miss, with the
     participant's perceived track) when the log holds the ego's poses and the perceived obstacles
@@ -525,19 +553,18 @@ def _near_miss(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, floa
     within :data:`~extract.oracle.NEAR_MISS_CLEARANCE` m of a participant's, faster than
     :data:`~extract.oracle.NEAR_MISS_SPEED` m/s relative to it, where the plans before had put it;
     the participant the run collided with is P_faulty's, not this oracle's; else None."""
-    poses = ego_poses(elog, mp)
-    topic = elog.topics.get(mp.topic("perception_obstacles") or "")
-    if poses is None or topic is None:
+    topic = views.elog.topics.get(views.mp.topic("perception_obstacles") or "")
+    if views.poses is None or topic is None:
         return None
     tracks = participant_tracks(topic.payload(i) for i in range(len(topic)))
     coll = outcome.get("collision") if isinstance(outcome, dict) else None
     if isinstance(coll, dict) and str(coll.get("participant_num", "")).lstrip("-").isdigit():
         tracks.pop(int(coll["participant_num"]), None)  # P_faulty's participant
-    found = find_near_miss(outputs, poses, tracks.values(), ego)
+    found = find_near_miss(outputs, views.poses, tracks.values(), ego)
     return {"near_miss": found} if found is not None else None
 
 
-def _stall(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]], ego: tuple[float, float],
+def _stall(views: _LogViews, outputs: list[tuple[int, float, Any]], ego: tuple[float, float],
            ended: str | None) -> dict[str, Any] | None:
     """The oracle of an ego left standing (``stall``, P_stall): for a run that ended ``stuck``, the
     first plan of the standing stretch that ends it; for one that timed out, the first such plan
@@ -549,33 +576,32 @@ def _stall(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, A
         return {"stall": find_stall(outputs)}
     if ended != "timeout":
         return None
-    lines = map_stop_lines(map_payload(elog, mp))
-    topic = elog.topics.get(mp.topic("traffic_light") or "")
-    timelines = light_timeline(topic.payload(i) for i in range(len(topic))) if topic is not None else {}
-    held = light_holds(outputs, lines, timelines, ego[0])
+    held = light_holds(outputs, views.stop_lines, views.lights or {}, ego[0])
     found = find_stall(outputs, free=[not h for h in held])
     return {"stall": found} if found is not None else None
 
 
-def _red_light(elog: EpisodeLog, mp: TopicMapping, outputs: list[tuple[int, float, Any]],
-               ego: tuple[float, float], yellow: bool = False) -> dict[str, Any] | None:
+def _red_light(views: _LogViews, outputs: list[tuple[int, float, Any]],
+               ego: tuple[float, float]) -> dict[str, Any] | None:
     """The oracle of running a red light (``red_light``, P_red_light, with the stop line and its
     light's recorded colours) when the log holds the map's stop lines, the ego's poses and the
     light states (the mapping's ``map``, ``localization`` and ``traffic_light`` roles) and the
     ego's front crossed a stop line at red where the plans made after the light turned had put it;
-    with ``yellow``, the earlier one of giving up a stop the yellow left room for (``yellow``,
-    P_yellow); else None."""
-    lines = map_stop_lines(map_payload(elog, mp))
-    poses = ego_poses(elog, mp)
-    topic = elog.topics.get(mp.topic("traffic_light") or "")
-    if not lines or poses is None or topic is None:
+    else None."""
+    if not views.stop_lines or views.poses is None or views.lights is None:
         return None
-    timelines = light_timeline(topic.payload(i) for i in range(len(topic)))
-    if yellow:
-        found = find_yellow(outputs, poses, lines, timelines, ego[0])
-        return {"yellow": found} if found is not None else None
-    found = find_red_light(outputs, poses, lines, timelines, ego[0])
+    found = find_red_light(outputs, views.poses, views.stop_lines, views.lights, ego[0])
     return {"red_light": found} if found is not None else None
+
+
+def _yellow(views: _LogViews, outputs: list[tuple[int, float, Any]],
+            ego: tuple[float, float]) -> dict[str, Any] | None:
+    """The oracle of giving up a stop that a yellow light left room for (``yellow``, P_yellow), in
+    a run whose ego then crossed the line at red, from what :func:`_red_light` reads; else None."""
+    if not views.stop_lines or views.poses is None or views.lights is None:
+        return None
+    found = find_yellow(outputs, views.poses, views.stop_lines, views.lights, ego[0])
+    return {"yellow": found} if found is not None else None
 
 
 def _summary(elog: EpisodeLog, log_path: Path, scenario: str, meta: dict[str, Any], outcome: dict[str, Any],
