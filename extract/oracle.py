@@ -657,6 +657,14 @@ def colour_at(timeline: Mapping[str, Sequence[Any]], t: float) -> str | None:
     return str(timeline["color"][k]) if k >= 0 else None
 
 
+def line_coords(line: Mapping[str, Any], fx: Any, fy: Any) -> tuple[Any, Any]:
+    """Where the point(s) ``fx``, ``fy`` [m] (the ego's front) stand to stop ``line``: how far before
+    it along its lane's heading [m] (negative: past it) and how far beside its centre [m] (signed);
+    floats or numpy arrays."""
+    u, v = math.cos(line["heading"]), math.sin(line["heading"])
+    return (line["x"] - fx) * u + (line["y"] - fy) * v, -(fx - line["x"]) * v + (fy - line["y"]) * u
+
+
 def red_crossings(states: Mapping[str, Sequence[float]], line: Mapping[str, Any], timeline: Mapping[str, Sequence[Any]],
                   ego_length: float) -> np.ndarray:
     """Indices of the ego states (``t`` [s], ``x``, ``y`` [m], ``heading`` [rad]: a plan's points or
@@ -669,10 +677,8 @@ def red_crossings(states: Mapping[str, Sequence[float]], line: Mapping[str, Any]
     h = np.asarray(states["heading"], float)
     fx = np.asarray(states["x"], float) + ego_length / 2 * np.cos(h)
     fy = np.asarray(states["y"], float) + ego_length / 2 * np.sin(h)
-    u, v = math.cos(line["heading"]), math.sin(line["heading"])
-    lon = (fx - line["x"]) * u + (fy - line["y"]) * v
-    lat = -(fx - line["x"]) * v + (fy - line["y"]) * u
-    cross = np.flatnonzero((lon[:-1] < 0.0) & (lon[1:] >= 0.0) & (np.abs(lat[1:]) <= line["half_width"])
+    ahead, beside = line_coords(line, fx, fy)
+    cross = np.flatnonzero((ahead[:-1] > 0.0) & (ahead[1:] <= 0.0) & (np.abs(beside[1:]) <= line["half_width"])
                            & (np.cos(h[1:] - line["heading"]) > 0.0)) + 1
     return np.array([k for k in cross if colour_at(timeline, float(t[k])) == "RED"], dtype=np.int64)
 
@@ -745,9 +751,7 @@ def light_holds(outputs: Sequence[tuple[int, float, Mapping[str, Any]]], lines: 
         fx, fy = tr["x"][0] + ego_length / 2 * math.cos(h), tr["y"][0] + ego_length / 2 * math.sin(h)
         hold = False
         for line in lines:
-            u, v = math.cos(line["heading"]), math.sin(line["heading"])
-            ahead = (line["x"] - fx) * u + (line["y"] - fy) * v
-            beside = -(fx - line["x"]) * v + (fy - line["y"]) * u
+            ahead, beside = line_coords(line, fx, fy)
             timeline = timelines.get(line["light"])
             if timeline is None or not (-0.5 <= ahead <= reach and abs(beside) <= line["half_width"]
                                         and math.cos(h - line["heading"]) > 0.0):
@@ -771,10 +775,9 @@ def yellow_stop(trajectory: Mapping[str, Sequence[float]], lines: Sequence[Mappi
 
     def front_to_line(k: int, line: Mapping[str, Any]) -> tuple[float, float]:
         h = float(trajectory["heading"][k])
-        fx = trajectory["x"][k] + ego_length / 2 * math.cos(h)
-        fy = trajectory["y"][k] + ego_length / 2 * math.sin(h)
-        u, v = math.cos(line["heading"]), math.sin(line["heading"])
-        return (line["x"] - fx) * u + (line["y"] - fy) * v, abs(-(fx - line["x"]) * v + (fy - line["y"]) * u)
+        ahead, beside = line_coords(line, trajectory["x"][k] + ego_length / 2 * math.cos(h),
+                                    trajectory["y"][k] + ego_length / 2 * math.sin(h))
+        return ahead, abs(beside)
 
     line = min(lines, key=lambda ln: front_to_line(0, ln)[1])
     ahead0, ahead_end = front_to_line(0, line)[0], front_to_line(len(trajectory["t"]) - 1, line)[0]
