@@ -56,14 +56,10 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
                 xfail_failures: bool = False) -> str:
     """Source of the pytest module for one episode. ``xfail_failures``: the failure oracle is a
     strict xfail (CI stays green while the failure reproduces; XPASS, a failure, once fixed)."""
-    faulty = (header.get("oracle") or {}).get("faulty")
-    departure = (header.get("oracle") or {}).get("departure")
-    wrong_way = (header.get("oracle") or {}).get("wrong_way")
-    stall = (header.get("oracle") or {}).get("stall")
-    off_road = (header.get("oracle") or {}).get("off_road")
-    near_miss = (header.get("oracle") or {}).get("near_miss")
-    red_light = (header.get("oracle") or {}).get("red_light")
-    yellow = (header.get("oracle") or {}).get("yellow")
+    oracles = header.get("oracle") or {}
+    faulty, departure, wrong_way, stall, off_road, near_miss, red_light, yellow = (
+        oracles.get(key) for key in ("faulty", "departure", "wrong_way", "stall", "off_road", "near_miss",
+                                     "red_light", "yellow"))
     coll = summary.get("collision")
     outcome = summary.get("outcome") or "unknown"
     if coll:
@@ -156,7 +152,7 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
             problem = EPISODE.faulty_hit(index)
             assert problem is None, problem
         '''
-    for oracle, test, doc in _more_failure_tests(departure, stall, wrong_way, off_road, near_miss, red_light, yellow):
+    for oracle, test, doc in _more_failure_tests(oracles):
         src += f'''
 
         @pytest.mark.parametrize("index", EPISODE.{oracle}_cases())
@@ -168,14 +164,12 @@ def test_module(header: dict[str, Any], summary: dict[str, Any], frames_name: st
     return textwrap.dedent(src)
 
 
-def _more_failure_tests(departure: dict[str, Any] | None, stall: dict[str, Any] | None,
-                        wrong_way: dict[str, Any] | None,
-                        off_road: dict[str, Any] | None,
-                        near_miss: dict[str, Any] | None,
-                        red_light: dict[str, Any] | None,
-                        yellow: dict[str, Any] | None) -> list[tuple[str, str, str]]:
-    """``(oracle, test name, docstring)`` of each failure test but P_faulty's that the episode has
-    (its ``EpisodeReplay`` methods are ``<oracle>_cases`` and ``<oracle>_problem``)."""
+def _more_failure_tests(oracles: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """``(oracle, test name, docstring)`` of each failure test but P_faulty's that the episode's
+    oracle data (a frames header's ``oracle``) holds (its ``EpisodeReplay`` methods are
+    ``<oracle>_cases`` and ``<oracle>_problem``)."""
+    departure, stall, wrong_way, off_road, near_miss, red_light, yellow = (
+        oracles.get(key) for key in ("departure", "stall", "wrong_way", "off_road", "near_miss", "red_light", "yellow"))
     tests = []
     if departure:
         tests.append(("departure", "keeps_to_the_optimal_path",
