@@ -14,6 +14,7 @@ import functools
 import json
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -115,20 +116,26 @@ def oracle_code() -> str:
     return judge_hash([Path(m.__file__).read_bytes() for m in (nods, trace, episode)] + [Path(__file__).read_bytes()])
 
 
+def _per_context(store: dict[int, tuple[Any, Any]], ctx: SeedContext, make: Callable[[], Any]) -> Any:
+    """``make()`` memoised per seed context in ``store`` (keyed by its id, the context kept beside
+    the value so that a reused id is not mistaken for it; cleared past 512 entries)."""
+    hit = store.get(id(ctx))
+    if hit is not None and hit[0] is ctx:
+        return hit[1]
+    if len(store) > 512:
+        store.clear()
+    value = make()
+    store[id(ctx)] = (ctx, value)
+    return value
+
+
 _CONTEXTS: dict[int, tuple[Any, MetricsContext]] = {}
 
 
 def seed_metrics_context(ctx: SeedContext) -> MetricsContext:
     """The :class:`MetricsContext` of a seed context: its map, lights and the reference run as
     the expert (progress along the expert's path, as nuPlan's); memoised per context."""
-    hit = _CONTEXTS.get(id(ctx))
-    if hit is not None and hit[0] is ctx:
-        return hit[1]
-    if len(_CONTEXTS) > 512:
-        _CONTEXTS.clear()
-    mc = MetricsContext.of_scenario(ctx.scenario, ctx.roadmap, ctx.ref)
-    _CONTEXTS[id(ctx)] = (ctx, mc)
-    return mc
+    return _per_context(_CONTEXTS, ctx, lambda: MetricsContext.of_scenario(ctx.scenario, ctx.roadmap, ctx.ref))
 
 
 def run_metrics(ctx: SeedContext, trace: Trace, collision: dict[str, Any] | None) -> EpisodeMetrics:
@@ -167,14 +174,7 @@ _REFERENCE: dict[int, tuple[Any, EpisodeMetrics]] = {}
 
 def reference_metrics(ctx: SeedContext) -> EpisodeMetrics:
     """The metrics of the seed context's reference run (memoised per context)."""
-    hit = _REFERENCE.get(id(ctx))
-    if hit is not None and hit[0] is ctx:
-        return hit[1]
-    if len(_REFERENCE) > 512:
-        _REFERENCE.clear()
-    m = run_metrics(ctx, ctx.ref, None)
-    _REFERENCE[id(ctx)] = (ctx, m)
-    return m
+    return _per_context(_REFERENCE, ctx, lambda: run_metrics(ctx, ctx.ref, None))
 
 
 def reference_signature(ctx: SeedContext, oracle: str) -> str | None:
@@ -236,33 +236,30 @@ def unmutated_signatures(ctx: SeedContext, cache_dir: Path | str | None = CACHE_
     timing noise without any mutation; the reference run is one run of it); oracles none of them
     violates are left out. Memoised per context and cached on disk (the scenario's content key
     and :func:`oracle_code`)."""
-    hit = _UNMUTATED.get(id(ctx))
-    if hit is not None and hit[0] is ctx:
-        return hit[1]
+    return _per_context(_UNMUTATED, ctx, lambda: _unmutated_cached(ctx, cache_dir))
+
+
+def _unmutated_cached(ctx: SeedContext, cache_dir: Path | str | None) -> dict[str, list[str]]:
+    """:func:`unmutated_signatures` from its cache file, else simulated and written there."""
     key = f"{ctx.name}-{content_key(ctx.scenario, ctx.ads, 0)}-unmutated{FIT_RUNS}-{oracle_code()}"
     path = Path(cache_dir) / f"{key}.json" if cache_dir else None
-    found: dict[str, list[str]] | None = None
     if path is not None and path.exists():
         try:
-            found = {str(o): [str(s) for s in sigs] for o, sigs in json.loads(path.read_text())["signatures"].items()}
+            return {str(o): [str(s) for s in sigs] for o, sigs in json.loads(path.read_text())["signatures"].items()}
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
-            found = None  # damaged: simulated again
-    if found is None:
-        by_oracle: dict[str, set[str]] = {}
-        for js in range(1, FIT_RUNS + 1):
-            m = run_metrics(ctx, record_run(ctx.scenario, ctx.ads, js), None)
-            for o in COUNTED_ORACLES:
-                sig = signature(m, o)
-                if sig is not None:
-                    by_oracle.setdefault(o, set()).add(sig)
-        found = {o: sorted(sigs) for o, sigs in by_oracle.items()}
-        if path is not None:
-            from deft_gym.files import write_json_atomic
+            pass  # damaged: simulated again
+    by_oracle: dict[str, set[str]] = {}
+    for js in range(1, FIT_RUNS + 1):
+        m = run_metrics(ctx, record_run(ctx.scenario, ctx.ads, js), None)
+        for o in COUNTED_ORACLES:
+            sig = signature(m, o)
+            if sig is not None:
+                by_oracle.setdefault(o, set()).add(sig)
+    found = {o: sorted(sigs) for o, sigs in by_oracle.items()}
+    if path is not None:
+        from deft_gym.files import write_json_atomic
 
-            write_json_atomic(path, {"signatures": found, "runs": FIT_RUNS})
-    if len(_UNMUTATED) > 512:
-        _UNMUTATED.clear()
-    _UNMUTATED[id(ctx)] = (ctx, found)
+        write_json_atomic(path, {"signatures": found, "runs": FIT_RUNS})
     return found
 
 
