@@ -668,8 +668,9 @@ class CommonRoadPlanner(Planner):
                     stops.append((s_ego, "RED_LIGHT"))  # overshot the line, all but stopped: stay
                 continue  # past it
             stops.append((s_stop, "RED_LIGHT" if colour == "RED" else "YELLOW_LIGHT"))
-            if colour == "RED":  # approached as a standing leader: the desired speed falls to 0 at the stop
-                v_des = min(v_des, self._approach_cap(gap, v0))
+            # approached as a standing leader: the desired speed falls to 0 at the stop (a yellow one too: it
+            # was not skipped above, so it can still be stopped for)
+            v_des = min(v_des, self._approach_cap(gap, v0))
         dest = routing["destination"]
         dkey = tuple(dest["lane"])
         if dkey in chain:

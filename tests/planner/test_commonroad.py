@@ -254,6 +254,20 @@ def test_a_light_reached_all_but_stopped_is_not_run() -> None:
     assert late["stop"] == ""  # 5 m before the line at 11 m/s: too late to stop, it goes
 
 
+def test_a_yellow_it_can_stop_for_is_approached_as_a_red() -> None:
+    """Found by the extractor's P_yellow on the unseen gen:2000074 (v39): the light turned yellow
+    35 m before the ego's front at 5.2 m/s, the stop was easy (0.4 m/s^2), yet the desired speed
+    stayed up: only a red capped it, and a yellow was stopped for within stop_engage only, where a
+    stop already needed more than yellow_decel; the ego crossed at red. A yellow it can still stop
+    for now caps the desired speed as a red does."""
+    front = 150.0 - 35.0  # the ego's front 35 m before the line
+    decisions = {c: CommonRoadPlanner({}).plan(light_frame(front - 2.4, 8.0, c))["decision"]
+                 for c in ("GREEN", "YELLOW", "RED")}
+    assert decisions["GREEN"]["desired_speed"] >= 8.0
+    assert decisions["YELLOW"]["mode"] == decisions["RED"]["mode"] == "velocity_keeping"
+    assert decisions["YELLOW"]["desired_speed"] == decisions["RED"]["desired_speed"] < 6.0, decisions
+
+
 def test_the_fallback_follows_no_stale_plan_past_a_lanes_end() -> None:
     """Found by the drivable-area metric on stopped_bus (v27): the library found no stopping
     trajectory from the next lane, and the rest of the previous, cruising plan - free in the
