@@ -499,9 +499,11 @@ def _comfort(ego: np.ndarray, dt: float, m: EpisodeMetrics) -> None:
     for k, x in sig.items():
         x = x[skip:]
         lo, hi = COMFORT_BOUNDS[k]
-        worst = float(x[np.argmax(np.abs(x))])
-        m.comfort[k] = worst
-        if worst < lo or worst > hi:
+        low, high = float(x.min()), float(x.max())
+        # each extreme against its own bound (they differ: braking -4.05, accelerating +2.40 m/s^2);
+        # kept: the one nearer to or farther beyond its bound
+        m.comfort[k] = low if lo and low / lo > high / hi else high
+        if low < lo or high > hi:
             m.uncomfortable.append(k)
 
 

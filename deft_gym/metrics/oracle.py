@@ -73,8 +73,7 @@ def severity(m: EpisodeMetrics, oracle: str) -> float:
     if oracle == "progress":
         return 1.0 - m.progress_ratio
     if oracle == "comfort":
-        return min(1.0, max(abs(v) / max(abs(b) for b in COMFORT_BOUNDS[k]) for k, v in m.comfort.items())) \
-            if m.comfort else 0.0
+        return min(1.0, max(abs(v / COMFORT_BOUNDS[k][v >= 0]) for k, v in m.comfort.items())) if m.comfort else 0.0
     if oracle == "speed_limit":
         return 1.0 - m.speed_score
     if oracle == "standstill":

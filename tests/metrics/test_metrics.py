@@ -149,6 +149,21 @@ def test_speeding_and_hard_braking(highway: MetricsContext) -> None:
     assert signature(brake, "comfort") == "metric:comfort:lon_accel"
 
 
+def test_each_comfort_extreme_against_its_own_bound(highway: MetricsContext) -> None:
+    """Found on CommonRoad's red_light_queue (v40): +2.83 m/s^2 pulling away from the light
+    (bound +2.40) and -3.61 m/s^2 braking at the end (bound -4.05); only the larger magnitude was
+    checked, against both bounds, so the run read comfortable."""
+    ego = straight(5.0, 0.0, 2.0, 8.0)
+    t = np.arange(len(ego)) * DT
+    a = np.where((t > 2.0) & (t < 4.0), 2.8, 0.0) - np.where((t > 5.0) & (t < 7.0), 3.6, 0.0)
+    v = 2.0 + np.r_[0.0, np.cumsum(a[1:] * DT)]
+    ego[:, 3] = v
+    ego[:, 0] = 5.0 + np.r_[0.0, np.cumsum(v[1:] * DT)]
+    m = episode_metrics(trace_of(ego), highway)
+    assert m.comfort["lon_accel"] == pytest.approx(2.8, abs=0.1)  # nearer its bound than -3.6 is to -4.05
+    assert "lon_accel" in m.uncomfortable and severity(m, "comfort") == 1.0
+
+
 def test_red_light_crossing() -> None:
     """Straight through the stop line of approach 0 (at s = 120 on lane o0 -> ir0 0) at 10 m/s:
     on red it is a violation, on green none."""
