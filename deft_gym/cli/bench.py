@@ -214,8 +214,9 @@ def build_parser() -> common.Parser:
                     help="instead: CPU of CommonRoad's planner on these scenarios, its kinematic check vectorised "
                     "and the library's loop, --repeats jitter seeds each, and whether the outputs are identical")
     ap.add_argument("--recording-only", action="store_true",
-                    help="instead: only the recording overhead, binary and all-JSON logs against unrecorded runs, "
-                    "--repeats interleaved triplets (about 3x faster per repeat: use --repeats 40 on a noisy machine)")
+                    help="instead: only the recording overhead, binary and all-JSON logs (recorder process) and binary "
+                    "logs written in the simulation's process against unrecorded runs, --repeats interleaved "
+                    "quadruplets (about 2x faster per repeat: use --repeats 40 on a noisy machine)")
     common.add_out(ap, common.RUNS / "bench.json", help="JSON file for the figures", folder=False)
     common.add_output_flags(ap)
     return ap
@@ -367,29 +368,34 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def recording_overhead(scenario: Any, repeats: int, progress: Any = None) -> dict[str, Any]:
-    """CPU of both processes over the unrecorded run's, for binary and all-JSON logs: ``repeats``
-    triplets (unrecorded, binary, JSON) paired by jitter seed, their order rotated from one
-    repeat to the next; per encoding the median paired ratio and its bootstrap 95 % interval."""
-    modes = [("unrecorded", None, None), ("binary", "process", None), ("json", "process", "json")]
+    """CPU of both processes over the unrecorded run's, for binary and all-JSON logs written by
+    the recorder process and for binary logs written in the simulation's process (``inline``,
+    what a pool of simulation processes that fills the CPUs does): ``repeats`` quadruplets
+    paired by jitter seed, their order rotated from one repeat to the next; per kind of log the
+    median paired ratio and its bootstrap 95 % interval."""
+    modes = [("unrecorded", None, None), ("binary", "process", None), ("json", "process", "json"),
+             ("inline", "inline", None)]
     cpu: dict[str, list[float]] = {m: [] for m, _, _ in modes}
     stack_speed(scenario, "process", seed=repeats)  # warm-up (caches, the recorder process), not timed
     for i in range(repeats):
-        for name, recorder, encoding in modes[i % 3:] + modes[:i % 3]:
+        for name, recorder, encoding in modes[i % len(modes):] + modes[:i % len(modes)]:
             r = stack_speed(scenario, recorder, seed=i, encoding=encoding)
             cpu[name].append(r["cpu"] + r["recorder_cpu"])
         if progress is not None:
             progress()
     out: dict[str, Any] = {"repeats": repeats, "cpu_s": cpu}
-    for name in ("binary", "json"):
+    for name in ("binary", "json", "inline"):
         out[name] = paired_overhead(cpu[name], cpu["unrecorded"])
     out["binary_lower_in"] = sum(b < j for b, j in zip(cpu["binary"], cpu["json"], strict=True))
     return out
 
 
 def _recording_only(sc: Any, args: Any, console: Any) -> int:
-    with common.bar(args, args.repeats, "recording triplets") as bar:
+    with common.bar(args, args.repeats, "recording quadruplets") as bar:
         res = recording_overhead(sc, args.repeats, bar.update)
-    for name, what in (("binary", "binary payloads (the default)"), ("json", "every topic JSON")):
+    for name, what in (("binary", "binary payloads (the default), recorder process"),
+                       ("json", "every topic JSON, recorder process"),
+                       ("inline", "binary payloads, written in the simulation's process (a pool filling the CPUs)")):
         console.print(f"[bold]recording CPU, {what}: {100 * res[name]['median']:+.1f} %[/bold] "
                       f"{_interval_text(res[name]['ci95'], args.repeats)}", highlight=False)
     console.print(f"binary below JSON in {res['binary_lower_in']} of {args.repeats} pairs; target <= 10 % CPU",

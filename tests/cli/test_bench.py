@@ -19,14 +19,14 @@ def test_the_interval_holds_the_median_narrows_with_more_runs_and_needs_three() 
 
 
 def test_recording_only_pairs_each_encoding_with_an_unrecorded_run() -> None:
-    """`deft-gym bench --recording-only`: per repeat one unrecorded, one binary and one all-JSON
-    run of the same jitter seed (short runs here); ratios over the unrecorded CPU."""
+    """`deft-gym bench --recording-only`: per repeat one unrecorded, one binary, one all-JSON and
+    one inline-written run of the same jitter seed (short runs here); ratios over the unrecorded CPU."""
     from deft_gym.cli.bench import recording_overhead
     from tests.support.extract_support import short_scenario
 
     res = recording_overhead(short_scenario("lane_follow_static", 3.0), repeats=3)
-    assert [len(res["cpu_s"][k]) for k in ("unrecorded", "binary", "json")] == [3, 3, 3]
-    for name in ("binary", "json"):
+    assert [len(res["cpu_s"][k]) for k in ("unrecorded", "binary", "json", "inline")] == [3, 3, 3, 3]
+    for name in ("binary", "json", "inline"):
         lo, hi = res[name]["ci95"]
         assert -0.5 < lo <= res[name]["median"] <= hi < 2.0
     assert 0 <= res["binary_lower_in"] <= 3
