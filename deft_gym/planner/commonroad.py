@@ -630,8 +630,8 @@ class CommonRoadPlanner(Planner):
         ``stop_engage`` or half the horizon at the current speed (past a light's stop position: where
         ``yellow_decel`` stops it; "hold" at or past any stop below ``red_hold_speed``), else velocity keeping at
         the cruise speed capped by the speed limits, the curves, a moving leader, the lights it
-        stops for and a destination with a standing obstacle at or beyond it within the horizon's
-        reach (as for a standing leader at the stop position)."""
+        stops for and the destination (each as a standing leader at its stop position; a
+        destination a lane over at its position on the reference)."""
         p = self.p
         s_ego = self._s_of(co, *self._rear(frame))
         to_front = p.wb_rear_axle + 0.5 * p.ego_length
@@ -673,6 +673,12 @@ class CommonRoadPlanner(Planner):
             v_des = min(v_des, self._approach_cap(gap, v0))
         dest = routing["destination"]
         dkey = tuple(dest["lane"])
+        # the route's end, approached as a standing leader; on the reference's lane of the destination's road
+        # while the destination is a lane over (the stop itself waits for the ego in its lane)
+        level = next((ln for ln in chain if ln[:2] == dkey[:2]), None) if dkey not in chain else None
+        s_level = self._s_along(model, co, level, float(dest["s"])) if level is not None else None
+        if s_level is not None:
+            v_des = min(v_des, self._approach_cap(s_level - p.wb_rear_axle - s_ego, v0))
         if dkey in chain:
             s_dest = self._s_along(model, co, dkey, float(dest["s"]))
             if s_dest is not None:
@@ -688,7 +694,7 @@ class CommonRoadPlanner(Planner):
                             if not ob.moving and ob.gap <= reach and ob.far >= front_at_stop - p.destination_room]
                 if standing:  # stop_gap behind its rear, less the library's stop samples' reach past the stop
                     s_stop = min(s_stop, s_ego + standing[0] - p.stop_gap - p.s_max)
-                    v_des = min(v_des, self._approach_cap(s_stop - s_ego, v0))
+                v_des = min(v_des, self._approach_cap(s_stop - s_ego, v0))
                 stops.append((s_stop, "DESTINATION"))
         if stops:
             s_stop, what = min(stops)

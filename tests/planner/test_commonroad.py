@@ -200,7 +200,9 @@ def test_what_stands_past_the_destination_makes_it_a_standing_leader() -> None:
     """Found by the search (v32; the slow test below replays it): plans that kept the cruise speed up
     to the destination's stop ran past it, and a car parked beyond it made them swerve out of the
     lane. With an obstacle past the destination within the horizon's reach, the desired speed now
-    falls towards the destination as towards a red light; with none, nothing changes."""
+    falls towards the stop behind it. Since v40 every destination is approached as a standing leader
+    (as a red light): the desired speed is the cruise speed far from it, falls near it, and an
+    obstacle past it may move the stop back, never raising it."""
     cruise = ROUTING["cruise_speed"]
     frame = light_frame(160.0, 10.0, "GREEN")  # 30 m before the destination (s = 190)
     free = CommonRoadPlanner({}).plan(frame)["decision"]
@@ -208,8 +210,14 @@ def test_what_stands_past_the_destination_makes_it_a_standing_leader() -> None:
               "dt": 0.2, "x": [200.0], "y": [0.0], "heading": [0.0], "v": 0.0}
     pred = dict(frame.get("prediction"), obstacles=[parked])
     beyond = CommonRoadPlanner({}).plan(Frame(frame.time, {**frame.inputs, "prediction": pred}))["decision"]
-    assert (free["mode"], free["desired_speed"]) == ("velocity_keeping", cruise)
-    assert beyond["mode"] == "velocity_keeping" and beyond["desired_speed"] < 0.5 * cruise
+    far = CommonRoadPlanner({}).plan(light_frame(40.0, 10.0, "GREEN"))["decision"]  # 150 m before it
+    assert (far["mode"], far["desired_speed"]) == ("velocity_keeping", cruise)
+    assert free["mode"] == "velocity_keeping" and free["desired_speed"] < 0.5 * cruise
+    assert beyond["mode"] == "velocity_keeping" and beyond["desired_speed"] <= free["desired_speed"]
+    # a lane over (four_lane_merging: the destination's lane joined the reference 2 s before the end, at 20 m/s)
+    over = Frame(frame.time, {**frame.inputs, "routing": dict(ROUTING, destination={"lane": ["a", "b", 1], "s": 190.0})})
+    lane_over = CommonRoadPlanner({}).plan(over)["decision"]
+    assert lane_over["desired_speed"] < 0.5 * cruise, lane_over
 
 
 def test_what_stands_at_the_destination_is_stopped_behind() -> None:
@@ -235,7 +243,8 @@ def test_what_stands_at_the_destination_is_stopped_behind() -> None:
     # the stop (s of the rear axle on the reference, which starts reference_back before the lane): behind it
     assert near["stop_s"] - p.reference_back + p.wb_rear_axle + 0.5 * p.ego_length <= rear - p.stop_gap
     far_back = decision(front_at_stop - p.destination_room - 10.0)  # ends 12.4 m before the ego's front at the stop
-    assert far_back["mode"] == "velocity_keeping" and far_back["desired_speed"] == ROUTING["cruise_speed"]
+    free = CommonRoadPlanner({}).plan(light_frame(160.0, 10.0, "GREEN"))["decision"]
+    assert far_back["mode"] == "velocity_keeping" and far_back["desired_speed"] == free["desired_speed"]
 
 
 def test_a_light_reached_all_but_stopped_is_not_run() -> None:
