@@ -673,29 +673,25 @@ class CommonRoadPlanner(Planner):
             v_des = min(v_des, self._approach_cap(gap, v0))
         dest = routing["destination"]
         dkey = tuple(dest["lane"])
-        # the route's end, approached as a standing leader; on the reference's lane of the destination's road
-        # while the destination is a lane over (the stop itself waits for the ego in its lane)
-        level = next((ln for ln in chain if ln[:2] == dkey[:2]), None) if dkey not in chain else None
-        s_level = self._s_along(model, co, level, float(dest["s"])) if level is not None else None
-        if s_level is not None:
-            v_des = min(v_des, self._approach_cap(s_level - p.wb_rear_axle - s_ego, v0))
-        if dkey in chain:
-            s_dest = self._s_along(model, co, dkey, float(dest["s"]))
-            if s_dest is not None:
-                s_stop = s_dest - p.wb_rear_axle
-                # the route ends there: what stands at or beyond it, within the plans' reach, is no reason to
-                # pull out (plans that keep the cruise speed up to the stop run past it and swerve round it,
-                # and there is no room to pass what stands at it and return to the lane before the end); the
-                # stop moves to the rear of the first such obstacle, as a queue moves a red light's, and is
-                # approached as a standing leader
+        # the route's end, approached as a standing leader; while the destination is a lane over, at its
+        # position on the reference's lane of the same road (the stop itself waits for the ego in its lane)
+        at = dkey if dkey in chain else next((ln for ln in chain if ln[:2] == dkey[:2]), None)
+        s_dest = self._s_along(model, co, at, float(dest["s"])) if at is not None else None
+        if s_dest is not None:
+            s_stop = s_dest - p.wb_rear_axle
+            if at == dkey:
+                # what stands at or beyond it, within the plans' reach, is no reason to pull out (plans that
+                # keep the cruise speed up to the stop run past it and swerve round it, and there is no room to
+                # pass what stands at it and return to the lane before the end); the stop moves to the rear of
+                # the first such obstacle, as a queue moves a red light's
                 reach = max(v0, v_des) * p.dt * p.time_steps
                 front_at_stop = s_stop - s_ego  # [m] from the ego's front now to its front at the stop
                 standing = [ob.gap for ob in ahead
                             if not ob.moving and ob.gap <= reach and ob.far >= front_at_stop - p.destination_room]
                 if standing:  # stop_gap behind its rear, less the library's stop samples' reach past the stop
                     s_stop = min(s_stop, s_ego + standing[0] - p.stop_gap - p.s_max)
-                v_des = min(v_des, self._approach_cap(s_stop - s_ego, v0))
                 stops.append((s_stop, "DESTINATION"))
+            v_des = min(v_des, self._approach_cap(s_stop - s_ego, v0))
         if stops:
             s_stop, what = min(stops)
             gap = s_stop - s_ego
